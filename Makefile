@@ -1,0 +1,30 @@
+# Two commands a user needs: `make run` (the main job, default CPU configuration) and
+# `make test`. Both create or refresh the repo-local .venv idempotently.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-stamp
+
+.PHONY: run test venv bench clean
+
+venv: $(STAMP)
+
+# torch==2.13.0 is installed first so pip takes the CPU build on disk instead of a CUDA build.
+$(STAMP): setup.cfg pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(VENV)/bin/torchdem-demo
+
+test: $(STAMP)
+	$(PY) -m pytest -n 2 --dist loadgroup
+
+bench: $(STAMP)
+	$(PY) scripts/bench_engine.py
+
+clean:
+	rm -rf $(VENV) outputs multirun
