@@ -1,0 +1,32 @@
+"""Errors raised by torchdem.
+
+Contract: every error that reports bad input names the bad value, the allowed range and
+where the value came from (a config key, a file, or the argument of a function), so a user
+can fix it without reading the source.
+"""
+from __future__ import annotations
+
+
+class ConfigError(ValueError):
+    """A parameter, config value or input tensor is outside its allowed range."""
+
+
+def out_of_range(name: str, value, allowed: str, source: str) -> ConfigError:
+    """Build the standard bad-input error: ``<source>: <name> = <value> is outside <allowed>``."""
+    return ConfigError(f"{source}: {name} = {value!r} is not allowed; expected {allowed}")
+
+
+class BlowUpError(RuntimeError):
+    """A simulation became unphysical (NaN, runaway speed, energy growth).
+
+    Attributes:
+        step: the time step index at which the guard fired.
+        member: the ensemble member (index along B) that blew up.
+        cause: a short description of what was detected and the likely cause.
+    """
+
+    def __init__(self, step: int, member: int, cause: str):
+        self.step = step
+        self.member = member
+        self.cause = cause
+        super().__init__(f"simulation blew up at step {step} in ensemble member {member}: {cause}")

@@ -1,0 +1,174 @@
+"""Simulation state: frozen dataclasses of tensors, every one with a leading ensemble axis B.
+
+Contract:
+- :class:`Bodies` is the dynamic state of the rigid bodies (a pellet is a one-sphere body, a
+  sinter particle a three-sphere clump). Shapes use B (ensemble members) and Nb (bodies per
+  member; members are padded to the same Nb with ``active = False``).
+- :class:`PairContacts` and :class:`WallContacts` are the Verlet (skin) neighbour lists with
+  their contact history (tangential and rolling springs) and the per-contact constants that
+  do not change between rebuilds. Contacts are indexed by *flat* indices: sphere ``s`` of
+  member ``b`` is ``b * Ns + s``; body ``k`` of member ``b`` is ``b * Nb + k``. A contact always
+  joins two spheres of the same member, so members never interact.
+- :class:`State` bundles them with the step counter. A step returns a new State; nothing
+  is mutated in place that a caller may still hold.
+
+Units are SI throughout: metres, seconds, kilograms, newtons, radians.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+
+Tensor = torch.Tensor
+
+
+class _Replaceable:
+    def set(self, **changes):
+        """Return a copy with the given fields replaced (``dataclasses.replace``)."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class Bodies(_Replaceable):
+    """Rigid-body state.
+
+    Attributes:
+        position: ``[B, Nb, 3]`` centre of mass, m.
+        velocity: ``[B, Nb, 3]`` m/s (at the half step between the two kicks of a step it is
+            the half-step velocity; between steps it is the full-step velocity).
+        orientation: ``[B, Nb, 4]`` unit quaternion (w, x, y, z) rotating the body frame into
+            the world frame.
+        angular_momentum: ``[B, Nb, 3]`` world frame, kg m^2/s.
+        force: ``[B, Nb, 3]`` total force of the last evaluation, N.
+        torque: ``[B, Nb, 3]`` total torque about the centre of mass, world frame, N m.
+        active: ``[B, Nb]`` bool; inactive bodies (padding, removed, lost) do not move or touch.
+    """
+
+    position: Tensor
+    velocity: Tensor
+    orientation: Tensor
+    angular_momentum: Tensor
+    force: Tensor
+    torque: Tensor
+    active: Tensor
+
+
+@dataclass(frozen=True)
+class PairContacts(_Replaceable):
+    """Sphere-sphere neighbour list (pairs closer than the sum of radii plus the skin).
+
+    Attributes (P pairs):
+        i, j: ``[P]`` flat sphere indices, i < j, same member.
+        body_i, body_j: ``[P]`` flat body indices of the two spheres.
+        key: ``[P]`` int64 ``i * S + j`` (S = B * Ns), sorted ascending; used to carry history.
+        tangential: ``[P, 3]`` Mindlin tangential spring displacement, m (history).
+        rolling: ``[P, 3]`` EPSD rolling spring torque, N m (history).
+        radius_i, radius_j: ``[P]`` sphere radii, m.
+        radius_eff: ``[P]`` R* = Ri Rj / (Ri + Rj), m. mass_eff: ``[P]`` m* of the two bodies, kg.
+        young_eff, shear_eff: ``[P]`` E*, G*, Pa. beta: ``[P]`` damping factor from e.
+        mu_s, mu_r, rolling_damping: ``[P]`` interaction coefficients.
+        rolling_inertia: ``[P]`` I_r of the EPSD damping, kg m^2.
+    """
+
+    i: Tensor
+    j: Tensor
+    body_i: Tensor
+    body_j: Tensor
+    key: Tensor
+    tangential: Tensor
+    rolling: Tensor
+    radius_i: Tensor
+    radius_j: Tensor
+    radius_eff: Tensor
+    mass_eff: Tensor
+    young_eff: Tensor
+    shear_eff: Tensor
+    beta: Tensor
+    mu_s: Tensor
+    mu_r: Tensor
+    rolling_damping: Tensor
+    rolling_inertia: Tensor
+
+    @property
+    def n(self) -> int:
+        return self.i.shape[0]
+
+
+@dataclass(frozen=True)
+class WallContacts(_Replaceable):
+    """Sphere-wall neighbour list, same conventions as :class:`PairContacts`.
+
+    Attributes (Q pairs):
+        sphere: ``[Q]`` flat sphere index. body: ``[Q]`` flat body index. wall: ``[Q]`` wall index.
+        key: ``[Q]`` int64 ``sphere * W + wall``, sorted ascending.
+        tangential: ``[Q, 3]`` m. rolling: ``[Q, 3]`` N m.
+        radius: ``[Q]`` sphere radius = R*, m. mass_eff: ``[Q]`` body mass, kg.
+        young_eff, shear_eff, beta, mu_s, mu_r, rolling_damping, rolling_inertia: ``[Q]``.
+    """
+
+    sphere: Tensor
+    body: Tensor
+    wall: Tensor
+    key: Tensor
+    tangential: Tensor
+    rolling: Tensor
+    radius: Tensor
+    mass_eff: Tensor
+    young_eff: Tensor
+    shear_eff: Tensor
+    beta: Tensor
+    mu_s: Tensor
+    mu_r: Tensor
+    rolling_damping: Tensor
+    rolling_inertia: Tensor
+
+    @property
+    def n(self) -> int:
+        return self.sphere.shape[0]
+
+
+@dataclass(frozen=True)
+class State(_Replaceable):
+    """Everything that changes during a run.
+
+    Attributes:
+        bodies: rigid-body state.
+        pairs, walls: neighbour lists with contact history.
+        reference: ``[B * Ns, 3]`` sphere positions when the lists were last built, m.
+        wall_shift: ``[W, 3]`` wall displacement when the lists were last built, m.
+        wall_active: ``[W]`` bool, which walls were present when the lists were last built.
+        step: number of steps taken since t = 0 (time = step * dt).
+        rebuilds: number of neighbour-list rebuilds so far.
+        lost: ``[B]`` int64, bodies deactivated because they left the domain, per member.
+    """
+
+    bodies: Bodies
+    pairs: PairContacts
+    walls: WallContacts
+    reference: Tensor
+    wall_shift: Tensor
+    wall_active: Tensor
+    step: int
+    rebuilds: int
+    lost: Tensor
+
+
+def to_dict(obj) -> dict:
+    """Nested plain dict of a state dataclass (for torch.save with weights_only loading)."""
+    out = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        out[f.name] = to_dict(v) if dataclasses.is_dataclass(v) else v
+    return out
+
+
+def state_from_dict(d: dict) -> State:
+    """Inverse of :func:`to_dict` for :class:`State`."""
+    return State(
+        bodies=Bodies(**d["bodies"]),
+        pairs=PairContacts(**d["pairs"]),
+        walls=WallContacts(**d["walls"]),
+        **{k: v for k, v in d.items() if k not in ("bodies", "pairs", "walls")},
+    )
