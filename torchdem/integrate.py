@@ -22,7 +22,6 @@ from torchdem import contact, neighbors
 from torchdem.rigid import advance_orientation, angular_velocity, quat_rotate
 from torchdem.state import Bodies, PairContacts, State, WallContacts
 from torchdem.system import System
-from torchdem.walls import closest_points
 
 Tensor = torch.Tensor
 
@@ -102,8 +101,84 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> State:
                      wall_active=wall_active, rebuilds=state.rebuilds + 1)
 
 
-def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time: float
-                   ) -> tuple[Tensor, Tensor, State]:
+def pair_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
+                i: Tensor, j: Tensor, body_i: Tensor, body_j: Tensor, radius_i: Tensor, radius_j: Tensor,
+                radius_eff: Tensor, mass_eff: Tensor, young_eff: Tensor, shear_eff: Tensor, beta: Tensor,
+                mu_s: Tensor, mu_r: Tensor, rolling_damping: Tensor, rolling_inertia: Tensor,
+                tangential: Tensor, rolling: Tensor, dt: Tensor, stiffness_model: str
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Sphere-sphere contacts: add forces and torques into ``force``/``torque`` ``[B*Nb, 3]``.
+
+    Pure tensor wiring around :func:`contact.hertz_mindlin` and :func:`contact.rolling_epsd`
+    (no host reads, no data-dependent Python control flow), so it can be compiled.
+    Returns (force, torque, tangential, rolling).
+    """
+    xi = torch.index_select(xs, 0, i)
+    d = torch.index_select(xs, 0, j) - xi
+    dist = d.norm(dim=-1)
+    overlap = radius_i + radius_j - dist
+    n = d / dist.clamp_min(1e-30)[:, None]
+    cp = xi + (radius_i - 0.5 * overlap)[:, None] * n
+    arm_i = cp - torch.index_select(X, 0, body_i)
+    arm_j = cp - torch.index_select(X, 0, body_j)
+    wi = torch.index_select(omega, 0, body_i)
+    wj = torch.index_select(omega, 0, body_j)
+    v_rel = (torch.index_select(V, 0, body_i) + torch.linalg.cross(wi, arm_i, dim=-1)
+             - torch.index_select(V, 0, body_j) - torch.linalg.cross(wj, arm_j, dim=-1))
+    f_n, f, tangential, k_t = contact.hertz_mindlin(
+        overlap, n, v_rel, tangential, radius_eff, mass_eff, young_eff, shear_eff, beta, mu_s, dt)
+    m_roll, rolling = contact.rolling_epsd(
+        wi - wj, n, rolling, f_n, k_t, overlap, radius_eff, young_eff, mu_r, rolling_damping,
+        rolling_inertia, dt, stiffness_model)
+    tau_i = torch.linalg.cross(arm_i, f, dim=-1) + m_roll
+    tau_j = torch.linalg.cross(f, arm_j, dim=-1) - m_roll
+    force = force.index_add(0, body_i, f).index_add(0, body_j, -f)
+    torque = torque.index_add(0, body_i, tau_i).index_add(0, body_j, tau_j)
+    return force, torque, tangential, rolling
+
+
+def wall_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
+                sphere: Tensor, body: Tensor, wall: Tensor, wall_centre: Tensor, wall_u: Tensor,
+                wall_v: Tensor, half_u: Tensor, half_v: Tensor, wall_velocity: Tensor, wall_present: Tensor,
+                radius: Tensor, mass_eff: Tensor, young_eff: Tensor, shear_eff: Tensor, beta: Tensor,
+                mu_s: Tensor, mu_r: Tensor, rolling_damping: Tensor, rolling_inertia: Tensor,
+                tangential: Tensor, rolling: Tensor, dt: Tensor, stiffness_model: str
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Sphere-wall contacts (walls: current centre ``[W, 3]``, axes, half-extents, velocity,
+    presence ``[W]``). Same conventions as :func:`pair_kernel`."""
+    xw = torch.index_select(xs, 0, sphere)
+    c = torch.index_select(wall_centre, 0, wall)
+    u = torch.index_select(wall_u, 0, wall)
+    v = torch.index_select(wall_v, 0, wall)
+    rel = xw - c
+    hu = torch.index_select(half_u, 0, wall)
+    hv = torch.index_select(half_v, 0, wall)
+    su = torch.maximum(torch.minimum((rel * u).sum(-1), hu), -hu)
+    sv = torch.maximum(torch.minimum((rel * v).sum(-1), hv), -hv)
+    d = c + su[:, None] * u + sv[:, None] * v - xw
+    dist = d.norm(dim=-1)
+    present = torch.index_select(wall_present, 0, wall)
+    overlap = torch.where(present, radius - dist, torch.full_like(dist, -1.0))
+    n = d / dist.clamp_min(1e-30)[:, None]
+    cp = xw + (radius - 0.5 * overlap)[:, None] * n
+    arm = cp - torch.index_select(X, 0, body)
+    w = torch.index_select(omega, 0, body)
+    v_rel = (torch.index_select(V, 0, body) + torch.linalg.cross(w, arm, dim=-1)
+             - torch.index_select(wall_velocity, 0, wall))
+    f_n, f, tangential, k_t = contact.hertz_mindlin(
+        overlap, n, v_rel, tangential, radius, mass_eff, young_eff, shear_eff, beta, mu_s, dt)
+    m_roll, rolling = contact.rolling_epsd(
+        w, n, rolling, f_n, k_t, overlap, radius, young_eff, mu_r, rolling_damping, rolling_inertia,
+        dt, stiffness_model)
+    force = force.index_add(0, body, f)
+    torque = torque.index_add(0, body, torch.linalg.cross(arm, f, dim=-1) + m_roll)
+    return force, torque, tangential, rolling
+
+
+
+
+def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time: float,
+                   kernels: "Kernels | None" = None) -> tuple[Tensor, Tensor, State]:
     """Total contact force and torque on every body, and the state with updated history.
 
     Args:
@@ -111,62 +186,30 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
     Returns:
         force, torque: ``[B * Nb, 3]``.
     """
-    dt = system.dt
+    kernels = kernels or EAGER
     B, Nb = system.batch, system.n_bodies
     X = state.bodies.position.reshape(B * Nb, 3)
     V = state.bodies.velocity.reshape(B * Nb, 3)
     force = torch.zeros_like(X)
     torque = torch.zeros_like(X)
-
+    dt = torch.tensor(system.dt, dtype=X.dtype, device=X.device)
     p = state.pairs
     if p.n:
-        d = xs[p.j] - xs[p.i]
-        dist = d.norm(dim=-1)
-        overlap = p.radius_i + p.radius_j - dist
-        n = d / dist.clamp_min(1e-30)[:, None]
-        cp = xs[p.i] + (p.radius_i - 0.5 * overlap)[:, None] * n
-        arm_i = cp - X[p.body_i]
-        arm_j = cp - X[p.body_j]
-        wi, wj = omega[p.body_i], omega[p.body_j]
-        v_rel = (V[p.body_i] + torch.linalg.cross(wi, arm_i, dim=-1)
-                 - V[p.body_j] - torch.linalg.cross(wj, arm_j, dim=-1))
-        f_n, f, tang, k_t = contact.hertz_mindlin(
-            overlap, n, v_rel, p.tangential, p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff,
-            p.beta, p.mu_s, dt)
-        m_roll, roll = contact.rolling_epsd(
-            wi - wj, n, p.rolling, f_n, k_t, overlap, p.radius_eff, p.young_eff, p.mu_r,
-            p.rolling_damping, p.rolling_inertia, dt, system.rolling_stiffness)
-        tau_i = torch.linalg.cross(arm_i, f, dim=-1) + m_roll
-        tau_j = -torch.linalg.cross(arm_j, f, dim=-1) - m_roll
-        force.index_add_(0, torch.cat((p.body_i, p.body_j)), torch.cat((f, -f)))
-        torque.index_add_(0, torch.cat((p.body_i, p.body_j)), torch.cat((tau_i, tau_j)))
+        force, torque, tang, roll = kernels.pair(
+            xs, X, V, omega, force, torque, p.i, p.j, p.body_i, p.body_j, p.radius_i, p.radius_j,
+            p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
+            p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt, system.rolling_stiffness)
         p = p.set(tangential=tang, rolling=roll)
-
     wc = state.walls
     if wc.n:
         walls = system.walls
-        shift = walls.shift(time)
-        present = walls.active_at(time)[wc.wall]
-        xw = xs[wc.sphere]
-        q = closest_points(walls, shift, xw, wc.wall)
-        d = q - xw
-        dist = d.norm(dim=-1)
-        overlap = torch.where(present, wc.radius - dist, torch.full_like(dist, -1.0))
-        n = d / dist.clamp_min(1e-30)[:, None]
-        cp = xw + (wc.radius - 0.5 * overlap)[:, None] * n
-        arm = cp - X[wc.body]
-        w = omega[wc.body]
-        v_rel = V[wc.body] + torch.linalg.cross(w, arm, dim=-1) - walls.velocity_at(time)[wc.wall]
-        f_n, f, tang, k_t = contact.hertz_mindlin(
-            overlap, n, v_rel, wc.tangential, wc.radius, wc.mass_eff, wc.young_eff, wc.shear_eff,
-            wc.beta, wc.mu_s, dt)
-        m_roll, roll = contact.rolling_epsd(
-            w, n, wc.rolling, f_n, k_t, overlap, wc.radius, wc.young_eff, wc.mu_r,
-            wc.rolling_damping, wc.rolling_inertia, dt, system.rolling_stiffness)
-        force.index_add_(0, wc.body, f)
-        torque.index_add_(0, wc.body, torch.linalg.cross(arm, f, dim=-1) + m_roll)
+        force, torque, tang, roll = kernels.wall(
+            xs, X, V, omega, force, torque, wc.sphere, wc.body, wc.wall,
+            walls.centre + walls.shift(time), walls.axis_u, walls.axis_v, walls.half_u, walls.half_v,
+            walls.velocity_at(time), walls.active_at(time), wc.radius, wc.mass_eff, wc.young_eff,
+            wc.shear_eff, wc.beta, wc.mu_s, wc.mu_r, wc.rolling_damping, wc.rolling_inertia,
+            wc.tangential, wc.rolling, dt, system.rolling_stiffness)
         wc = wc.set(tangential=tang, rolling=roll)
-
     return force, torque, state.set(pairs=p, walls=wc)
 
 
@@ -180,40 +223,114 @@ def body_angular_velocity(system: System, bodies: Bodies) -> Tensor:
     return angular_velocity(bodies.orientation.reshape(B * Nb, 4), L, I)
 
 
-def evaluate_forces(system: System, state: State, time: float) -> State:
-    """Rebuild lists if needed, compute forces and torques; return state with them stored."""
+def evaluate_forces(system: System, state: State, time: float, kernels: "Kernels | None" = None) -> State:
+    """Rebuild the lists, compute forces and torques at the current state; store them.
+
+    Used at t = 0 and after a member is frozen; :func:`step` does the same work fused with
+    the kicks.
+    """
     bodies = state.bodies
     xs = sphere_positions(system, bodies)
-    wall_move = float((system.walls.shift(time) - state.wall_shift).norm(dim=-1).max()) if system.walls.n else 0.0
-    walls_changed = bool((system.walls.active_at(time) != state.wall_active).any()) if system.walls.n else False
-    if (state.rebuilds == 0 or walls_changed
-            or neighbors.needs_rebuild(xs, state.reference, wall_move, system.skin)):
-        state = rebuild(system, state, xs, time)
+    state = rebuild(system, state, xs, time)
     omega = body_angular_velocity(system, bodies)
-    force, torque, state = contact_forces(system, state, xs, omega, time)
+    force, torque, state = contact_forces(system, state, xs, omega, time, kernels)
     B, Nb = system.batch, system.n_bodies
     force = force.reshape(B, Nb, 3) + system.mass[..., None] * system.gravity
     act = bodies.active[..., None].to(force.dtype)
     return state.set(bodies=bodies.set(force=force * act, torque=torque.reshape(B, Nb, 3) * act))
 
 
-def step(system: System, state: State) -> State:
+def drift_kernel(position: Tensor, velocity: Tensor, angular_momentum: Tensor, orientation: Tensor,
+                 force: Tensor, torque: Tensor, mass: Tensor, inertia: Tensor, active: Tensor,
+                 sphere_body: Tensor, sphere_offset: Tensor, reference: Tensor, dt: Tensor,
+                 spheres_only: bool) -> tuple[Tensor, ...]:
+    """First half kick and drift; sphere positions, angular velocities and the largest sphere
+    displacement since the last list build (squared, NaN ignored).
+
+    Shapes: bodies ``[B, Nb, ...]``; sphere_body ``[B*Ns]`` flat; sphere_offset ``[B*Ns, 3]``;
+    reference ``[B*Ns, 3]``. Returns (x, v, L, q, xs ``[B*Ns, 3]``, omega ``[B*Nb, 3]``, max_disp2).
+    """
+    act = active[..., None].to(position.dtype)
+    v = velocity + (0.5 * dt) * force / mass[..., None]
+    L = angular_momentum + (0.5 * dt) * torque
+    x = position + dt * v * act
+    L_flat = L.reshape(-1, 3)
+    I_flat = inertia.reshape(-1, 3)
+    xs = torch.index_select(x.reshape(-1, 3), 0, sphere_body)
+    if spheres_only:
+        q = orientation
+        omega = L_flat / I_flat
+    else:
+        q = advance_orientation(orientation, L, inertia, dt)
+        q = torch.where(active[..., None], q, orientation)
+        q_flat = q.reshape(-1, 4)
+        xs = xs + quat_rotate(torch.index_select(q_flat, 0, sphere_body), sphere_offset)
+        omega = angular_velocity(q_flat, L_flat, I_flat)
+    disp2 = torch.nan_to_num((xs - reference).square().sum(-1), nan=0.0, posinf=0.0)
+    return x, v, L, q, xs, omega, disp2.max()
+
+
+def kick_kernel(force: Tensor, torque: Tensor, velocity: Tensor, angular_momentum: Tensor,
+                mass: Tensor, gravity: Tensor, active: Tensor, dt: Tensor) -> tuple[Tensor, ...]:
+    """Add gravity, mask inactive bodies, second half kick. force/torque: ``[B*Nb, 3]``."""
+    shape = velocity.shape
+    act = active[..., None].to(velocity.dtype)
+    f = (force.reshape(shape) + mass[..., None] * gravity) * act
+    tau = torque.reshape(shape) * act
+    v = velocity + (0.5 * dt) * f / mass[..., None]
+    L = angular_momentum + (0.5 * dt) * tau
+    return f, tau, v, L
+
+
+def step(system: System, state: State, kernels: "Kernels | None" = None) -> State:
     """Advance one time step (see the module docstring)."""
+    kernels = kernels or EAGER
     dt = system.dt
     b = state.bodies
-    act = b.active[..., None].to(b.position.dtype)
-    v = b.velocity + (0.5 * dt) * b.force / system.mass[..., None]
-    L = b.angular_momentum + (0.5 * dt) * b.torque
-    x = b.position + dt * v * act
-    if system.spheres_only:
-        q = b.orientation
-    else:
-        q = advance_orientation(b.orientation, L, system.inertia, dt)
-        q = torch.where(b.active[..., None], q, b.orientation)
+    dt_t = torch.tensor(dt, dtype=b.position.dtype, device=b.position.device)
+    x, v, L, q, xs, omega, disp2 = kernels.drift(
+        b.position, b.velocity, b.angular_momentum, b.orientation, b.force, b.torque, system.mass,
+        system.inertia, b.active, system.sphere_body_flat, system.sphere_offset.reshape(-1, 3),
+        state.reference, dt_t, system.spheres_only)
     state = state.set(bodies=b.set(position=x, velocity=v, angular_momentum=L, orientation=q),
                       step=state.step + 1)
-    state = evaluate_forces(system, state, state.step * dt)
+    time = state.step * dt
+    rebuild_now = disp2.item() ** 0.5 > 0.5 * system.skin
+    if system.walls.n and not rebuild_now and system.wall_events:
+        if any((time - dt) < e <= time for e in system.wall_events):
+            rebuild_now = bool((system.walls.active_at(time) != state.wall_active).any())
+        if not rebuild_now and system.walls_move:
+            wall_move = float((system.walls.shift(time) - state.wall_shift).norm(dim=-1).max())
+            rebuild_now = disp2.item() ** 0.5 + wall_move > 0.5 * system.skin
+    if rebuild_now:
+        state = rebuild(system, state, xs, time)
+    force, torque, state = contact_forces(system, state, xs, omega, time, kernels)
     b = state.bodies
-    v = b.velocity + (0.5 * dt) * b.force / system.mass[..., None]
-    L = b.angular_momentum + (0.5 * dt) * b.torque
-    return state.set(bodies=b.set(velocity=v, angular_momentum=L))
+    f, tau, v, L = kernels.kick(force, torque, b.velocity, b.angular_momentum, system.mass, system.gravity,
+                                b.active, dt_t)
+    return state.set(bodies=b.set(force=f, torque=tau, velocity=v, angular_momentum=L))
+
+
+class Kernels:
+    """The contact and integration kernels, eager or compiled with ``torch.compile`` (dynamic shapes).
+
+    Compiling fuses the element-wise contact law into a few loops (one pass over the
+    contacts instead of ~100 tensor operations); the first call of each kernel compiles
+    (tens of seconds on a CPU), later calls and other contact counts reuse it.
+    """
+
+    def __init__(self, compile: bool = False):
+        self.compiled = compile
+        if compile:
+            self.pair = torch.compile(pair_kernel, dynamic=True)
+            self.wall = torch.compile(wall_kernel, dynamic=True)
+            self.drift = torch.compile(drift_kernel, dynamic=True)
+            self.kick = torch.compile(kick_kernel, dynamic=True)
+        else:
+            self.pair = pair_kernel
+            self.wall = wall_kernel
+            self.drift = drift_kernel
+            self.kick = kick_kernel
+
+
+EAGER = Kernels(False)

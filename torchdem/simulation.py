@@ -25,7 +25,7 @@ from typing import Callable
 import torch
 
 from torchdem.errors import BlowUpError, ConfigError
-from torchdem.integrate import body_angular_velocity, evaluate_forces, step
+from torchdem.integrate import Kernels, body_angular_velocity, evaluate_forces, step
 from torchdem.state import State, state_from_dict, to_dict
 from torchdem.system import System
 
@@ -82,11 +82,13 @@ def potential_energy(system: System, state: State) -> Tensor:
 class Simulation:
     """A batched DEM run (see the module docstring)."""
 
-    def __init__(self, system: System, state: State, guards: GuardSettings = GuardSettings()):
+    def __init__(self, system: System, state: State, guards: GuardSettings = GuardSettings(),
+                 compile: bool = False):
         self.system = system
         self.guards = guards.validate()
+        self.kernels = Kernels(compile)
         if state.rebuilds == 0:
-            state = evaluate_forces(system, state, state.step * system.dt)
+            state = evaluate_forces(system, state, state.step * system.dt, self.kernels)
         self.state = state
         self.failed: dict[int, str] = {}
         height = float((system.domain_upper - system.domain_lower).abs().max())
@@ -104,7 +106,7 @@ class Simulation:
                 callback_every: int = 0) -> "Simulation":
         """Take ``n_steps`` steps; call ``callback(self)`` every ``callback_every`` steps."""
         for _ in range(n_steps):
-            self.state = step(self.system, self.state)
+            self.state = step(self.system, self.state, self.kernels)
             k = self.state.step
             if k % self.guards.check_every == 0:
                 self.check()
@@ -159,7 +161,7 @@ class Simulation:
         self.state = self.state.set(bodies=b.set(active=active, velocity=velocity, angular_momentum=ang,
                                                  position=position))
         self.state = self.state.set(rebuilds=0)  # force a clean rebuild without the frozen member
-        self.state = evaluate_forces(self.system, self.state, self.time)
+        self.state = evaluate_forces(self.system, self.state, self.time, self.kernels)
 
     def _remove_lost(self) -> None:
         b = self.state.bodies
@@ -175,14 +177,15 @@ class Simulation:
         torch.save({"state": to_dict(self.state), "failed": self.failed}, Path(path))
 
     @classmethod
-    def load(cls, path: str | Path, system: System, guards: GuardSettings = GuardSettings()) -> "Simulation":
+    def load(cls, path: str | Path, system: System, guards: GuardSettings = GuardSettings(),
+             compile: bool = False) -> "Simulation":
         """Restore a run saved by :meth:`save`; ``system`` must be the one it was built with."""
         data = torch.load(Path(path), weights_only=True)
         state = state_from_dict(data["state"])
         if state.bodies.position.shape[:2] != system.mass.shape:
             raise ConfigError(f"{path}: saved state has bodies {tuple(state.bodies.position.shape[:2])} but "
                               f"the system has {tuple(system.mass.shape)}")
-        sim = cls(system, state, guards)
+        sim = cls(system, state, guards, compile)
         sim.failed = dict(data.get("failed", {}))
         return sim
 

@@ -51,6 +51,8 @@ class System:
         rolling_stiffness: ``"tangential"`` or ``"ai2011"`` (see :mod:`torchdem.contact`).
         spheres_only: True when every body is a single centred sphere (skips orientation).
         material_names: names of the M materials.
+        wall_events: finite times at which a wall appears or disappears, s.
+        walls_move: True if any wall has a non-zero velocity and a move window.
     """
 
     sphere_body: Tensor
@@ -71,6 +73,8 @@ class System:
     rolling_stiffness: str
     spheres_only: bool
     material_names: tuple[str, ...]
+    wall_events: tuple[float, ...] = ()
+    walls_move: bool = False
 
     @property
     def batch(self) -> int:
@@ -307,6 +311,9 @@ def build_system(
         walls=wall_t, gravity=torch.as_tensor(gravity, dtype=dtype, device=device),
         dt=float(dt), skin=float(skin), grid=grid, domain_lower=lo, domain_upper=hi,
         rolling_stiffness=rolling_stiffness, spheres_only=spheres_only, material_names=names,
+        wall_events=tuple(sorted({float(t) for t in torch.cat((wall_t.active_from, wall_t.active_until)).tolist()
+                                  if math.isfinite(t)})),
+        walls_move=bool(((wall_t.velocity.norm(dim=-1) > 0) & (wall_t.move_until > wall_t.move_from)).any()),
     )
     state = initial_state(system, bodies)
     return system, state
