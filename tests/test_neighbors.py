@@ -99,3 +99,45 @@ def test_simulation_never_misses_a_touching_pair():
         listed = set(zip(sim.state.pairs.i.tolist(), sim.state.pairs.j.tolist()))
         assert touching <= listed
     assert sim.state.rebuilds > 2
+
+
+def _oracle_periodic(pos, radius, body, active, Ns, skin, period):
+    from torchdem.neighbors import minimum_image
+    S = pos.shape[0]
+    i, j = torch.triu_indices(S, S, offset=1)
+    same_member = (i // Ns) == (j // Ns)
+    close = minimum_image(pos[i] - pos[j], period).norm(dim=-1) < radius[i] + radius[j] + skin
+    keep = same_member & close & (body[i] != body[j]) & active[i] & active[j]
+    return set(zip(i[keep].tolist(), j[keep].tolist()))
+
+
+def test_periodic_cell_list_equals_minimum_image_oracle():
+    """Periodic along y with many cells, and with only 1 or 2 cells across the period."""
+    for depth in (0.08, 0.03, 0.016):
+        pos, radius, body, active, Ns = _random_packing(21)
+        pos[:, 1] = pos[:, 1] * depth / 0.08 - 0.01 * (pos[:, 0] > 0.05)  # some outside: wrapped
+        skin = 0.001
+        grid = cell_grid((0, 0, 0), (0.08, depth, 0.08), 2 * float(radius.max()) + skin,
+                         periodic=(False, True, False), dtype=F64)
+        i, j = find_pairs(pos, radius, body, active, Ns, grid, skin)
+        found = set(zip(i.tolist(), j.tolist()))
+        assert len(found) == i.shape[0]
+        assert found == _oracle_periodic(pos, radius, body, active, Ns, skin, grid.period), depth
+
+
+def test_collision_across_periodic_boundary_matches_direct_collision():
+    """Two spheres meeting across the periodic y boundary rebound as if the boundary were not there."""
+    from conftest import simulation, two_material_table
+
+    R = 0.005
+    mats, table = two_material_table(1, dict(mu_s=0.5, mu_r=0.05, restitution=0.6))
+    pos = torch.tensor([[[0.05, 0.0055, 0.05], [0.05, 0.0345, 0.05]]], dtype=F64)  # 11 mm apart across y = 0
+    vel = torch.tensor([[[0.0, -0.4, 0.0], [0.0, 0.4, 0.0]]], dtype=F64)
+    sim = simulation(pos, torch.full((1, 2), R, dtype=F64), mats, table, velocity=vel, gravity=(0, 0, 0),
+                     time_step_fraction=0.05, domain=((0, 0, 0), (0.1, 0.04, 0.1)), periodic=(False, True, False))
+    sim.advance(3000)
+    v = sim.state.bodies.velocity[0]
+    assert torch.allclose(v.sum(0), torch.zeros(3, dtype=F64), atol=1e-12)  # momentum conserved
+    rebound = (v[0, 1] - v[1, 1]).item() / 0.8  # sphere 0 now moves +y, sphere 1 -y
+    assert abs(rebound - 0.6) < 0.006, rebound
+    assert sim.state.rebuilds > 1

@@ -54,9 +54,18 @@ def _rolling_inertia(system: System, body: Tensor, radius: Tensor) -> Tensor:
     return inertia + m * radius * radius
 
 
-def rebuild(system: System, state: State, xs: Tensor, time: float) -> State:
-    """Rebuild both neighbour lists at the current positions and carry contact history."""
+def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[State, Tensor]:
+    """Rebuild both neighbour lists at the current positions and carry contact history.
+
+    On periodic axes, body positions are wrapped back into the domain first; returns the new
+    state and the (wrapped) sphere positions ``[B * Ns, 3]``.
+    """
     B, Ns = system.batch, system.n_spheres
+    if system.grid.is_periodic:
+        x = state.bodies.position
+        xw = neighbors.wrap(x, system.grid.lower, system.grid.period)
+        xs = xs + (xw - x).reshape(-1, 3)[system.sphere_body_flat]
+        state = state.set(bodies=state.bodies.set(position=xw))
     S = B * Ns
     active = sphere_active(system, state.bodies)
     radius = system.sphere_radius.reshape(-1)
@@ -97,30 +106,34 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> State:
         mu_s=flat(t.mu_s)[widx], mu_r=flat(t.mu_r)[widx], rolling_damping=flat(t.rolling_damping)[widx],
         rolling_inertia=_rolling_inertia(system, bs, rs),
     )
-    return state.set(pairs=pairs, walls=wall_contacts, reference=xs.clone(), wall_shift=shift,
-                     wall_active=wall_active, rebuilds=state.rebuilds + 1)
+    state = state.set(pairs=pairs, walls=wall_contacts, reference=xs.clone(), wall_shift=shift,
+                      wall_active=wall_active, rebuilds=state.rebuilds + 1)
+    return state, xs
 
 
 def pair_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
                 i: Tensor, j: Tensor, body_i: Tensor, body_j: Tensor, radius_i: Tensor, radius_j: Tensor,
                 radius_eff: Tensor, mass_eff: Tensor, young_eff: Tensor, shear_eff: Tensor, beta: Tensor,
                 mu_s: Tensor, mu_r: Tensor, rolling_damping: Tensor, rolling_inertia: Tensor,
-                tangential: Tensor, rolling: Tensor, dt: Tensor, stiffness_model: str
+                tangential: Tensor, rolling: Tensor, dt: Tensor, period: Tensor, stiffness_model: str
                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Sphere-sphere contacts: add forces and torques into ``force``/``torque`` ``[B*Nb, 3]``.
+
+    ``period`` ``[3]``: periodic box lengths (0 on non-periodic axes); separations and lever
+    arms use the minimum image.
 
     Pure tensor wiring around :func:`contact.hertz_mindlin` and :func:`contact.rolling_epsd`
     (no host reads, no data-dependent Python control flow), so it can be compiled.
     Returns (force, torque, tangential, rolling).
     """
     xi = torch.index_select(xs, 0, i)
-    d = torch.index_select(xs, 0, j) - xi
+    d = neighbors.minimum_image(torch.index_select(xs, 0, j) - xi, period)
     dist = d.norm(dim=-1)
     overlap = radius_i + radius_j - dist
     n = d / dist.clamp_min(1e-30)[:, None]
     cp = xi + (radius_i - 0.5 * overlap)[:, None] * n
-    arm_i = cp - torch.index_select(X, 0, body_i)
-    arm_j = cp - torch.index_select(X, 0, body_j)
+    arm_i = neighbors.minimum_image(cp - torch.index_select(X, 0, body_i), period)
+    arm_j = neighbors.minimum_image(cp - torch.index_select(X, 0, body_j), period)
     wi = torch.index_select(omega, 0, body_i)
     wj = torch.index_select(omega, 0, body_j)
     v_rel = (torch.index_select(V, 0, body_i) + torch.linalg.cross(wi, arm_i, dim=-1)
@@ -198,7 +211,8 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
         force, torque, tang, roll = kernels.pair(
             xs, X, V, omega, force, torque, p.i, p.j, p.body_i, p.body_j, p.radius_i, p.radius_j,
             p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
-            p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt, system.rolling_stiffness)
+            p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt, system.grid.period,
+            system.rolling_stiffness)
         p = p.set(tangential=tang, rolling=roll)
     wc = state.walls
     if wc.n:
@@ -230,8 +244,8 @@ def evaluate_forces(system: System, state: State, time: float, kernels: "Kernels
     the kicks.
     """
     bodies = state.bodies
-    xs = sphere_positions(system, bodies)
-    state = rebuild(system, state, xs, time)
+    state, xs = rebuild(system, state, sphere_positions(system, bodies), time)
+    bodies = state.bodies
     omega = body_angular_velocity(system, bodies)
     force, torque, state = contact_forces(system, state, xs, omega, time, kernels)
     B, Nb = system.batch, system.n_bodies
@@ -303,7 +317,7 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
             wall_move = float((system.walls.shift(time) - state.wall_shift).norm(dim=-1).max())
             rebuild_now = disp2.item() ** 0.5 + wall_move > 0.5 * system.skin
     if rebuild_now:
-        state = rebuild(system, state, xs, time)
+        state, xs = rebuild(system, state, xs, time)
     force, torque, state = contact_forces(system, state, xs, omega, time, kernels)
     b = state.bodies
     f, tau, v, L = kernels.kick(force, torque, b.velocity, b.angular_momentum, system.mass, system.gravity,

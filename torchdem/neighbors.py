@@ -5,6 +5,8 @@ Contract:
   largest possible contact distance (largest sphere diameter plus the skin). Points outside
   the domain are clamped into the border cells; clamping keeps adjacency, so no pair is
   missed, only the border cells get more crowded.
+- Periodic axes (a thin slice of a wider box) wrap cells around; separations use the
+  minimum image (:func:`minimum_image`), and positions are wrapped at every rebuild.
 - :func:`find_pairs` hashes every active sphere to ``member * n_cells + cell``, sorts by hash
   (so members never meet), and for each sphere scans the 27 neighbouring cells through
   ``searchsorted`` ranges. It returns every pair (i < j, different bodies) whose centre
@@ -30,33 +32,54 @@ Tensor = torch.Tensor
 
 @dataclass(frozen=True)
 class CellGrid:
-    """Uniform cell grid.
+    """Uniform cell grid, optionally periodic along some axes.
 
     Attributes:
-        lower: ``[3]`` domain lower corner, m. cell_size: edge length, m.
+        lower: ``[3]`` domain lower corner, m. cell_size: ``[3]`` cell edge per axis, m (each
+            at least the requested size; on a periodic axis it divides the period exactly).
         dims: number of cells along x, y, z.
+        period: ``[3]`` period length on periodic axes, 0 elsewhere, m.
     """
 
     lower: Tensor
-    cell_size: float
+    cell_size: Tensor
     dims: tuple[int, int, int]
+    period: Tensor
 
     @property
     def n_cells(self) -> int:
         return self.dims[0] * self.dims[1] * self.dims[2]
 
+    @property
+    def is_periodic(self) -> bool:
+        return bool((self.period > 0).any())
 
-def cell_grid(lower, upper, cell_size: float, *, dtype=torch.float64, device="cpu",
-              max_cells: int = 8_000_000) -> CellGrid:
-    """Grid over the box [lower, upper] with cells of at least ``cell_size``."""
+
+def cell_grid(lower, upper, cell_size: float, *, periodic=(False, False, False), dtype=torch.float64,
+              device="cpu", max_cells: int = 8_000_000) -> CellGrid:
+    """Grid over the box [lower, upper] with cells of at least ``cell_size`` per axis."""
     lo = torch.as_tensor(lower, dtype=dtype, device=device)
     hi = torch.as_tensor(upper, dtype=dtype, device=device)
     extent = (hi - lo).tolist()
     dims = [max(1, int(math.floor(e / cell_size))) for e in extent]
     while dims[0] * dims[1] * dims[2] > max_cells:
         dims = [max(1, d // 2) for d in dims]
-    size = max(e / d for e, d in zip(extent, dims))
-    return CellGrid(lo, float(size), (dims[0], dims[1], dims[2]))
+    size = torch.tensor([e / d for e, d in zip(extent, dims)], dtype=dtype, device=device)
+    period = torch.tensor([e if p else 0.0 for e, p in zip(extent, periodic)], dtype=dtype, device=device)
+    return CellGrid(lo, size, (dims[0], dims[1], dims[2]), period)
+
+
+def minimum_image(d: Tensor, period: Tensor) -> Tensor:
+    """Shortest periodic image of separation vectors ``d`` ``[..., 3]`` (period 0: not periodic)."""
+    safe = torch.where(period > 0, period, torch.ones_like(period))
+    return d - period * torch.round(d / safe)
+
+
+def wrap(position: Tensor, lower: Tensor, period: Tensor) -> Tensor:
+    """Map positions ``[..., 3]`` into [lower, lower + period) on periodic axes."""
+    safe = torch.where(period > 0, period, torch.ones_like(period))
+    wrapped = lower + torch.remainder(position - lower, safe)
+    return torch.where(period > 0, wrapped, position)
 
 
 _OFFSETS_CACHE: dict[tuple, Tensor] = {}
@@ -85,6 +108,9 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
     device = position.device
     S = position.shape[0]
     dims = torch.tensor(grid.dims, device=device)
+    periodic_axis = grid.period > 0
+    if grid.is_periodic:
+        position = wrap(position, grid.lower, grid.period)
     cell = torch.floor((position - grid.lower) / grid.cell_size).long()
     cell = torch.minimum(cell.clamp_min(0), dims - 1)
     cell = torch.where(torch.isfinite(position).all(-1, keepdim=True), cell, torch.zeros_like(cell))
@@ -97,6 +123,7 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
 
     act = torch.nonzero(active).squeeze(1)
     nb = cell[act][:, None, :] + _stencil(device)[None, :, :]              # [A, 27, 3]
+    nb = torch.where(periodic_axis, torch.remainder(nb, dims), nb)
     inside = ((nb >= 0) & (nb < dims)).all(-1)
     nb_linear = (nb[..., 0] * dims[1] + nb[..., 1]) * dims[2] + nb[..., 2]
     nb_hash = member[act][:, None] * n_cells + nb_linear
@@ -117,11 +144,16 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
     i, j = query[keep], other[keep]
     keep = body[i] != body[j]
     i, j = i[keep], j[keep]
-    d2 = (position[i] - position[j]).square().sum(-1)
+    d = position[i] - position[j]
+    if grid.is_periodic:
+        d = minimum_image(d, grid.period)
     cutoff = radius[i] + radius[j] + skin
-    keep = d2 < cutoff * cutoff
+    keep = d.square().sum(-1) < cutoff * cutoff
     i, j = i[keep], j[keep]
     key = i * S + j
+    if grid.is_periodic and min(g for g, p in zip(grid.dims, periodic_axis.tolist()) if p) < 3:
+        key = torch.unique(key)  # fewer than 3 cells on a periodic axis: a cell is seen twice
+        return key // S, key % S
     key, perm = torch.sort(key)
     return i[perm], j[perm]
 

@@ -165,7 +165,9 @@ class Simulation:
 
     def _remove_lost(self) -> None:
         b = self.state.bodies
-        outside = ((b.position < self.system.domain_lower) | (b.position > self.system.domain_upper)).any(-1)
+        periodic = self.system.grid.period > 0
+        outside = (((b.position < self.system.domain_lower) | (b.position > self.system.domain_upper))
+                   & ~periodic).any(-1)
         lost = outside & b.active
         if bool(lost.any()):
             self.state = self.state.set(
@@ -204,7 +206,9 @@ def elastic_energy(system: System, state: State) -> Tensor:
     out = torch.zeros(B, dtype=xs.dtype, device=xs.device)
     p = state.pairs
     if p.n:
-        overlap = (p.radius_i + p.radius_j - (xs[p.j] - xs[p.i]).norm(dim=-1)).clamp_min(0.0)
+        from torchdem.neighbors import minimum_image
+        sep = minimum_image(xs[p.j] - xs[p.i], system.grid.period)
+        overlap = (p.radius_i + p.radius_j - sep.norm(dim=-1)).clamp_min(0.0)
         u = (8.0 / 15.0) * p.young_eff * p.radius_eff.sqrt() * overlap ** 2.5
         out.index_add_(0, p.i // Ns, u)
     w = state.walls

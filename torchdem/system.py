@@ -121,6 +121,7 @@ def build_system(
     dt: float | None = None,
     skin: float | None = None,
     domain: tuple[Sequence[float], Sequence[float]] | None = None,
+    periodic: Sequence[bool] = (False, False, False),
     rolling_stiffness: str = "tangential",
     source: str = "build_system",
 ) -> tuple[System, State]:
@@ -145,6 +146,8 @@ def build_system(
             largest radius).
         domain: (lower, upper) corners of the simulation box, m (default: bounding box of
             walls with finite extent and particles, padded).
+        periodic: per axis, whether the domain is periodic (needs ``domain``; the period is
+            the domain extent along that axis, which must be at least 2 largest diameters).
         rolling_stiffness: ``"tangential"`` or ``"ai2011"``.
     """
     if position.ndim != 3 or position.shape[-1] != 3:
@@ -278,12 +281,23 @@ def build_system(
         hi = torch.as_tensor(domain[1], dtype=dtype, device=device)
         if not bool((hi > lo).all()):
             raise ConfigError(f"{source}: domain lower {domain[0]} must be below upper {domain[1]} on every axis")
-        outside = active & ((position < lo) | (position > hi)).any(-1)
+        per = torch.tensor([bool(p) for p in periodic], device=device)
+        outside = active & (((position < lo) | (position > hi)) & ~per).any(-1)
         if bool(outside.any()):
             b, k = torch.nonzero(outside)[0].tolist()
             raise ConfigError(f"{source}: body {k} of member {b} at {position[b, k].tolist()} starts outside "
                               f"the domain {list(domain[0])}..{list(domain[1])}")
-    grid = cell_grid(lo, hi, 2 * r_max + skin, dtype=dtype, device=device)
+    periodic = tuple(bool(p) for p in periodic)
+    if len(periodic) != 3:
+        raise ConfigError(f"{source}: periodic = {periodic}; expected three booleans (x, y, z)")
+    if any(periodic):
+        if domain is None:
+            raise ConfigError(f"{source}: periodic = {periodic} needs an explicit domain (the period)")
+        for ax in range(3):
+            if periodic[ax] and float(hi[ax] - lo[ax]) < 2 * (2 * r_max + skin):
+                raise out_of_range(f"domain extent along periodic axis {'xyz'[ax]}", float(hi[ax] - lo[ax]),
+                                   f">= {2 * (2 * r_max + skin):.4g} m (two largest contact distances)", source)
+    grid = cell_grid(lo, hi, 2 * r_max + skin, periodic=periodic, dtype=dtype, device=device)
 
     if orientation is None:
         orientation = torch.zeros((B, N, 4), dtype=dtype, device=device)
