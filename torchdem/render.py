@@ -177,8 +177,9 @@ def crop_box_for(view: View, x_min: float, x_max: float, z_min: float, z_max: fl
     image_x_max = view.x_min + width * mpp
     image_z_min = view.z_max - height * mpp
     tolerance_m = PIXEL_TOLERANCE * mpp
-    for name, value, low, high in (("x_min", x_min, view.x_min, image_x_max), ("x_max", x_max, view.x_min, image_x_max),
-                                   ("z_min", z_min, image_z_min, view.z_max), ("z_max", z_max, image_z_min, view.z_max)):
+    bounds = (("x_min", x_min, view.x_min, image_x_max), ("x_max", x_max, view.x_min, image_x_max),
+              ("z_min", z_min, image_z_min, view.z_max), ("z_max", z_max, image_z_min, view.z_max))
+    for name, value, low, high in bounds:
         if not low - tolerance_m <= value <= high + tolerance_m:
             raise out_of_range(name, value, f"a value inside the view, [{low:g}, {high:g}] m", source)
     x0 = max(0, math.ceil(float(view.column(x_min)) - PIXEL_TOLERANCE))
@@ -195,7 +196,8 @@ def crop_box_for(view: View, x_min: float, x_max: float, z_min: float, z_max: fl
 
 def _host_array(value, name: str, source: str) -> np.ndarray:
     if isinstance(value, torch.Tensor):
-        return value.detach().cpu().numpy()
+        value = value.detach().cpu()
+        return (value.double() if value.is_floating_point() else value).numpy()
     try:
         return np.asarray(value)
     except (TypeError, ValueError) as error:
@@ -255,7 +257,12 @@ def _check_spheres(centres, radii, labels, palette: dict, source: str):
 
 
 def _rasterise_spheres(view: View, centres: np.ndarray, radii: np.ndarray):
-    """Z-buffer the sphere discs: ``(owner [H*W] int64, -1 = none; rim [H*W] d/r in [0, 1])``."""
+    """Z-buffer the sphere discs: ``(owner [H*W] int64, -1 = none; rim [H*W] d/r in [0, 1])``.
+
+    Spheres are grouped by their radius in whole pixels; each group is rasterised in chunks
+    of candidate pixels (a square patch around every centre) with array operations. A disc
+    larger than the image is rasterised over the image alone.
+    """
     height, width = view.shape
     mpp = view.metres_per_pixel
     col, row = view.column(centres[:, 0]), view.row(centres[:, 2])
@@ -265,11 +272,30 @@ def _rasterise_spheres(view: View, centres: np.ndarray, radii: np.ndarray):
     depth_buffer = np.full(height * width, np.inf)
     owner = np.full(height * width, -1, dtype=np.int64)
     rim = np.zeros(height * width)
+
+    def draw(sphere: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> None:
+        """Z-test candidate pixels (``rows``, ``cols``) of ``sphere`` (all ``[M]``)."""
+        dist2_m = ((cols - col[sphere]) ** 2 + (rows - row[sphere]) ** 2) * mpp * mpp
+        inside = ((dist2_m <= radii[sphere] ** 2)
+                  & (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height))
+        sphere, dist2_m = sphere[inside], dist2_m[inside]
+        pixel = rows[inside] * width + cols[inside]
+        depth = centres[sphere, 1] - np.sqrt(np.maximum(radii[sphere] ** 2 - dist2_m, 0.0))
+        np.minimum.at(depth_buffer, pixel, depth)
+        nearest = depth <= depth_buffer[pixel]
+        owner[pixel[nearest]] = sphere[nearest]
+        rim[pixel[nearest]] = np.sqrt(dist2_m[nearest]) / radii[sphere[nearest]]
+
     spheres = np.flatnonzero(visible)
     half = np.ceil(radius_px[spheres]).astype(np.int64)
     for h in np.unique(half):
         group = spheres[half == h]
-        offsets = np.arange(-h, h + 2)                       # covers [floor(c) - h, floor(c) + h + 1]
+        if 2 * h + 2 > max(height, width):  # bigger than the image: the image is the patch
+            image_rows, image_cols = np.divmod(np.arange(height * width), width)
+            for k in group:
+                draw(np.full(image_rows.size, k), image_rows, image_cols)
+            continue
+        offsets = np.arange(-h, h + 2)  # columns floor(c) - h .. floor(c) + h + 1 hold the disc
         d_col = np.repeat(offsets, offsets.size)
         d_row = np.tile(offsets, offsets.size)
         per_chunk = max(1, _CHUNK_ENTRIES // d_col.size)
@@ -277,17 +303,7 @@ def _rasterise_spheres(view: View, centres: np.ndarray, radii: np.ndarray):
             k = group[start:start + per_chunk]
             cols = np.floor(col[k]).astype(np.int64)[:, None] + d_col[None, :]
             rows = np.floor(row[k]).astype(np.int64)[:, None] + d_row[None, :]
-            dist2_px = (cols - col[k, None]) ** 2 + (rows - row[k, None]) ** 2
-            inside = ((dist2_px <= radius_px[k, None] ** 2)
-                      & (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height))
-            sphere = np.broadcast_to(k[:, None], inside.shape)[inside]
-            pixel = rows[inside] * width + cols[inside]
-            dist2_m = dist2_px[inside] * mpp * mpp
-            depth = centres[sphere, 1] - np.sqrt(np.maximum(radii[sphere] ** 2 - dist2_m, 0.0))
-            np.minimum.at(depth_buffer, pixel, depth)
-            nearest = depth <= depth_buffer[pixel]
-            owner[pixel[nearest]] = sphere[nearest]
-            rim[pixel[nearest]] = np.sqrt(dist2_m[nearest]) / radii[sphere[nearest]]
+            draw(np.broadcast_to(k[:, None], cols.shape).ravel(), rows.ravel(), cols.ravel())
     return owner, rim
 
 
@@ -417,7 +433,9 @@ def render_front(
     image = np.empty((height * width, 3), dtype=np.uint8)
     image[:] = BACKGROUND_BGR
     covered = owner >= 0
-    colours = np.array([palette[int(k)] for k in labels], dtype=np.float64)[owner[covered]]
+    keys = np.array(sorted(palette))
+    table = np.array([palette[int(k)] for k in keys], dtype=np.float64)  # [K, 3] BGR
+    colours = table[np.searchsorted(keys, labels)][owner[covered]]
     if rim_darkening > 0:
         lambert = np.sqrt(np.clip(1.0 - rim[covered] ** 2, 0.0, 1.0))  # cos of the surface tilt
         colours *= (1.0 - rim_darkening * (1.0 - lambert))[:, None]
