@@ -115,25 +115,30 @@ def pair_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, 
                 i: Tensor, j: Tensor, body_i: Tensor, body_j: Tensor, radius_i: Tensor, radius_j: Tensor,
                 radius_eff: Tensor, mass_eff: Tensor, young_eff: Tensor, shear_eff: Tensor, beta: Tensor,
                 mu_s: Tensor, mu_r: Tensor, rolling_damping: Tensor, rolling_inertia: Tensor,
-                tangential: Tensor, rolling: Tensor, dt: Tensor, period: Tensor, stiffness_model: str
-                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                tangential: Tensor, rolling: Tensor, dt: Tensor, period: Tensor, stiffness_model: str,
+                periodic: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Sphere-sphere contacts: add forces and torques into ``force``/``torque`` ``[B*Nb, 3]``.
 
-    ``period`` ``[3]``: periodic box lengths (0 on non-periodic axes); separations and lever
-    arms use the minimum image.
+    ``period`` ``[3]``: periodic box lengths (0 on non-periodic axes); when ``periodic`` is True,
+    separations and lever arms use the minimum image.
 
     Pure tensor wiring around :func:`contact.hertz_mindlin` and :func:`contact.rolling_epsd`
     (no host reads, no data-dependent Python control flow), so it can be compiled.
     Returns (force, torque, tangential, rolling).
     """
     xi = torch.index_select(xs, 0, i)
-    d = neighbors.minimum_image(torch.index_select(xs, 0, j) - xi, period)
+    d = torch.index_select(xs, 0, j) - xi
+    if periodic:
+        d = neighbors.minimum_image(d, period)
     dist = d.norm(dim=-1)
     overlap = radius_i + radius_j - dist
     n = d / dist.clamp_min(1e-30)[:, None]
     cp = xi + (radius_i - 0.5 * overlap)[:, None] * n
-    arm_i = neighbors.minimum_image(cp - torch.index_select(X, 0, body_i), period)
-    arm_j = neighbors.minimum_image(cp - torch.index_select(X, 0, body_j), period)
+    arm_i = cp - torch.index_select(X, 0, body_i)
+    arm_j = cp - torch.index_select(X, 0, body_j)
+    if periodic:
+        arm_i = neighbors.minimum_image(arm_i, period)
+        arm_j = neighbors.minimum_image(arm_j, period)
     wi = torch.index_select(omega, 0, body_i)
     wj = torch.index_select(omega, 0, body_j)
     v_rel = (torch.index_select(V, 0, body_i) + torch.linalg.cross(wi, arm_i, dim=-1)
@@ -212,7 +217,7 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
             xs, X, V, omega, force, torque, p.i, p.j, p.body_i, p.body_j, p.radius_i, p.radius_j,
             p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
             p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt, system.grid.period,
-            system.rolling_stiffness)
+            system.rolling_stiffness, system.grid.is_periodic)
         p = p.set(tangential=tang, rolling=roll)
     wc = state.walls
     if wc.n:
