@@ -1,0 +1,138 @@
+"""Geometry of the draw down test: an upper box with a bottom slot closed by a gate, above a
+lower box that receives the material.
+
+Contract: :class:`DrawDownGeometry` holds the dimensions (metres; x across the boxes with the
+outlet centred at x = 0, y the depth, z up with the lower box floor at z = 0) and produces
+the walls (:meth:`walls`), the simulation domain and the regions used by the KPIs. With
+``slice_depth`` set, it describes a thin slice of the same boxes, periodic along y (no front
+and back walls: the slice stands for the interior of the full box); quantities that scale
+with depth are multiplied by ``depth / slice_depth`` to report them for the full box.
+
+Default dimensions. The paper's figure with the dimensions is not in our text, so the
+defaults are derived from its numbers (40 kg fill; steady flow 10.3 kg/s; 81 % discharged,
+i.e. 32.3 kg in the lower box; shear angle 42.5 deg; angle of repose 29.5 deg), assuming a
+bulk density of the 50-50 mixture of about 2050 kg/m^3 (pellets ~0.60 x 3602, sinter ~0.55 x
+3449) and a box depth of 0.20 m:
+
+* flow rate, Beverloo's law for a slot of width b and length L (the depth):
+  W = C rho_b sqrt(g) L (b - k d)^1.5 with C = 1.0, k = 2, d = 12 mm:
+  b = 0.065 m gives 10.6 kg/s.
+* discharged mass: after discharge the material left on each side of the slot is a
+  triangle rising at the shear angle from the slot edge to the side wall. With the side
+  distance a = (W_u - b) / 2, the residue is a^2 tan(42.5 deg) L rho_b; W_u = 0.35 m gives
+  a = 0.1425 m and 7.6 kg left (19 %), 32.4 kg discharged.
+* fill height: 40 kg / (rho_b W_u L) = 0.28 m; the upper box walls are 0.5 m high so a
+  loose rained fill fits before it settles.
+* lower box: a ridge heap of 32.3 kg at 29.5 deg is 0.75 m wide and 0.21 m high; the lower box
+  is 0.80 m wide and 0.30 m high, and the outlet is at 0.35 m, above the heap's apex.
+
+All of these are overridable (``conf/geometry/*.yaml``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from torchdem.errors import ConfigError, out_of_range
+from torchdem.walls import WallSpec
+
+
+@dataclass(frozen=True)
+class DrawDownGeometry:
+    """Dimensions of the draw down test, metres (see the module docstring).
+
+    Attributes:
+        upper_width: inner width of the upper box (x). depth: inner depth of both boxes (y).
+        upper_height: height of the upper box walls above its bottom.
+        outlet_width: width of the bottom slot (x), centred; it spans the whole depth.
+        upper_bottom_z: height of the upper box bottom (and gate) above the lower box floor.
+        lower_width: inner width of the lower box. lower_height: height of its walls.
+        slice_depth: None for the full box, else the depth of a y-periodic slice.
+    """
+
+    upper_width: float = 0.35
+    depth: float = 0.20
+    upper_height: float = 0.50
+    outlet_width: float = 0.065
+    upper_bottom_z: float = 0.35
+    lower_width: float = 0.80
+    lower_height: float = 0.30
+    slice_depth: float | None = None
+
+    def validate(self, source: str = "geometry") -> "DrawDownGeometry":
+        for name in ("upper_width", "depth", "upper_height", "outlet_width", "upper_bottom_z",
+                     "lower_width", "lower_height"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise out_of_range(name, value, "a length > 0 m", source)
+        if not self.outlet_width < self.upper_width:
+            raise out_of_range("outlet_width", self.outlet_width, f"< upper_width = {self.upper_width} m", source)
+        if not self.lower_width >= self.upper_width:
+            raise out_of_range("lower_width", self.lower_width, f">= upper_width = {self.upper_width} m", source)
+        if not self.upper_bottom_z > 0:
+            raise out_of_range("upper_bottom_z", self.upper_bottom_z, "> 0 m", source)
+        if self.slice_depth is not None and not (0 < self.slice_depth <= self.depth):
+            raise out_of_range("slice_depth", self.slice_depth, f"(0, depth = {self.depth}] m or null", source)
+        return self
+
+    @property
+    def is_slice(self) -> bool:
+        return self.slice_depth is not None
+
+    @property
+    def simulated_depth(self) -> float:
+        """Depth of the simulated domain along y, m."""
+        return self.slice_depth if self.slice_depth is not None else self.depth
+
+    @property
+    def depth_scale(self) -> float:
+        """Simulated share of the full box: slice_depth / depth (1 for the full box)."""
+        return self.simulated_depth / self.depth
+
+    @property
+    def periodic(self) -> tuple[bool, bool, bool]:
+        return (False, self.is_slice, False)
+
+    def domain(self, margin: float = 0.05) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """Simulation box (lower, upper corners); y spans exactly the slice when periodic."""
+        D = self.simulated_depth
+        y0, y1 = (0.0, D) if self.is_slice else (-margin, D + margin)
+        top = self.upper_bottom_z + self.upper_height + margin
+        return ((-self.lower_width / 2 - margin, y0, -margin), (self.lower_width / 2 + margin, y1, top))
+
+    def walls(self, material: str, gate_open_time: float) -> list[WallSpec]:
+        """Walls of both boxes; the gate exists until ``gate_open_time`` (s)."""
+        D = self.simulated_depth
+        yc = D / 2
+        # Periodic slices: walls reach one full period beyond the slice so spheres near the cut
+        # faces (whose centres are wrapped into [0, D)) always see them.
+        hy = 1.5 * D if self.is_slice else D / 2
+        Wu, Wl, b = self.upper_width, self.lower_width, self.outlet_width
+        zb, Hu, Hl = self.upper_bottom_z, self.upper_height, self.lower_height
+        side = (Wu - b) / 2
+        walls = [
+            WallSpec("upper_left", (-Wu / 2, yc, zb + Hu / 2), (1, 0, 0), (0, 0, 1), Hu / 2, hy, material),
+            WallSpec("upper_right", (Wu / 2, yc, zb + Hu / 2), (-1, 0, 0), (0, 0, 1), Hu / 2, hy, material),
+            WallSpec("upper_bottom_left", (-(b / 2 + side / 2), yc, zb), (0, 0, 1), (1, 0, 0), side / 2, hy, material),
+            WallSpec("upper_bottom_right", (b / 2 + side / 2, yc, zb), (0, 0, 1), (1, 0, 0), side / 2, hy, material),
+            WallSpec("gate", (0.0, yc, zb), (0, 0, 1), (1, 0, 0), b / 2, hy, material, active_until=gate_open_time),
+            WallSpec("lower_bottom", (0.0, yc, 0.0), (0, 0, 1), (1, 0, 0), Wl / 2, hy, material),
+            WallSpec("lower_left", (-Wl / 2, yc, Hl / 2), (1, 0, 0), (0, 0, 1), Hl / 2, hy, material),
+            WallSpec("lower_right", (Wl / 2, yc, Hl / 2), (-1, 0, 0), (0, 0, 1), Hl / 2, hy, material),
+        ]
+        if not self.is_slice:
+            walls += [
+                WallSpec("upper_front", (0.0, 0.0, zb + Hu / 2), (0, 1, 0), (0, 0, 1), Hu / 2, Wu / 2, material),
+                WallSpec("upper_back", (0.0, D, zb + Hu / 2), (0, -1, 0), (0, 0, 1), Hu / 2, Wu / 2, material),
+                WallSpec("lower_front", (0.0, 0.0, Hl / 2), (0, 1, 0), (0, 0, 1), Hl / 2, Wl / 2, material),
+                WallSpec("lower_back", (0.0, D, Hl / 2), (0, -1, 0), (0, 0, 1), Hl / 2, Wl / 2, material),
+            ]
+        return walls
+
+    def in_upper_box(self, x, z):
+        """Bool mask of centres inside the upper box (above its bottom, between its walls)."""
+        return (z >= self.upper_bottom_z) & (x.abs() <= self.upper_width / 2)
+
+    def in_lower_box(self, x, z):
+        """Bool mask of centres inside the lower box."""
+        return (z < self.upper_bottom_z) & (z >= -0.01) & (x.abs() <= self.lower_width / 2) & (z <= self.lower_height + 0.05)

@@ -1,0 +1,208 @@
+"""Granular materials and mixtures: shapes, sieve size distributions, layered fills.
+
+Contract:
+- :class:`ParticleMaterial` is one bulk material as a DEM model sees it: intrinsic
+  properties (G, nu, solid density), a shape (a :class:`~torchdem.clumps.ClumpTemplate` of
+  unit size, scaled by the sieve diameter d of each particle), a sieve size distribution
+  (mass fractions per sieve class, metres) and a render label (``"pellet"`` / ``"sinter"`` or
+  any name the renderer knows).
+- :class:`Mixture` is a set of materials with mass fractions and a layering order (bottom to
+  top, each entry a material name). Every layer of a material gets an equal share of that
+  material's mass: four alternating layers of a 50-50 mixture of 40 kg are 10 kg each.
+  Three or more materials and any layer sequence work the same way.
+- :func:`sample_layers` draws particles (material index, sieve diameter) per layer from the
+  size distributions until each layer reaches its mass, reproducibly from a seed: within a
+  sieve class the diameter is uniform between the sieve sizes, and classes are chosen with
+  probability proportional to mass fraction / mean particle mass of the class, so the drawn
+  mass distribution matches the sieve analysis.
+
+The sinter template (three equal overlapping spheres, :data:`SINTER_TRILOBE`): sphere radius
+0.35 d, centres on an equilateral triangle of circumradius 0.15 d, so the clump just fits a
+sphere of the sieve diameter d (it passes the sieve) and is 0.7 d thick (a flat, irregular
+grain). The smallest sphere of the smallest sinter (d = 5.6 mm) then has r = 1.96 mm, which
+with rho = 3449 kg/m^3 and G = 1e8 Pa gives 15% of the Rayleigh time step = 5.9e-6 s — the time
+step Hadi et al. report (Section 3.2.4), i.e. the same smallest-sphere size as their clumps.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from torchdem.clumps import ClumpTemplate, principal_template
+from torchdem.errors import ConfigError, out_of_range
+
+PELLET_SPHERE = ClumpTemplate("sphere", np.zeros((1, 3)), np.array([0.5]))
+_R = 0.15
+SINTER_TRILOBE = ClumpTemplate(
+    "sinter_trilobe",
+    np.array([[_R * math.cos(a), _R * math.sin(a), 0.0] for a in (0.0, 2 * math.pi / 3, 4 * math.pi / 3)]),
+    np.full(3, 0.35),
+)
+TEMPLATES: dict[str, ClumpTemplate] = {"sphere": PELLET_SPHERE, "sinter_trilobe": SINTER_TRILOBE}
+
+
+@dataclass(frozen=True)
+class SieveClass:
+    """Mass fraction of particles between two sieve sizes (metres)."""
+
+    d_min: float
+    d_max: float
+    mass_fraction: float
+
+
+@dataclass(frozen=True)
+class ParticleMaterial:
+    """A bulk material as modelled (see the module docstring).
+
+    Attributes:
+        name: unique name. shape: key of :data:`TEMPLATES` (unit sieve diameter).
+        sieve: the size distribution. density: solid density, kg/m^3.
+        shear_modulus: Pa. poisson_ratio. label: render/segmentation label.
+    """
+
+    name: str
+    shape: str
+    sieve: tuple[SieveClass, ...]
+    density: float
+    shear_modulus: float = 1e8
+    poisson_ratio: float = 0.25
+    label: str = ""
+
+    def validate(self, source: str) -> "ParticleMaterial":
+        src = f"{source}[{self.name}]"
+        if self.shape not in TEMPLATES:
+            raise ConfigError(f"{src}: shape = {self.shape!r}; expected one of {sorted(TEMPLATES)}")
+        if not self.sieve:
+            raise ConfigError(f"{src}: the sieve size distribution is empty")
+        total = sum(c.mass_fraction for c in self.sieve)
+        if abs(total - 1.0) > 1e-3:
+            raise out_of_range("sum of sieve mass fractions", round(total, 6), "1 (within 1e-3)", src)
+        for k, c in enumerate(self.sieve):
+            if not (0 < c.d_min < c.d_max):
+                raise out_of_range(f"sieve[{k}] (d_min, d_max)", (c.d_min, c.d_max), "0 < d_min < d_max (m)", src)
+            if not (0 <= c.mass_fraction <= 1):
+                raise out_of_range(f"sieve[{k}].mass_fraction", c.mass_fraction, "[0, 1]", src)
+        if not self.density > 0:
+            raise out_of_range("density", self.density, "> 0 kg/m^3", src)
+        return self
+
+    @property
+    def template(self) -> ClumpTemplate:
+        return TEMPLATES[self.shape]
+
+    def unit_volume(self) -> float:
+        """Volume of a particle of unit sieve diameter, m^3."""
+        return principal_template(self.template).volume
+
+    @property
+    def smallest_sphere_radius(self) -> float:
+        """Radius of the smallest sphere in the smallest particle, m."""
+        return float(self.template.radii.min()) * min(c.d_min for c in self.sieve)
+
+    @property
+    def largest_extent(self) -> float:
+        """Diameter of the sphere enclosing the largest particle, m."""
+        return 2 * self.template.bounding_radius() * max(c.d_max for c in self.sieve)
+
+
+@dataclass(frozen=True)
+class Mixture:
+    """Materials, mass fractions and layering (bottom to top).
+
+    Attributes:
+        name: e.g. ``"pellet_sinter_50_50"``.
+        materials: the materials. mass_fractions: one per material, summing to 1.
+        layering: material names bottom to top (each must be a material; every material with
+            a positive fraction must appear).
+        total_mass: kg in the full box.
+    """
+
+    name: str
+    materials: tuple[ParticleMaterial, ...]
+    mass_fractions: tuple[float, ...]
+    layering: tuple[str, ...]
+    total_mass: float
+
+    def validate(self, source: str = "mixture") -> "Mixture":
+        names = [m.name for m in self.materials]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"{source}: material names must be unique, got {names}")
+        for m in self.materials:
+            m.validate(f"{source}.materials")
+        if len(self.mass_fractions) != len(self.materials):
+            raise ConfigError(f"{source}: {len(self.mass_fractions)} mass fractions for {len(names)} materials")
+        if any(f < 0 for f in self.mass_fractions) or abs(sum(self.mass_fractions) - 1) > 1e-6:
+            raise out_of_range("mass_fractions", tuple(self.mass_fractions), "non-negative values summing to 1", source)
+        for k, layer in enumerate(self.layering):
+            if layer not in names:
+                raise ConfigError(f"{source}: layering[{k}] = {layer!r} is not a material; known: {names}")
+        for n, f in zip(names, self.mass_fractions):
+            if f > 0 and n not in self.layering:
+                raise ConfigError(f"{source}: material {n!r} has mass fraction {f} but no layer in {list(self.layering)}")
+        if not self.total_mass > 0:
+            raise out_of_range("total_mass", self.total_mass, "> 0 kg", source)
+        return self
+
+    def layer_masses(self, scale: float = 1.0) -> list[tuple[int, float]]:
+        """(material index, mass in kg) per layer, bottom to top, for ``scale`` of the total."""
+        index = {m.name: k for k, m in enumerate(self.materials)}
+        counts = {n: self.layering.count(n) for n in set(self.layering)}
+        out = []
+        for layer in self.layering:
+            k = index[layer]
+            out.append((k, scale * self.total_mass * self.mass_fractions[k] / counts[layer]))
+        return out
+
+
+def sieve_from_table(rows: Sequence[Mapping[str, float]]) -> tuple[SieveClass, ...]:
+    """Sieve classes from rows ``{d_min_mm, d_max_mm, mass_fraction}`` (as in the data file)."""
+    return tuple(SieveClass(r["d_min_mm"] / 1000.0, r["d_max_mm"] / 1000.0, float(r["mass_fraction"])) for r in rows)
+
+
+@dataclass(frozen=True)
+class SampledLayers:
+    """Particles drawn for a fill, bottom layer first.
+
+    Attributes:
+        material: ``[N]`` int material index. diameter: ``[N]`` sieve diameter d, m.
+        layer: ``[N]`` layer index (0 = bottom). mass: ``[N]`` kg.
+    """
+
+    material: np.ndarray
+    diameter: np.ndarray
+    layer: np.ndarray
+    mass: np.ndarray
+
+
+def sample_layers(mixture: Mixture, scale: float, seed: int) -> SampledLayers:
+    """Draw the particles of every layer (see the module docstring); ``scale`` is the share of
+    the full box simulated (a slice of depth D_s of a box of depth D has scale D_s / D)."""
+    rng = np.random.default_rng(seed)
+    mats, diams, layers, masses = [], [], [], []
+    unit = [m.unit_volume() * m.density for m in mixture.materials]  # kg per d^3
+    for li, (k, target) in enumerate(mixture.layer_masses(scale)):
+        m = mixture.materials[k]
+        lo = np.array([c.d_min for c in m.sieve])
+        hi = np.array([c.d_max for c in m.sieve])
+        frac = np.array([c.mass_fraction for c in m.sieve])
+        mean_mass = unit[k] * (hi ** 4 - lo ** 4) / (4 * (hi - lo))  # E[d^3] for d ~ U(lo, hi)
+        p = frac / mean_mass
+        p = p / p.sum()
+        got = 0.0
+        while got < target:
+            n = max(16, int(1.2 * (target - got) / float((p * mean_mass).sum())))
+            cls = rng.choice(len(p), size=n, p=p)
+            d = lo[cls] + (hi[cls] - lo[cls]) * rng.random(n)
+            mass = unit[k] * d ** 3
+            cum = got + np.cumsum(mass)
+            take = int(np.searchsorted(cum, target, side="left")) + 1  # the particle that crosses the target
+            take = min(take, n)
+            mats.append(np.full(take, k))
+            diams.append(d[:take])
+            layers.append(np.full(take, li))
+            masses.append(mass[:take])
+            got = float(cum[take - 1])
+    return SampledLayers(np.concatenate(mats), np.concatenate(diams), np.concatenate(layers), np.concatenate(masses))
