@@ -5,7 +5,7 @@ under gravity. The solid fraction measured in the interior (two diameters away f
 walls and the free surface, by Monte Carlo sampling) must fall in the random-packing range
 0.55-0.64 (random loose packing of frictional spheres ~0.55-0.60, random close packing
 ~0.64; Onoda & Liniger 1990, Scott & Kilgour 1969). The run must also come to rest:
-kinetic energy below 1e-6 of the potential energy released.
+kinetic energy below 1e-3 of the potential energy released.
 """
 import pytest
 import torch
@@ -37,7 +37,7 @@ def test_poured_spheres_settle_to_random_packing_fraction():
     x = sphere_positions(sim.system, sim.state.bodies)
     m = sim.system.mass.sum()
     released = (m * 9.81 * (z0 - x[:, 2].mean())).item()
-    assert kinetic_energy(sim.system, sim.state).item() < 1e-6 * released * 1e3  # essentially at rest
+    assert kinetic_energy(sim.system, sim.state).item() < 1e-3 * released  # essentially at rest
     top = x[:, 2].max().item()
     d = 0.01
     lo = torch.tensor([2 * d, 2 * d, 2 * d], dtype=F64)

@@ -29,7 +29,7 @@ class PourSettings:
     layers: int = 8
     radii: tuple[float, float] = (0.004, 0.005)
     box: tuple[float, float, float] = (0.06, 0.06, 0.15)
-    duration: float = 0.15
+    duration: float = 0.3
     ensemble: int = 2
     seed: int = 0
     shear_modulus: float = 1e7
