@@ -253,7 +253,7 @@ def build_system(
     elif not (0 < dt <= rayleigh):
         raise out_of_range("dt", dt, f"(0, {rayleigh:.4g}] s (the Rayleigh time step of the smallest "
                            f"sphere, r = {r_min:.4g} m)", source)
-    r_max = float(sphere_radius.max())
+    r_max = float(sphere_radius[sphere_valid & torch.gather(active, 1, sphere_body)].max())
     if skin is None:
         skin = 0.2 * r_max
     if not skin > 0:
