@@ -1,0 +1,411 @@
+"""Tests of bo.store: batches, leases, recording, artifacts, queries, kill/resume and two workers."""
+from __future__ import annotations
+
+import collections
+import json
+import math
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from _campaign_worker import (CAMPAIGN_BATCH_SIZE, CAMPAIGN_CONDITIONS, CAMPAIGN_SEEDS, N_INITIAL,
+                              N_ROUND, task_key)
+from bo.executor import EvalOutcome, EvalTask, InProcessExecutor, run_pending
+from bo.store import CampaignStore, default_code_version
+from torchdem.errors import ConfigError
+
+WORKER = str(Path(__file__).with_name("_campaign_worker.py"))
+POINTS = [{"mu_s_pp": 0.3, "e_pp": 0.5}, {"mu_s_pp": 0.6, "e_pp": 0.4}, {"e_pp": 0.45, "mu_s_pp": 0.1}]
+
+
+def new_store(tmp_path, **kw) -> CampaignStore:
+    return CampaignStore(tmp_path / "campaign.sqlite", "cfg-1", code_version="test-1", **kw)
+
+
+def fill(store, stage="initial", key="k", points=POINTS, seeds=(0, 1), conditions=("50-50",)):
+    return store.batch(stage, key, lambda: points, seeds=seeds, conditions=conditions)
+
+
+def finish(store, tasks, kpis=lambda t: {"angle_of_repose": 30.0 + t.seed}):
+    return store.record([(t, EvalOutcome.success(kpis(t), 0.5)) for t in tasks])
+
+
+# -- batches ----------------------------------------------------------------------------------
+
+def test_batch_stores_points_once_and_reuses_them(tmp_path):
+    store = new_store(tmp_path)
+    calls = []
+
+    def make_points():
+        calls.append(1)
+        return POINTS
+
+    first = store.batch("initial", "k", make_points, seeds=[0, 1], conditions=["50-50", "70-30"])
+    again = CampaignStore(store.path, "cfg-1").batch("initial", "k", make_points, seeds=[0, 1],
+                                                     conditions=["50-50", "70-30"])
+    assert len(calls) == 1
+    assert first == again == [dict(sorted(p.items())) for p in POINTS]
+    assert list(first[0]) == ["e_pp", "mu_s_pp"]  # canonical key order
+    recs = store.records("initial")
+    assert len(recs) == 3 * 2 * 2 and {r.status for r in recs} == {"pending"}
+    assert [r.condition for r in recs] == ["50-50"] * 6 + ["70-30"] * 6  # condition-major
+    assert {(r.point_index, r.seed, r.condition) for r in recs} == {
+        (i, s, c) for i in range(3) for s in (0, 1) for c in ("50-50", "70-30")}
+    assert all(r.config_hash == "cfg-1" and r.code_version == "test-1" for r in recs)
+    raw = sqlite3.connect(store.path).execute("SELECT params FROM evaluations LIMIT 1").fetchone()[0]
+    assert raw == '{"e_pp":0.5,"mu_s_pp":0.3}'
+    assert store.batch_keys() == [("initial", "k")]
+
+
+def test_batch_with_other_seeds_or_conditions_is_refused(tmp_path):
+    store = new_store(tmp_path)
+    fill(store)
+    with pytest.raises(ConfigError, match=r"seeds=\[0, 1\].*seeds=\[0, 1, 2\]"):
+        fill(store, seeds=(0, 1, 2))
+    with pytest.raises(ConfigError, match="conditions"):
+        fill(store, conditions=("70-30",))
+
+
+def test_bad_points_are_refused_and_nothing_is_stored(tmp_path):
+    store = new_store(tmp_path)
+    with pytest.raises(ConfigError, match=r"mu_s_pp'\] = nan .*finite"):
+        fill(store, points=[{"mu_s_pp": 0.3}, {"mu_s_pp": float("nan")}])
+    with pytest.raises(ConfigError, match="finite"):
+        fill(store, points=[{"mu_s_pp": math.inf}])
+    with pytest.raises(ConfigError, match="real number"):
+        fill(store, points=[{"mu_s_pp": "0.3"}])
+    with pytest.raises(ConfigError, match="real number"):
+        fill(store, points=[{"mu_s_pp": True}])
+    with pytest.raises(ConfigError, match="names of point 0"):
+        fill(store, points=[{"mu_s_pp": 0.3}, {"mu_r_pp": 0.3}])
+    assert store.batch_keys() == [] and store.records() == []
+    assert fill(store, points=[{"mu_s_pp": np.float64(0.25)}]) == [{"mu_s_pp": 0.25}]
+
+
+@pytest.mark.parametrize("stage", ["verfication", "round-0", "round-x", "", None, "Initial"])
+def test_unknown_stage_is_refused(tmp_path, stage):
+    store = new_store(tmp_path)
+    with pytest.raises(ConfigError, match=r"'screening', 'initial'.*round-<n>"):
+        fill(store, stage=stage)
+
+
+def test_stage_names(tmp_path):
+    store = new_store(tmp_path, extra_stages=["discovery"])
+    for stage in ("screening", "initial", "round-1", "round-12", "verification", "validation",
+                  "discovery"):
+        fill(store, stage=stage)
+    assert len(store.batch_keys()) == 7
+
+
+@pytest.mark.parametrize("seeds, conditions, match", [
+    ([], ["50-50"], "seeds"), ([0, 0], ["50-50"], "seeds"), ([0.5], ["50-50"], "seeds"),
+    ([0], [], "conditions"), ([0], "50-50", "conditions"), ([0], ["a", "a"], "conditions"),
+])
+def test_bad_seeds_and_conditions_are_refused(tmp_path, seeds, conditions, match):
+    with pytest.raises(ConfigError, match=match):
+        fill(new_store(tmp_path), seeds=seeds, conditions=conditions)
+
+
+# -- config hash, code version, file -----------------------------------------------------------
+
+def test_config_hash_mismatch_names_both_hashes_and_the_path(tmp_path):
+    store = new_store(tmp_path)
+    fill(store)
+    with pytest.raises(ConfigError) as info:
+        CampaignStore(store.path, "cfg-2")
+    message = str(info.value)
+    assert "'cfg-1'" in message and "'cfg-2'" in message and str(store.path) in message
+    other = CampaignStore(store.path, "cfg-2", allow_config_mismatch=True)
+    assert other.stored_config_hash == "cfg-1" and other.config_hash == "cfg-2"
+    finish(other, other.claim(1))
+    done = other.records(status="done")
+    assert done[0].config_hash == "cfg-2"  # the config the evaluation actually ran under
+
+
+def test_bad_constructor_arguments(tmp_path):
+    with pytest.raises(ConfigError, match="config_hash"):
+        CampaignStore(tmp_path / "a.sqlite", "")
+    with pytest.raises(ConfigError, match="memory"):
+        CampaignStore(":memory:", "cfg")
+    with pytest.raises(ConfigError, match="lease_seconds"):
+        CampaignStore(tmp_path / "a.sqlite", "cfg", lease_seconds=0)
+    (tmp_path / "junk.sqlite").write_bytes(b"this is not a database" * 100)
+    with pytest.raises(ConfigError, match="junk.sqlite"):
+        CampaignStore(tmp_path / "junk.sqlite", "cfg")
+
+
+def test_file_is_wal_and_code_version_defaults_to_git_or_package(tmp_path):
+    store = CampaignStore(tmp_path / "sub" / "c.sqlite", "cfg")
+    mode = sqlite3.connect(store.path).execute("PRAGMA journal_mode").fetchone()[0]
+    assert mode == "wal"
+    version = default_code_version()
+    assert store.code_version == version
+    commit = version.removesuffix("+dirty")
+    assert (len(commit) == 40 and all(c in "0123456789abcdef" for c in commit)) \
+        or version.startswith("torchdem ")
+
+
+# -- claiming and recording -------------------------------------------------------------------
+
+def test_claims_do_not_overlap_and_record_finishes_tasks(tmp_path):
+    store = new_store(tmp_path)
+    fill(store)
+    a, b = store.claim(4), store.claim(4)
+    assert len(a) == 4 and len(b) == 2 and not {t.task_id for t in a} & {t.task_id for t in b}
+    assert store.claim(4) == []
+    assert store.counts() == {"pending": 0, "running": 6, "done": 0, "failed": 0}
+    rec = store.records(status="running")[0]
+    assert rec.claimed_by == f"{socket.gethostname()}:{os.getpid()}" and rec.attempts == 1
+    assert finish(store, a) == 4
+    assert store.record([(b[0], EvalOutcome.failure("blew up at step 7", 1.0))]) == 1
+    assert finish(store, a + b[:1]) == 0  # finished rows are never overwritten
+    assert store.counts() == {"pending": 0, "running": 1, "done": 4, "failed": 1}
+    failed = store.records(status="failed")[0]
+    assert failed.error == "blew up at step 7" and failed.kpis is None and failed.wall_time == 1.0
+    assert store.reset_failed() == 1 and store.counts()["pending"] == 1
+
+
+def test_record_refuses_foreign_tasks(tmp_path):
+    store = new_store(tmp_path)
+    fill(store)
+    task = store.claim(1)[0]
+    forged = EvalTask({"mu_s_pp": 0.99, "e_pp": 0.5}, task.seed, task.condition, task.task_id)
+    with pytest.raises(ConfigError, match="does not match store row"):
+        finish(store, [forged])
+    assert store.counts()["done"] == 0
+
+
+def _set_lease(store, owner, claimed_at):
+    conn = sqlite3.connect(store.path)
+    with conn:
+        conn.execute("UPDATE evaluations SET status = 'running', claimed_by = ?, claimed_at = ?",
+                     (owner, claimed_at))
+    conn.close()
+
+
+def test_lease_of_a_dead_process_is_claimable(tmp_path):
+    store = new_store(tmp_path)
+    fill(store)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    _set_lease(store, f"{socket.gethostname()}:{dead.pid}", time.time())
+    tasks = store.claim(100)
+    assert len(tasks) == 6
+    assert {r.attempts for r in store.records()} == {1}
+
+
+def test_live_lease_is_respected_until_it_times_out(tmp_path):
+    store = new_store(tmp_path, lease_seconds=0.5)
+    fill(store)
+    _set_lease(store, f"{socket.gethostname()}:{os.getppid()}", time.time())  # alive, not us
+    assert store.claim(100) == []
+    _set_lease(store, "other-host:1234", time.time())  # cannot be checked: timeout only
+    assert store.claim(100) == []
+    time.sleep(0.6)
+    assert len(store.claim(100)) == 6
+
+
+def test_renew_and_release_touch_only_own_claims(tmp_path):
+    store = new_store(tmp_path)
+    fill(store)
+    mine = store.claim(3)
+    conn = sqlite3.connect(store.path)
+    with conn:
+        conn.execute("UPDATE evaluations SET status = 'running', claimed_by = 'other-host:1', "
+                     "claimed_at = 0 WHERE status = 'pending'")
+    ids = [r.task_id for r in store.records()]
+    assert store.renew(ids) == 3
+    assert store.release(ids) == 3
+    assert store.counts() == {"pending": 3, "running": 3, "done": 0, "failed": 0}
+    assert all(r.claimed_by is None for r in store.records(status="pending"))
+    assert {t.task_id for t in mine} == {r.task_id for r in store.records(status="pending")}
+
+
+def test_run_pending_renews_leases_while_a_batch_runs(tmp_path):
+    store = new_store(tmp_path, lease_seconds=0.3)  # renewed every 0.1 s
+    fill(store, points=POINTS[:1], seeds=(0,))
+    seen = {}
+
+    def slow(tasks):
+        start = time.time()
+        time.sleep(0.45)
+        seen["claimed_at"] = store.records(status="running")[0].claimed_at
+        seen["start"] = start
+        return [EvalOutcome.success({"angle_of_repose": 30.0}, 0.45) for _ in tasks]
+
+    run_pending(store, InProcessExecutor(slow, batch_size=1))
+    assert seen["claimed_at"] > seen["start"] + 0.1  # the lease was refreshed during the batch
+    assert store.records()[0].attempts == 1 and store.counts()["done"] == 1
+
+
+def test_run_pending_releases_claims_on_interrupt(tmp_path):
+    store = new_store(tmp_path)
+    fill(store)
+
+    def interrupted(tasks):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_pending(store, InProcessExecutor(interrupted, batch_size=2))
+    assert store.counts() == {"pending": 6, "running": 0, "done": 0, "failed": 0}
+
+
+# -- queries and artifacts -------------------------------------------------------------------
+
+def test_records_and_arrays(tmp_path):
+    store = new_store(tmp_path)
+    fill(store, conditions=("50-50", "70-30"))
+    tasks = store.claim(100)
+    assert {t.condition for t in tasks} == {"50-50"}  # one claim, one condition
+    tasks += store.claim(100)
+    kpis = {t.task_id: {"angle_of_repose": 30.0 + t.task_id, "discharge_rate": 2.0 * t.seed}
+            for t in tasks}
+    kpis[tasks[-1].task_id]["discharge_rate"] = math.nan  # stored as null, read back as NaN
+    finish(store, tasks[:-2], lambda t: kpis[t.task_id])
+    finish(store, tasks[-1:], lambda t: kpis[t.task_id])
+    arrays = store.arrays("initial")
+    assert arrays.X.shape == (11, 2) and arrays.kpis.shape == (11, 2) and arrays.seeds.shape == (11,)
+    assert arrays.param_names == ("e_pp", "mu_s_pp")
+    assert arrays.kpi_names == ("angle_of_repose", "discharge_rate")
+    by_id = {t.task_id: t for t in tasks}
+    for row, task_id in enumerate(arrays.task_ids):
+        task = by_id[int(task_id)]
+        assert arrays.X[row].tolist() == [task.params["e_pp"], task.params["mu_s_pp"]]
+        assert arrays.seeds[row] == task.seed and arrays.conditions[row] == task.condition
+        assert arrays.kpis[row, 0] == 30.0 + task_id
+    assert np.isnan(arrays.kpis[-1, 1]) and np.isfinite(arrays.kpis[:-1]).all()
+    sub = store.arrays(condition="70-30", param_names=["mu_s_pp"], kpi_names=["discharge_rate"])
+    assert sub.X.shape == (5, 1) and sub.kpis.shape == (5, 1)
+    assert store.arrays("round-2").X.shape == (0, 0)
+    rec = store.records(condition="50-50", status="done")[0]
+    assert rec.task == by_id[rec.task_id] and rec.finished_at >= rec.claimed_at >= rec.created_at
+    with pytest.raises(ConfigError, match="status"):
+        store.records(status="finished")
+
+
+def test_artifacts(tmp_path):
+    store = new_store(tmp_path)
+    assert store.get_artifact("ga", None) is None
+    with pytest.raises(KeyError, match="no artifact 'ga'"):
+        store.get_artifact("ga")
+    result = {"pareto": [[0.1, 0.2], [0.3, 0.4]], "choice": {"mu_s_pp": 0.49}, "n_gen": 100}
+    store.put_artifact("ga", result)
+    assert CampaignStore(store.path, "cfg-1").get_artifact("ga") == result
+    store.put_artifact("ga", {"n_gen": 200})
+    assert store.get_artifact("ga") == {"n_gen": 200} and store.artifact_names() == ["ga"]
+    with pytest.raises(ConfigError, match="not strict JSON"):
+        store.put_artifact("bad", {"x": math.nan})
+    with pytest.raises(ConfigError, match="not strict JSON"):
+        store.put_artifact("bad", np.zeros(2))
+
+
+# -- processes -------------------------------------------------------------------------------
+
+def _done_count(db: Path) -> int:
+    if not db.exists():
+        return 0
+    conn = sqlite3.connect(db, timeout=10)
+    try:
+        return conn.execute("SELECT COUNT(*) FROM evaluations WHERE status = 'done'").fetchone()[0]
+    except sqlite3.OperationalError:  # schema not created yet
+        return 0
+    finally:
+        conn.close()
+
+
+def _executions(log: Path) -> collections.Counter:
+    if not log.exists():
+        return collections.Counter()
+    return collections.Counter(json.loads(line)["key"] for line in log.read_text().splitlines())
+
+
+def _store_keys(store, **filters) -> set[str]:
+    return {task_key(r.params, r.seed, r.condition) for r in store.records(**filters)}
+
+
+def test_campaign_killed_mid_run_resumes_without_repeating_work(tmp_path):
+    db, log, proposals = tmp_path / "c.sqlite", tmp_path / "evals.log", tmp_path / "proposals.log"
+    command = [sys.executable, WORKER, "campaign", str(db), str(log), str(proposals)]
+    child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 30
+    while _done_count(db) < 8 and child.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    child.send_signal(signal.SIGKILL)
+    _, err = child.communicate()
+    assert child.returncode == -signal.SIGKILL, err.decode()
+
+    store = CampaignStore(db, "cfg-campaign")
+    n_total = (N_INITIAL + N_ROUND) * len(CAMPAIGN_SEEDS) * len(CAMPAIGN_CONDITIONS)
+    at_kill = store.counts()
+    assert at_kill["done"] >= 8 and at_kill["done"] < n_total, at_kill  # killed mid-run
+    done_at_kill = _store_keys(store, status="done")
+    in_flight = _store_keys(store, status="running")
+    assert len(in_flight) <= CAMPAIGN_BATCH_SIZE
+    proposed_before = [json.loads(line) for line in proposals.read_text().splitlines()]
+    assert [p["stage"] for p in proposed_before][:1] == ["initial"]
+
+    rerun = subprocess.run(command, capture_output=True, text=True, timeout=60)
+    assert rerun.returncode == 0, rerun.stderr
+    assert "campaign complete" in rerun.stdout
+
+    assert store.counts() == {"pending": 0, "running": 0, "done": n_total, "failed": 0}
+    records = store.records()
+    keys = [task_key(r.params, r.seed, r.condition) for r in records]
+    assert len(set(keys)) == n_total  # one done row per (params, seed, condition)
+    runs = _executions(log)
+    assert set(runs) == set(keys)  # every evaluation ran ...
+    repeated = {k for k, n in runs.items() if n > 1}
+    assert repeated <= in_flight and max(runs.values()) <= 2  # ... once, unless in flight at kill
+    assert not repeated & done_at_kill
+    assert all(r.attempts == 1 for r in records
+               if task_key(r.params, r.seed, r.condition) not in in_flight)
+    # proposals made before the kill were reused, not made again
+    proposed = [json.loads(line) for line in proposals.read_text().splitlines()]
+    assert [p["stage"] for p in proposed] == ["initial", "round-1"]
+    assert store.batch("initial", "design", lambda: pytest.fail("re-proposed"),
+                       seeds=CAMPAIGN_SEEDS, conditions=CAMPAIGN_CONDITIONS) \
+        == proposed_before[0]["points"]
+    assert store.get_artifact("summary")["best"].keys() == {"e_pp", "mu_s_pp"}
+
+    again = subprocess.run(command, capture_output=True, text=True, timeout=60)
+    assert again.returncode == 0, again.stderr
+    assert _executions(log) == runs  # a finished campaign re-runs nothing ...
+    assert len(proposals.read_text().splitlines()) == 2  # ... and proposes nothing
+    assert store.integrity_check() == "ok"
+
+
+def test_two_processes_share_one_store(tmp_path):
+    db, log, go = tmp_path / "w.sqlite", tmp_path / "evals.log", tmp_path / "go"
+    command = [sys.executable, WORKER, "worker", str(db), str(log), str(go)]
+    workers = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+               for _ in range(2)]
+    deadline = time.monotonic() + 30
+    while len(list(tmp_path.glob("go.ready.*"))) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)  # both have imported and opened the store: start the race
+    go.touch()
+    results = []
+    for worker in workers:
+        out, err = worker.communicate(timeout=60)
+        assert worker.returncode == 0, err
+        results.append(json.loads(out))
+    assert results[0]["points"] == results[1]["points"]  # the batch race has one winner
+    assert results[0]["n_done"] + results[1]["n_done"] == 36
+
+    store = CampaignStore(db, "cfg-workers")
+    assert store.integrity_check() == "ok"
+    assert store.counts() == {"pending": 0, "running": 0, "done": 36, "failed": 0}
+    assert store.batch_keys() == [("initial", "shared")]
+    records = store.records()
+    keys = [task_key(r.params, r.seed, r.condition) for r in records]
+    assert len(set(keys)) == len(keys) == 36
+    runs = _executions(log)
+    assert set(runs) == set(keys) and set(runs.values()) == {1}  # nothing ran twice
+    assert len({r.claimed_by for r in records}) == 2  # both processes did work
