@@ -66,5 +66,41 @@ def demo_main(cfg: DictConfig) -> None:
     print(f"wrote {out / 'report.json'}")
 
 
+@hydra.main(config_path=CONF_DIR, config_name="simulate", version_base="1.3")
+def simulate_main(cfg: DictConfig) -> None:
+    """One draw down test (``replicates`` members in one ensemble) -> kpis.json, CSV, PNG."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+    from tqdm import tqdm
+
+    from torchdem import config
+    from torchdem.drawdown import DrawDownTest
+    from torchdem.simulate import format_summary, simulate_drawdown
+
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    out = Path(HydraConfig.get().runtime.output_dir)
+    test = DrawDownTest(config.mixture_from(plain["mixture"]), config.geometry_from(plain["geometry"]),
+                        config.contact_from(plain["contact"]), config.run_settings_from(plain["sim"], plain["run"]))
+    replicates = int(cfg.replicates)
+    if replicates < 1:
+        raise ConfigError(f"replicates = {replicates} is not allowed; expected an integer >= 1")
+    seeds = [int(cfg.seed) + k for k in range(replicates)]
+    bar = tqdm(total=round(test.total_time, 3), unit="sim-s", disable=not cfg.output.progress,
+               bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} simulated s [{elapsed}<{remaining}, {postfix}]")
+
+    def progress(simulated: float, wall: float) -> None:
+        bar.n = round(min(simulated, test.total_time), 3)
+        bar.set_postfix_str(f"{simulated / max(wall, 1e-9):.3f} sim-s/s", refresh=False)
+        bar.refresh()
+
+    vtk = cfg.output.vtk_interval_s
+    report = simulate_drawdown(test, seeds, out, device=device_from(cfg.sim.device, "sim.device"),
+                               images=bool(cfg.output.images), vtk_interval_s=None if vtk is None else float(vtk),
+                               checkpoint_every_s=float(cfg.output.checkpoint_every_s), progress=progress)
+    bar.close()
+    print(format_summary(report))
+    print(f"wrote {out / 'kpis.json'}")
+
+
 if __name__ == "__main__":  # pragma: no cover
     demo_main()

@@ -111,7 +111,7 @@ def _place_chunk(todo, radius, lo, hi, P, PR, pos, depth, periodic, rng, rounds)
 
 def rain_positions(bounding_radius: np.ndarray, layer: np.ndarray, volume: np.ndarray,
                    geometry: DrawDownGeometry, seed: int, loose_fraction: float = 0.3,
-                   gap: float = 0.0002) -> RainedFill:
+                   gap: float = 0.0002, max_top: float | None = None) -> RainedFill:
     """Place particles layer by layer into the upper box (see the module docstring).
 
     Args:
@@ -119,6 +119,9 @@ def rain_positions(bounding_radius: np.ndarray, layer: np.ndarray, volume: np.nd
         layer: ``[N]`` layer index (0 = bottom). volume: ``[N]`` solid volume, m^3.
         geometry: the boxes. seed: random seed. loose_fraction: bounding-sphere volume
             fraction of the loose slabs. gap: clearance between bounding spheres, m.
+        max_top: highest z the loose stack may reach (default: the top of the upper box
+            walls); a stack above the walls needs the fill extension walls of
+            :meth:`DrawDownGeometry.walls` (``fill_top``).
     """
     if not 0.05 <= loose_fraction <= 0.35:
         raise ConfigError(f"fill: loose_fraction = {loose_fraction}; expected [0.05, 0.35] "
@@ -156,8 +159,8 @@ def rain_positions(bounding_radius: np.ndarray, layer: np.ndarray, volume: np.nd
         z0 = float((got[:, 2] + R).max())
         tops.append(z0)
     top = z0 if N else geometry.upper_bottom_z
-    limit = geometry.upper_bottom_z + geometry.upper_height
+    limit = geometry.upper_bottom_z + geometry.upper_height if max_top is None else max_top
     if top > limit:
-        raise ConfigError(f"fill: the loose stack reaches z = {top:.3f} m, above the upper box walls "
-                          f"(z = {limit:.3f} m); raise geometry.upper_height or reduce the fill mass")
+        raise ConfigError(f"fill: the loose stack reaches z = {top:.3f} m, above the allowed z = {limit:.3f} m; "
+                          "raise geometry.upper_height, raise run.loose_fraction or reduce the fill mass")
     return RainedFill(pos, random_quaternions(N, rng), top, tuple(tops))

@@ -48,6 +48,8 @@ class DrawDownGeometry:
         upper_bottom_z: height of the upper box bottom (and gate) above the lower box floor.
         lower_width: inner width of the lower box. lower_height: height of its walls.
         slice_depth: None for the full box, else the depth of a y-periodic slice.
+        slice_walls: a slice bounded by front and back walls instead of periodic along y
+            (the walls of the lab box, brought to ``slice_depth`` apart); ignored for the full box.
     """
 
     upper_width: float = 0.35
@@ -58,6 +60,7 @@ class DrawDownGeometry:
     lower_width: float = 0.80
     lower_height: float = 0.30
     slice_depth: float | None = None
+    slice_walls: bool = False
 
     def validate(self, source: str = "geometry") -> "DrawDownGeometry":
         for name in ("upper_width", "depth", "upper_height", "outlet_width", "upper_bottom_z",
@@ -90,23 +93,39 @@ class DrawDownGeometry:
         return self.simulated_depth / self.depth
 
     @property
-    def periodic(self) -> tuple[bool, bool, bool]:
-        return (False, self.is_slice, False)
+    def has_front_back_walls(self) -> bool:
+        """Whether front and back walls bound the simulated depth (full box or walled slice)."""
+        return not self.is_slice or self.slice_walls
 
-    def domain(self, margin: float = 0.05) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-        """Simulation box (lower, upper corners); y spans exactly the slice when periodic."""
+    @property
+    def periodic(self) -> tuple[bool, bool, bool]:
+        return (False, not self.has_front_back_walls, False)
+
+    def domain(self, margin: float = 0.05, fill_top: float | None = None
+               ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """Simulation box (lower, upper corners); y spans exactly the slice when periodic; it
+        reaches above a loose fill stacked up to ``fill_top`` (m) when that is higher than the walls."""
         D = self.simulated_depth
-        y0, y1 = (0.0, D) if self.is_slice else (-margin, D + margin)
-        top = self.upper_bottom_z + self.upper_height + margin
+        y0, y1 = (-margin, D + margin) if self.has_front_back_walls else (0.0, D)
+        top = max(self.upper_bottom_z + self.upper_height, fill_top or 0.0) + margin
         return ((-self.lower_width / 2 - margin, y0, -margin), (self.lower_width / 2 + margin, y1, top))
 
-    def walls(self, material: str, gate_open_time: float) -> list[WallSpec]:
-        """Walls of both boxes; the gate exists until ``gate_open_time`` (s)."""
+    def walls(self, material: str, gate_open_time: float, fill_top: float | None = None,
+              front_back_material: str | None = None) -> list[WallSpec]:
+        """Walls of both boxes; the gate exists until ``gate_open_time`` (s). The front and back
+        walls (full box or walled slice) are of ``front_back_material`` (default ``material``).
+
+        A loose rained fill stacked up to ``fill_top`` above the upper box walls is held by
+        fill extension walls (a filling hopper continuing the box walls upwards) that exist
+        only until the gate opens; by then the fill has settled into the box.
+        """
         D = self.simulated_depth
         yc = D / 2
         # Periodic slices: walls reach one full period beyond the slice so spheres near the cut
         # faces (whose centres are wrapped into [0, D)) always see them.
-        hy = 1.5 * D if self.is_slice else D / 2
+        walled = self.has_front_back_walls
+        fb = front_back_material or material
+        hy = D / 2 if walled else 1.5 * D
         Wu, Wl, b = self.upper_width, self.lower_width, self.outlet_width
         zb, Hu, Hl = self.upper_bottom_z, self.upper_height, self.lower_height
         side = (Wu - b) / 2
@@ -120,12 +139,29 @@ class DrawDownGeometry:
             WallSpec("lower_left", (-Wl / 2, yc, Hl / 2), (1, 0, 0), (0, 0, 1), Hl / 2, hy, material),
             WallSpec("lower_right", (Wl / 2, yc, Hl / 2), (-1, 0, 0), (0, 0, 1), Hl / 2, hy, material),
         ]
-        if not self.is_slice:
+        top = zb + Hu
+        if fill_top is not None and fill_top > top:
+            He = fill_top - top + 0.01
+            zc = top + He / 2
             walls += [
-                WallSpec("upper_front", (0.0, 0.0, zb + Hu / 2), (0, 1, 0), (0, 0, 1), Hu / 2, Wu / 2, material),
-                WallSpec("upper_back", (0.0, D, zb + Hu / 2), (0, -1, 0), (0, 0, 1), Hu / 2, Wu / 2, material),
-                WallSpec("lower_front", (0.0, 0.0, Hl / 2), (0, 1, 0), (0, 0, 1), Hl / 2, Wl / 2, material),
-                WallSpec("lower_back", (0.0, D, Hl / 2), (0, -1, 0), (0, 0, 1), Hl / 2, Wl / 2, material),
+                WallSpec("fill_left", (-Wu / 2, yc, zc), (1, 0, 0), (0, 0, 1), He / 2, hy, material,
+                         active_until=gate_open_time),
+                WallSpec("fill_right", (Wu / 2, yc, zc), (-1, 0, 0), (0, 0, 1), He / 2, hy, material,
+                         active_until=gate_open_time),
+            ]
+            if walled:
+                walls += [
+                    WallSpec("fill_front", (0.0, 0.0, zc), (0, 1, 0), (0, 0, 1), He / 2, Wu / 2, fb,
+                             active_until=gate_open_time),
+                    WallSpec("fill_back", (0.0, D, zc), (0, -1, 0), (0, 0, 1), He / 2, Wu / 2, fb,
+                             active_until=gate_open_time),
+                ]
+        if walled:
+            walls += [
+                WallSpec("upper_front", (0.0, 0.0, zb + Hu / 2), (0, 1, 0), (0, 0, 1), Hu / 2, Wu / 2, fb),
+                WallSpec("upper_back", (0.0, D, zb + Hu / 2), (0, -1, 0), (0, 0, 1), Hu / 2, Wu / 2, fb),
+                WallSpec("lower_front", (0.0, 0.0, Hl / 2), (0, 1, 0), (0, 0, 1), Hl / 2, Wl / 2, fb),
+                WallSpec("lower_back", (0.0, D, Hl / 2), (0, -1, 0), (0, 0, 1), Hl / 2, Wl / 2, fb),
             ]
         return walls
 

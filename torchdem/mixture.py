@@ -41,7 +41,55 @@ SINTER_TRILOBE = ClumpTemplate(
     np.array([[_R * math.cos(a), _R * math.sin(a), 0.0] for a in (0.0, 2 * math.pi / 3, 4 * math.pi / 3)]),
     np.full(3, 0.35),
 )
-TEMPLATES: dict[str, ClumpTemplate] = {"sphere": PELLET_SPHERE, "sinter_trilobe": SINTER_TRILOBE}
+
+
+def trilobe_template(lobe_spacing: float) -> ClumpTemplate:
+    """The trilobe family of :data:`SINTER_TRILOBE`: three equal spheres on an equilateral
+    triangle of circumradius ``lobe_spacing`` (units of the sieve diameter d), each of radius
+    ``0.5 - lobe_spacing`` so the clump just fits a sphere of diameter d. 0 is a sphere, 0.15
+    the default sinter, larger values are flatter and more angular; allowed (0, 0.3]."""
+    if not 0 < lobe_spacing <= 0.3:
+        raise out_of_range("lobe_spacing", lobe_spacing, "(0, 0.3] of the sieve diameter", "trilobe_template")
+    a = (0.0, 2 * math.pi / 3, 4 * math.pi / 3)
+    return ClumpTemplate(trilobe_shape(lobe_spacing),
+                         np.array([[lobe_spacing * math.cos(t), lobe_spacing * math.sin(t), 0.0] for t in a]),
+                         np.full(3, 0.5 - lobe_spacing))
+
+
+_TRILOBE_PREFIX = "trilobe_s"
+
+
+def trilobe_shape(lobe_spacing: float) -> str:
+    """Shape key of a trilobe of this lobe spacing (``"trilobe_s0.2000"``); :data:`TEMPLATES`
+    builds it on first use, in any process (the key is the recipe)."""
+    return f"{_TRILOBE_PREFIX}{lobe_spacing:.4f}"
+
+
+class _TemplateTable(dict):
+    """Named templates plus the parametric trilobe family (keys ``trilobe_s<spacing>``)."""
+
+    def _parametric(self, key) -> ClumpTemplate | None:
+        if isinstance(key, str) and key.startswith(_TRILOBE_PREFIX):
+            try:
+                spacing = float(key[len(_TRILOBE_PREFIX):])
+            except ValueError:
+                return None
+            if 0 < spacing <= 0.3 and trilobe_shape(spacing) == key:
+                return trilobe_template(spacing)
+        return None
+
+    def __contains__(self, key) -> bool:
+        return dict.__contains__(self, key) or self._parametric(key) is not None
+
+    def __missing__(self, key):
+        template = self._parametric(key)
+        if template is None:
+            raise KeyError(key)
+        self[key] = template
+        return template
+
+
+TEMPLATES: dict[str, ClumpTemplate] = _TemplateTable({"sphere": PELLET_SPHERE, "sinter_trilobe": SINTER_TRILOBE})
 
 
 @dataclass(frozen=True)
@@ -206,3 +254,75 @@ def sample_layers(mixture: Mixture, scale: float, seed: int) -> SampledLayers:
             masses.append(mass[:take])
             got = float(cum[take - 1])
     return SampledLayers(np.concatenate(mats), np.concatenate(diams), np.concatenate(layers), np.concatenate(masses))
+
+
+def scalp_sieve(sieve: Sequence[SieveClass], d_cut: float, source: str = "sieve") -> tuple[SieveClass, ...]:
+    """Merge the sieve classes below ``d_cut`` (m) into the first class at or above it, keeping mass.
+
+    This is the "scalping" of fines that industrial DEM uses to afford a run: the mass of the
+    fines is kept but carried by coarser particles, so the particle count and the smallest
+    sphere (which sets the time step) shrink. It changes what fines do (percolation, packing),
+    so a study that asks about fines must not use it; ``d_cut`` must be a sieve boundary.
+    """
+    bounds = sorted({c.d_min for c in sieve})
+    if not any(abs(d_cut - b) < 1e-9 for b in bounds):
+        raise out_of_range("fines_cut", d_cut, f"one of the sieve boundaries {[round(b, 6) for b in bounds]} m", source)
+    kept = [c for c in sieve if c.d_min >= d_cut - 1e-9]
+    lost = sum(c.mass_fraction for c in sieve if c.d_min < d_cut - 1e-9)
+    first = kept[0]
+    return (SieveClass(first.d_min, first.d_max, first.mass_fraction + lost),) + tuple(kept[1:])
+
+
+def scalp_mixture(mixture: Mixture, d_cut: float | None, source: str = "fines_cut") -> Mixture:
+    """The mixture with every material's fines below ``d_cut`` scalped (see :func:`scalp_sieve`);
+    materials whose smallest sieve size is at or above ``d_cut`` are unchanged."""
+    if d_cut is None:
+        return mixture
+    if not d_cut > 0:
+        raise out_of_range("fines_cut", d_cut, "> 0 m or null", source)
+    mats = []
+    for m in mixture.materials:
+        if min(c.d_min for c in m.sieve) < d_cut - 1e-9:
+            boundaries = sorted({c.d_min for c in m.sieve})
+            if d_cut >= max(boundaries) + 1e-9:
+                raise out_of_range("fines_cut", d_cut, f"<= {max(boundaries)} m (the last sieve class of "
+                                   f"{m.name!r} starts there)", source)
+            snapped = min(b for b in boundaries if b >= d_cut - 1e-9)
+            m = ParticleMaterial(m.name, m.shape, scalp_sieve(m.sieve, snapped, f"{source}[{m.name}]"), m.density,
+                                 m.shear_modulus, m.poisson_ratio, m.label)
+        mats.append(m)
+    return Mixture(mixture.name, tuple(mats), mixture.mass_fractions, mixture.layering, mixture.total_mass)
+
+
+# -- the paper's materials (Tables 1 and 3), shipped in torchdem/data ---------------------------
+PAPER_SHAPES = {"pellet": "sphere", "sinter": "sinter_trilobe"}
+
+
+def paper_material(name: str) -> ParticleMaterial:
+    """Pellet or sinter as the paper measured it: sieve analysis and solid density (Table 1),
+    G and nu (Table 3); pellets are spheres, sinter the 3-sphere trilobe clump."""
+    from torchdem.measured import load_materials
+
+    if name not in PAPER_SHAPES:
+        raise ConfigError(f"paper_material: {name!r} is not a material of the paper; expected one of "
+                          f"{sorted(PAPER_SHAPES)}")
+    row = load_materials()[name]
+    return ParticleMaterial(name, PAPER_SHAPES[name], sieve_from_table(row["sieve_size_distribution"]),
+                            float(row["solid_density_kg_m3"]["mean"]), float(row["shear_modulus_pa"]),
+                            float(row["poisson_ratio"]), label=name)
+
+
+def pellet_sinter_mixture(pellet_fraction: float = 0.5, reverse: bool = False, total_mass: float = 40.0,
+                          layers: int = 4) -> Mixture:
+    """The paper's layered fill: ``layers`` alternating layers, pellets at the bottom (sinter if
+    ``reverse``), ``total_mass`` kg; e.g. ``pellet_sinter_mixture(0.75)`` is the 75-25 test."""
+    if not 0 < pellet_fraction < 1:
+        raise out_of_range("pellet_fraction", pellet_fraction, "(0, 1)", "pellet_sinter_mixture")
+    if layers < 2:
+        raise out_of_range("layers", layers, "an integer >= 2", "pellet_sinter_mixture")
+    order = ("sinter", "pellet") if reverse else ("pellet", "sinter")
+    pct = round(100 * pellet_fraction)
+    name = f"pellet_sinter_{pct}_{100 - pct}" + ("_reverse" if reverse else "")
+    return Mixture(name, (paper_material("pellet"), paper_material("sinter")),
+                   (pellet_fraction, 1 - pellet_fraction), tuple(order[k % 2] for k in range(layers)),
+                   total_mass).validate(name)

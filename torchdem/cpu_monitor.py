@@ -1,0 +1,44 @@
+"""How busy the rest of the machine was while something was timed (for benchmark scripts).
+
+Contract: ``with CpuMonitor() as m: ...`` sets ``m.other_cores`` to the CPU time that *other*
+processes used during the block, in cores (machine-wide busy time from ``/proc/stat`` minus
+this process's and its waited-for children's CPU time, divided by the wall time), or None
+where ``/proc/stat`` is unavailable. On a 2-core machine anything above ~0.1 means the timing
+was taken on a shared, busy machine and its figures are low.
+"""
+from __future__ import annotations
+
+import os
+import resource
+import time
+from pathlib import Path
+
+
+class CpuMonitor:
+    """CPU used by other processes during a ``with`` block, in cores (see module docstring)."""
+
+    def __enter__(self) -> "CpuMonitor":
+        self.other_cores: float | None = None
+        self.wall_s: float = 0.0
+        self._busy0, self._own0, self._t0 = self._busy(), self._own(), time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        busy1, own1 = self._busy(), self._own()
+        self.wall_s = time.perf_counter() - self._t0
+        if self._busy0 is not None and busy1 is not None and self.wall_s > 0:
+            self.other_cores = max(0.0, (busy1 - self._busy0 - (own1 - self._own0)) / self.wall_s)
+
+    @staticmethod
+    def _busy() -> float | None:
+        try:
+            fields = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
+        except OSError:
+            return None
+        user, nice, system, _idle, _iowait, irq, softirq, steal = (int(v) for v in fields[:8])
+        return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+    @staticmethod
+    def _own() -> float:
+        r = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+        return sum(u.ru_utime + u.ru_stime for u in r)
