@@ -48,7 +48,10 @@ Reading the figures:
   primitive planes are infinite; no sphere reaches an edge here) and torchdem turns the
   rolling spring into the current tangent plane each step (LIGGGHTS epsd2 does not).
 
-Usage: ``python scripts/bench_engine.py [--steps 2000] [--json] [--quick]``. Plain argparse,
+- ``--backend cpp`` (default) times the C++ contact kernels of ``torchdem/_ext``; ``--backend torch``
+  the torch ones (with ``--compile``: torch.compile'd). Drift and kick are torch either way.
+
+Usage: ``python scripts/bench_engine.py [--steps 2000] [--json] [--quick] [--backend cpp|torch]``. Plain argparse,
 not Hydra: a benchmark with a handful of flags and no config groups.
 """
 from __future__ import annotations
@@ -61,7 +64,6 @@ import json
 import math
 import os
 import re
-import resource
 import shlex
 import shutil
 import subprocess
@@ -74,6 +76,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchdem.cpu_monitor import CpuMonitor
 from torchdem.errors import ConfigError
 from torchdem.materials import Material, interaction_table, rayleigh_time_step
 from torchdem.simulation import GuardSettings, Simulation
@@ -222,39 +225,6 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-class CpuMonitor:
-    """CPU time used by *other* processes during a timed section, in cores (Linux only).
-
-    Machine-wide busy time from ``/proc/stat`` minus this process's and its waited-for
-    children's CPU time, divided by the wall time. On a 2-core machine anything above ~0.1
-    means the figures were measured on a shared, busy machine and are low.
-    """
-
-    def __enter__(self) -> "CpuMonitor":
-        self.other_cores: float | None = None
-        self._busy0, self._own0, self._t0 = self._busy(), self._own(), time.perf_counter()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        busy1, own1, wall = self._busy(), self._own(), time.perf_counter() - self._t0
-        if self._busy0 is not None and busy1 is not None and wall > 0:
-            self.other_cores = max(0.0, (busy1 - self._busy0 - (own1 - self._own0)) / wall)
-
-    @staticmethod
-    def _busy() -> float | None:
-        try:
-            fields = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
-        except OSError:
-            return None
-        user, nice, system, _idle, _iowait, irq, softirq, steal = (int(v) for v in fields[:8])
-        return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
-
-    @staticmethod
-    def _own() -> float:
-        r = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
-        return sum(u.ru_utime + u.ru_stime for u in r)
-
-
 # --------------------------------------------------------------------------- torchdem side
 
 
@@ -385,15 +355,18 @@ def member0_state(system, state) -> FinalState:
 
 
 def time_torchdem(scenario: BenchScenario, packing: Packing, batch: int, dtype: torch.dtype, dt: float,
-                  steps: int, warmup: int, jitter: float, repeat: int = 1, compile: bool = False) -> EngineTiming:
-    """Best of ``repeat`` timings, each from the same initial state with a fresh Simulation."""
+                  steps: int, warmup: int, jitter: float, repeat: int = 1, compile: bool = False,
+                  backend: str = "cpp") -> EngineTiming:
+    """Best of ``repeat`` timings, each from the same initial state with a fresh Simulation.
+
+    ``backend``: contact kernels, ``"cpp"`` (C++ extension) or ``"torch"`` (see ``Kernels``)."""
     velocity, omega = ensemble_velocities(packing, batch, jitter, scenario.seed + 1)
     position = np.broadcast_to(packing.position, velocity.shape).copy()
     system, state = bench_system(scenario, position, packing.radius, velocity, omega, dtype, dt=dt)
     name = str(dtype).replace("torch.", "")
     best = None
     for k in range(repeat):
-        sim = Simulation(system, state, compile=True) if compile else Simulation(system, state)
+        sim = Simulation(system, state, compile=compile, backend=backend)
         initial = member0_state(system, sim.state)
         log(f"torchdem {name} B = {batch}: {warmup} warm-up + {steps} timed steps"
             f"{f' (repeat {k + 1}/{repeat})' if repeat > 1 else ''} ...")
@@ -611,7 +584,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--repeat", type=int, default=1, help="time each torchdem case this often, keep the best")
     parser.add_argument("--compile", action="store_true",
-                        help="Simulation(compile=True) (torch.compile'd contact kernels; compiles in the warm-up)")
+                        help="Simulation(compile=True) (torch.compile'd torch kernels; compiles in the warm-up)")
+    parser.add_argument("--backend", default="cpp", choices=("cpp", "torch"),
+                        help="contact kernels: cpp (C++ extension, built on first use; default) or torch")
     parser.add_argument("--ranks", type=int, default=2, help="LIGGGHTS MPI ranks (processors R 1 1)")
     parser.add_argument("--no-liggghts", action="store_true", help="skip the LIGGGHTS run")
     parser.add_argument("--liggghts-repeat", type=int, default=None,
@@ -652,7 +627,7 @@ def main(argv: list[str] | None = None) -> int:
     packing = load_or_settle(scenario, args.cache_dir, args.resettle)
 
     timings = [time_torchdem(scenario, packing, b, getattr(torch, d), args.dt, steps, warmup, args.velocity_jitter,
-                             args.repeat, args.compile)
+                             args.repeat, args.compile, args.backend)
                for d in dtypes for b in batches]
 
     # LIGGGHTS: member 0, identical state and skin.
@@ -708,6 +683,7 @@ def main(argv: list[str] | None = None) -> int:
             "torch_threads": torch.get_num_threads(),
             "quick": args.quick,
             "compile": args.compile,
+            "backend": args.backend,
             "other_cpu_cores": {f"{t.engine} {t.dtype} B={t.batch}": t.other_cpu_cores
                                 for t in timings + ([liggghts] if liggghts else [])},
             "liggghts_ranks": ranks if liggghts else None,

@@ -193,8 +193,6 @@ def wall_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, 
     return force, torque, tangential, rolling
 
 
-
-
 def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time: float,
                    kernels: "Kernels | None" = None) -> tuple[Tensor, Tensor, State]:
     """Total contact force and torque on every body, and the state with updated history.
@@ -216,8 +214,8 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
         force, torque, tang, roll = kernels.pair(
             xs, X, V, omega, force, torque, p.i, p.j, p.body_i, p.body_j, p.radius_i, p.radius_j,
             p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
-            p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt, system.grid.period,
-            system.rolling_stiffness, system.grid.is_periodic)
+            p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt=dt, period=system.grid.period,
+            stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic)
         p = p.set(tangential=tang, rolling=roll)
     wc = state.walls
     if wc.n:
@@ -227,7 +225,7 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
             walls.centre + walls.shift(time), walls.axis_u, walls.axis_v, walls.half_u, walls.half_v,
             walls.velocity_at(time), walls.active_at(time), wc.radius, wc.mass_eff, wc.young_eff,
             wc.shear_eff, wc.beta, wc.mu_s, wc.mu_r, wc.rolling_damping, wc.rolling_inertia,
-            wc.tangential, wc.rolling, dt, system.rolling_stiffness)
+            wc.tangential, wc.rolling, dt=dt, stiffness_model=system.rolling_stiffness)
         wc = wc.set(tangential=tang, rolling=roll)
     return force, torque, state.set(pairs=p, walls=wc)
 
@@ -330,26 +328,76 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
     return state.set(bodies=b.set(force=f, torque=tau, velocity=v, angular_momentum=L))
 
 
-class Kernels:
-    """The contact and integration kernels, eager or compiled with ``torch.compile`` (dynamic shapes).
+KERNEL_BACKENDS = ("auto", "cpp", "torch")
 
-    Compiling fuses the element-wise contact law into a few loops (one pass over the
-    contacts instead of ~100 tensor operations); the first call of each kernel compiles
-    (tens of seconds on a CPU), later calls and other contact counts reuse it.
+
+class Kernels:
+    """The contact and integration kernels: the one place that picks an implementation.
+
+    ``backend`` chooses the sphere-sphere and sphere-wall contact kernels for CPU tensors:
+
+    - ``"cpp"``: the C++ kernels of :mod:`torchdem._ext` (built just in time on first use;
+      raises if they cannot be built);
+    - ``"torch"``: :func:`pair_kernel` and :func:`wall_kernel`, eager or compiled;
+    - ``"auto"`` (default): ``"cpp"`` when the extension builds, else ``"torch"`` (the loader
+      warns once per process).
+
+    Tensors on other devices (CUDA) always use the torch kernels. ``compile=True`` compiles
+    the torch kernels with ``torch.compile`` (dynamic shapes): fusing the element-wise contact
+    law into a few loops (one pass over the contacts instead of ~100 tensor operations); the
+    first call of each kernel compiles (tens of seconds on a CPU), later calls and other
+    contact counts reuse it. Drift and kick are always torch (compiled if asked).
     """
 
-    def __init__(self, compile: bool = False):
+    def __init__(self, compile: bool = False, backend: str = "auto"):
+        if backend not in KERNEL_BACKENDS:
+            raise ValueError(f"kernel backend = {backend!r}; expected one of {KERNEL_BACKENDS}")
         self.compiled = compile
-        if compile:
-            self.pair = torch.compile(pair_kernel, dynamic=True)
-            self.wall = torch.compile(wall_kernel, dynamic=True)
-            self.drift = torch.compile(drift_kernel, dynamic=True)
-            self.kick = torch.compile(kick_kernel, dynamic=True)
-        else:
-            self.pair = pair_kernel
-            self.wall = wall_kernel
-            self.drift = drift_kernel
-            self.kick = kick_kernel
+        self.backend = backend
+        wrap = (lambda f: torch.compile(f, dynamic=True)) if compile else (lambda f: f)  # noqa: E731
+        self.torch_pair = wrap(pair_kernel)
+        self.torch_wall = wrap(wall_kernel)
+        self.drift = wrap(drift_kernel)
+        self.kick = wrap(kick_kernel)
+
+    def extension(self, like: Tensor):
+        """The C++ kernels for tensors like ``like``, or None when the torch kernels are used."""
+        if self.backend == "torch" or like.device.type != "cpu":
+            return None
+        from torchdem import _ext
+
+        ext = _ext.contact_cpu()
+        if ext is None and self.backend == "cpp":
+            raise RuntimeError(f"kernel backend 'cpp': the C++ contact kernels could not be built "
+                               f"({_ext.build_error()}); use backend 'auto' or 'torch'")
+        return ext
+
+    def pair(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
+             *contacts: Tensor, dt: Tensor, period: Tensor, stiffness_model: str, periodic: bool
+             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """:func:`pair_kernel` (same arguments; ``contacts`` are i ... rolling in its order)."""
+        ext = self.extension(xs)
+        if ext is None:
+            return self.torch_pair(xs, X, V, omega, force, torque, *contacts, dt, period, stiffness_model, periodic)
+        f, tau, tang, roll = ext.pair_forces(xs, X, V, omega, force, torque, *contacts, float(dt),
+                                             period.tolist(), _ai2011(stiffness_model), periodic)
+        return f, tau, tang, roll
+
+    def wall(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
+             *contacts: Tensor, dt: Tensor, stiffness_model: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """:func:`wall_kernel` (same arguments; ``contacts`` are sphere ... rolling in its order)."""
+        ext = self.extension(xs)
+        if ext is None:
+            return self.torch_wall(xs, X, V, omega, force, torque, *contacts, dt, stiffness_model)
+        f, tau, tang, roll = ext.wall_forces(xs, X, V, omega, force, torque, *contacts, float(dt),
+                                             _ai2011(stiffness_model))
+        return f, tau, tang, roll
 
 
-EAGER = Kernels(False)
+def _ai2011(stiffness_model: str) -> bool:
+    if stiffness_model not in ("tangential", "ai2011"):
+        raise ValueError(f"stiffness_model = {stiffness_model!r}; expected 'tangential' or 'ai2011'")
+    return stiffness_model == "ai2011"
+
+
+EAGER = Kernels(False, backend="torch")

@@ -83,10 +83,12 @@ class Simulation:
     """A batched DEM run (see the module docstring)."""
 
     def __init__(self, system: System, state: State, guards: GuardSettings = GuardSettings(),
-                 compile: bool = False):
+                 compile: bool = False, backend: str = "auto"):
+        """``compile``: torch.compile the torch kernels. ``backend``: contact kernels for CPU
+        tensors, ``"auto"`` (C++ when it builds), ``"cpp"`` or ``"torch"`` (see :class:`Kernels`)."""
         self.system = system
         self.guards = guards.validate()
-        self.kernels = Kernels(compile)
+        self.kernels = Kernels(compile, backend)
         if state.bodies.position.device.type == "cpu":
             # Contact springs and forces decay through subnormal floats when contacts open;
             # x86 handles subnormals in microcode, 10-20x slower (measured on the pair kernel
@@ -185,14 +187,14 @@ class Simulation:
 
     @classmethod
     def load(cls, path: str | Path, system: System, guards: GuardSettings = GuardSettings(),
-             compile: bool = False) -> "Simulation":
+             compile: bool = False, backend: str = "auto") -> "Simulation":
         """Restore a run saved by :meth:`save`; ``system`` must be the one it was built with."""
         data = torch.load(Path(path), weights_only=True)
         state = state_from_dict(data["state"])
         if state.bodies.position.shape[:2] != system.mass.shape:
             raise ConfigError(f"{path}: saved state has bodies {tuple(state.bodies.position.shape[:2])} but "
                               f"the system has {tuple(system.mass.shape)}")
-        sim = cls(system, state, guards, compile)
+        sim = cls(system, state, guards, compile, backend)
         sim.failed = dict(data.get("failed", {}))
         return sim
 

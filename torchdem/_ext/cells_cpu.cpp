@@ -1,0 +1,183 @@
+// CPU kernel of the cell-list pair search of torchdem/neighbors.py (find_pairs).
+//
+// Contract: `cell_pairs` takes what find_pairs has already computed in torch (wrapped sphere
+// positions, each sphere's integer cell, the member-qualified cell hash of every sphere
+// sorted, and the sort permutation) and returns every pair (i < j) of active spheres of
+// different bodies whose minimum-image centre distance is below r_i + r_j + skin, as two
+// int64 tensors sorted by (i, j) -- exactly the list of the torch path.
+//
+// Two passes, parallel over query spheres (at::parallel_for), no atomics:
+//   1. count the pairs of every query sphere i (partners j > i in the up-to-27 neighbouring
+//      cells; on a periodic axis with fewer than 3 cells the wrapped cells repeat and are
+//      visited once);
+//   2. exclusive prefix sum, then every i writes its partners, sorted by j, at its offset.
+// Output order is fixed, so results do not depend on the number of threads.
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+namespace {
+
+struct Grid {
+  int64_t dims[3];
+  bool periodic[3];
+  double period[3];
+  int64_t n_cells;
+};
+
+// Distinct neighbour cells (linear, in [0, n_cells)) of cell c, wrapping periodic axes.
+inline int neighbour_cells(const Grid& g, const int64_t* c, int64_t* out) {
+  int n = 0;
+  for (int dx = -1; dx <= 1; ++dx) {
+    int64_t x = c[0] + dx;
+    if (g.periodic[0]) x = ((x % g.dims[0]) + g.dims[0]) % g.dims[0];
+    else if (x < 0 || x >= g.dims[0]) continue;
+    for (int dy = -1; dy <= 1; ++dy) {
+      int64_t y = c[1] + dy;
+      if (g.periodic[1]) y = ((y % g.dims[1]) + g.dims[1]) % g.dims[1];
+      else if (y < 0 || y >= g.dims[1]) continue;
+      for (int dz = -1; dz <= 1; ++dz) {
+        int64_t z = c[2] + dz;
+        if (g.periodic[2]) z = ((z % g.dims[2]) + g.dims[2]) % g.dims[2];
+        else if (z < 0 || z >= g.dims[2]) continue;
+        out[n++] = (x * g.dims[1] + y) * g.dims[2] + z;
+      }
+    }
+  }
+  std::sort(out, out + n);
+  return static_cast<int>(std::unique(out, out + n) - out);
+}
+
+template <typename scalar_t>
+struct Search {
+  const scalar_t* pos;       // [S, 3] by sphere index
+  const int64_t* body;       // [S]
+  const int64_t* cell;       // [S, 3]
+  const int64_t* order;      // [S] sphere index of each sorted slot
+  const int64_t* start;      // [B * n_cells + 1] first sorted slot of each member-cell
+  const double* sorted_pos;  // [S, 3] positions in sorted order (cache-friendly scans)
+  const double* sorted_rad;  // [S]
+  const int64_t* sorted_body;
+  int64_t n_per_member;
+  Grid g;
+  double skin;
+
+  // Calls emit(j) for every partner j > i of sphere i, in no particular order.
+  template <typename Emit>
+  void partners(int64_t i, double ri, Emit&& emit) const {
+    int64_t cells[27];
+    const int n = neighbour_cells(g, cell + 3 * i, cells);
+    const int64_t base = (i / n_per_member) * g.n_cells;
+    const double xi = pos[3 * i], yi = pos[3 * i + 1], zi = pos[3 * i + 2];
+    const int64_t bi = body[i];
+    for (int k = 0; k < n; ++k) {
+      const int64_t h = base + cells[k];
+      for (int64_t p = start[h]; p < start[h + 1]; ++p) {
+        const int64_t j = order[p];
+        if (j <= i || sorted_body[p] == bi) continue;
+        double d[3] = {xi - sorted_pos[3 * p], yi - sorted_pos[3 * p + 1], zi - sorted_pos[3 * p + 2]};
+        for (int a = 0; a < 3; ++a) {
+          if (g.periodic[a]) {  // positions are wrapped into one period: one shift suffices
+            if (d[a] > 0.5 * g.period[a]) d[a] -= g.period[a];
+            else if (d[a] < -0.5 * g.period[a]) d[a] += g.period[a];
+          }
+        }
+        const double cut = ri + sorted_rad[p] + skin;
+        if (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] < cut * cut) emit(j);
+      }
+    }
+  }
+};
+
+std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const at::Tensor& radius,
+                                              const at::Tensor& body, const at::Tensor& active,
+                                              const at::Tensor& cell, const at::Tensor& sorted_hash,
+                                              const at::Tensor& order, std::vector<int64_t> dims,
+                                              std::vector<double> period, int64_t n_per_member, double skin) {
+  TORCH_CHECK(position.device().is_cpu(), "cell_pairs: CPU tensors only");
+  TORCH_CHECK(dims.size() == 3 && period.size() == 3, "cell_pairs: dims and period need 3 entries");
+  auto pos = position.contiguous();
+  auto rad = radius.contiguous();
+  auto bod = body.contiguous().to(at::kLong);
+  auto act = active.contiguous().to(at::kBool);
+  auto cel = cell.contiguous().to(at::kLong);
+  auto sh = sorted_hash.contiguous().to(at::kLong);
+  auto ord = order.contiguous().to(at::kLong);
+  const int64_t S = pos.size(0);
+  Grid g;
+  for (int a = 0; a < 3; ++a) {
+    g.dims[a] = dims[a];
+    g.period[a] = period[a];
+    g.periodic[a] = period[a] > 0;
+  }
+  g.n_cells = dims[0] * dims[1] * dims[2];
+  // member-cell start table from the sorted hashes (inactive spheres carry a sentinel hash
+  // beyond every member-cell and so fall outside every range)
+  const int64_t members = S ? (S + n_per_member - 1) / n_per_member : 0;
+  const int64_t H = members * g.n_cells;
+  TORCH_CHECK(H < (int64_t(1) << 31), "cell_pairs: ", H, " member-cells is too many for the start table");
+  std::vector<int64_t> start(H + 1);
+  const int64_t* hs = sh.data_ptr<int64_t>();
+  for (int64_t h = 0, p = 0; h <= H; ++h) {
+    while (p < S && hs[p] < h) ++p;
+    start[h] = p;
+  }
+  const int64_t* od = ord.data_ptr<int64_t>();
+  const int64_t* bd = bod.data_ptr<int64_t>();
+  std::vector<double> spos(3 * S), srad(S);
+  std::vector<int64_t> sbody(S);
+  std::vector<int64_t> count(S + 1, 0);
+  at::Tensor out_i, out_j;
+  AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "cell_pairs", [&] {
+    const scalar_t* x = pos.data_ptr<scalar_t>();
+    const scalar_t* r = rad.data_ptr<scalar_t>();
+    for (int64_t p = 0; p < S; ++p) {
+      const int64_t j = od[p];
+      for (int a = 0; a < 3; ++a) spos[3 * p + a] = static_cast<double>(x[3 * j + a]);
+      srad[p] = static_cast<double>(r[j]);
+      sbody[p] = bd[j];
+    }
+    const bool* active_i = act.data_ptr<bool>();
+    Search<scalar_t> s{x, bd, cel.data_ptr<int64_t>(), od, start.data(), spos.data(), srad.data(), sbody.data(),
+                       n_per_member, g, skin};
+    at::parallel_for(0, S, 256, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) {
+        if (!active_i[i]) continue;
+        int64_t c = 0;
+        s.partners(i, static_cast<double>(r[i]), [&](int64_t) { ++c; });
+        count[i + 1] = c;
+      }
+    });
+    for (int64_t i = 0; i < S; ++i) count[i + 1] += count[i];
+    const int64_t P = count[S];
+    out_i = at::empty({P}, bod.options());
+    out_j = at::empty({P}, bod.options());
+    int64_t* oi = out_i.data_ptr<int64_t>();
+    int64_t* oj = out_j.data_ptr<int64_t>();
+    at::parallel_for(0, S, 256, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) {
+        if (!active_i[i]) continue;
+        int64_t w = count[i];
+        s.partners(i, static_cast<double>(r[i]), [&](int64_t j) { oi[w] = i; oj[w++] = j; });
+        std::sort(oj + count[i], oj + w);
+      }
+    });
+  });
+  return {out_i, out_j};
+}
+
+}  // namespace
+
+// torch.ops.torchdem.cell_pairs (a fragment: contact_cpu.cpp defines the library).
+TORCH_LIBRARY_FRAGMENT(torchdem, m) {
+  m.def("cell_pairs(Tensor position, Tensor radius, Tensor body, Tensor active, Tensor cell, Tensor sorted_hash, "
+        "Tensor order, int[] dims, float[] period, int n_per_member, float skin) -> (Tensor, Tensor)");
+  m.impl("cell_pairs", c10::DispatchKey::CPU, TORCH_FN(cell_pairs));
+}

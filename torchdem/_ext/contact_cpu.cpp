@@ -1,0 +1,629 @@
+// CPU kernels for the sphere-sphere and sphere-wall contacts of torchdem.
+//
+// Contract: `pair_forces` and `wall_forces` compute exactly what `pair_kernel` and
+// `wall_kernel` in torchdem/integrate.py compute with the laws of torchdem/contact.py
+// (Hertz-Mindlin no-slip with tangential history, EPSD type-C rolling resistance with
+// history, periodic minimum image), in float32 or float64, and return new tensors
+// (force, torque, tangential, rolling); nothing passed in is modified.
+//
+// Two passes, both parallel over torch's intra-op threads (at::parallel_for):
+//   1. per block of 64 contacts: gather the operands (scalar loads), apply the contact law
+//      in a branch-free loop that the compiler vectorises across contacts, write the
+//      springs and a row (force, torques) per contact;
+//   2. per body: each thread owns a range of bodies and adds the rows of their contacts in
+//      contact order.
+// Every output element is written by one thread and every sum has a fixed order, so the
+// results do not depend on the number of threads or on thread timing (no atomics). They
+// differ from the torch kernels by rounding only (operation order, fused multiply-add).
+//
+// Each worker runs with the caller's flush-to-zero / denormals-are-zero flags
+// (torch.set_flush_denormal sets them on the calling thread only): contact springs decay
+// through subnormal floats, which x86 handles in microcode, many times slower.
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty_like.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+#if defined(__SSE__) || defined(__x86_64__)
+#include <xmmintrin.h>
+#define TORCHDEM_HAVE_MXCSR 1
+#endif
+
+namespace {
+
+constexpr unsigned kDenormalFlags = 0x8040;  // MXCSR FTZ (bit 15) | DAZ (bit 6)
+
+// Applies the caller's denormal flags to a worker thread for one parallel chunk.
+class DenormalMode {
+ public:
+  explicit DenormalMode(unsigned caller) {
+#ifdef TORCHDEM_HAVE_MXCSR
+    saved_ = _mm_getcsr();
+    _mm_setcsr((saved_ & ~kDenormalFlags) | (caller & kDenormalFlags));
+#else
+    (void)caller;
+#endif
+  }
+  ~DenormalMode() {
+#ifdef TORCHDEM_HAVE_MXCSR
+    _mm_setcsr(saved_);
+#endif
+  }
+  static unsigned caller() {
+#ifdef TORCHDEM_HAVE_MXCSR
+    return _mm_getcsr();
+#else
+    return 0;
+#endif
+  }
+
+ private:
+  unsigned saved_ = 0;
+};
+
+#define TORCHDEM_INLINE inline __attribute__((always_inline))
+#if defined(__clang__) || !defined(__GNUC__)
+#define TORCHDEM_SCALAR_LOOP __attribute__((noinline))
+#else
+#define TORCHDEM_SCALAR_LOOP __attribute__((noinline, optimize("no-tree-vectorize")))
+#endif
+
+template <typename T>
+struct Vec3 {
+  T x, y, z;
+};
+
+template <typename T> TORCHDEM_INLINE Vec3<T> operator+(Vec3<T> a, Vec3<T> b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+template <typename T> TORCHDEM_INLINE Vec3<T> operator-(Vec3<T> a, Vec3<T> b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+template <typename T> TORCHDEM_INLINE Vec3<T> operator*(T s, Vec3<T> a) { return {s * a.x, s * a.y, s * a.z}; }
+template <typename T> TORCHDEM_INLINE T dot(Vec3<T> a, Vec3<T> b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+template <typename T> TORCHDEM_INLINE T norm(Vec3<T> a) { return std::sqrt(dot(a, a)); }
+template <typename T> TORCHDEM_INLINE Vec3<T> cross(Vec3<T> a, Vec3<T> b) {
+  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+template <typename T> TORCHDEM_INLINE Vec3<T> select(bool m, Vec3<T> a, Vec3<T> b) {
+  return {m ? a.x : b.x, m ? a.y : b.y, m ? a.z : b.z};
+}
+template <typename T> TORCHDEM_INLINE Vec3<T> load(const T* p, int64_t k) {
+  return {p[3 * k], p[3 * k + 1], p[3 * k + 2]};
+}
+template <typename T> TORCHDEM_INLINE void store(T* p, int64_t k, Vec3<T> a) {
+  p[3 * k] = a.x;
+  p[3 * k + 1] = a.y;
+  p[3 * k + 2] = a.z;
+}
+
+// Shortest periodic image of a separation: period p > 0 with inv_period 1 / p on periodic
+// axes; p = inv_period = 0 elsewhere (then the correction is 0 * nearbyint(0) = 0).
+template <typename T>
+TORCHDEM_INLINE Vec3<T> minimum_image(Vec3<T> d, const T* period, const T* inv_period) {
+  return {d.x - period[0] * std::rint(d.x * inv_period[0]), d.y - period[1] * std::rint(d.y * inv_period[1]),
+          d.z - period[2] * std::rint(d.z * inv_period[2])};
+}
+
+// contact.rotate_history: project onto the tangent plane, keep the length.
+template <typename T>
+TORCHDEM_INLINE Vec3<T> rotate_history(Vec3<T> s, Vec3<T> n) {
+  const Vec3<T> proj = s - dot(s, n) * n;
+  const T old_len = norm(s);
+  const T new_len = norm(proj);
+  const T scale = new_len > 0 ? old_len / std::max(new_len, std::numeric_limits<T>::min()) : T(0);
+  return scale * proj;
+}
+
+// Per-contact constants (one row of PairContacts / WallContacts).
+template <typename T>
+struct Coefficients {
+  T radius_eff, mass_eff, young_eff, shear_eff, beta, mu_s, mu_r, rolling_damping, rolling_inertia;
+};
+
+template <typename T>
+struct LawResult {
+  Vec3<T> force;           // on the first body, N
+  Vec3<T> m_roll;          // rolling torque on the first body, N m
+  Vec3<T> tangential_new;  // updated spring, m
+  Vec3<T> rolling_new;     // updated spring torque, N m
+};
+
+// contact.hertz_mindlin followed by contact.rolling_epsd, for one contact. Branch-free
+// (selects instead of branches), values in and out (no references), and the stiffness
+// model a template argument, so that the loops calling it vectorise after inlining.
+// kAi2011: rolling stiffness model "ai2011" (else "tangential").
+template <typename T, bool kAi2011>
+TORCHDEM_INLINE LawResult<T> contact_law(T overlap, Vec3<T> n, Vec3<T> v_rel, Vec3<T> w_rel, Vec3<T> tangential,
+                                         Vec3<T> rolling, Coefficients<T> c, T dt) {
+  constexpr T tiny = std::numeric_limits<T>::min();
+  const Vec3<T> zero{T(0), T(0), T(0)};
+  const T sqrt_5_6 = T(0.91287092917527690);  // sqrt(5/6)
+  const bool touching = overlap > 0;
+  const T delta = touching ? overlap : T(0);
+  // Hertz-Mindlin.
+  const T v_n = dot(v_rel, n);
+  const Vec3<T> v_t = v_rel - v_n * n;
+  const T sqrt_rd = std::sqrt(c.radius_eff * delta);
+  const T k_n = T(2) * c.young_eff * sqrt_rd;
+  const T k_t = T(8) * c.shear_eff * sqrt_rd;
+  const T damp = T(-2) * sqrt_5_6 * c.beta;
+  const T f_n_touch = T(2.0 / 3.0) * k_n * delta + damp * std::sqrt(k_n * c.mass_eff) * v_n;
+  const T f_n = touching ? f_n_touch : T(0);
+  Vec3<T> xi = select(touching, rotate_history(tangential, n) + dt * v_t, zero);
+  const Vec3<T> f_spring = (-k_t) * xi;
+  const T f_spring_mag = norm(f_spring);
+  const T f_limit = c.mu_s * std::abs(f_n);
+  const bool sliding = f_spring_mag > f_limit;  // spring at the Coulomb limit, no dashpot
+  const T ratio = sliding ? f_limit / std::max(f_spring_mag, tiny) : T(1);
+  xi = ratio * xi;
+  const Vec3<T> f_t = select(sliding, ratio * f_spring, f_spring - (damp * std::sqrt(k_t * c.mass_eff)) * v_t);
+  LawResult<T> out;
+  out.force = f_t - f_n * n;
+  out.tangential_new = xi;
+  // EPSD rolling resistance.
+  const Vec3<T> w_t = w_rel - dot(w_rel, n) * n;
+  const T r2 = c.radius_eff * c.radius_eff;
+  const T k_r = kAi2011 ? T(2.25) * c.mu_r * c.mu_r * r2 * (T(4.0 / 3.0) * c.young_eff * sqrt_rd) : k_t * r2;
+  Vec3<T> m_spring = select(touching, rotate_history(rolling, n) - (k_r * dt) * w_t, zero);
+  const T mag = norm(m_spring);
+  const T limit = c.mu_r * c.radius_eff * std::abs(f_n);
+  const bool full = mag > limit;  // spring at its plastic limit, no dashpot
+  m_spring = (full ? limit / std::max(mag, tiny) : T(1)) * m_spring;
+  const T c_r = c.rolling_damping * T(2) * std::sqrt(c.rolling_inertia * k_r);
+  out.m_roll = select(full, m_spring, m_spring - c_r * w_t);
+  out.rolling_new = m_spring;
+  return out;
+}
+
+// Adds per-contact rows to their bodies: out = in + sum over contacts, in contact order.
+// rows [n, width]: force on the first body (3), torque on it (3) and, when body_b is given
+// (width 9), torque on the second body (3); the second body gets minus the force.
+// Each thread owns a contiguous range of bodies and scans every contact, adding only to its
+// own bodies: every body is written by one thread and sums in contact order, whatever the
+// number of threads. Body indices must be in [0, n_bodies).
+template <typename T>
+void scatter_to_bodies(const int64_t* __restrict__ body_a, const int64_t* __restrict__ body_b,
+                       const T* __restrict__ rows, int width, int64_t n, int64_t n_bodies, const T* force_in,
+                       const T* torque_in, T* force_out, T* torque_out) {
+  at::parallel_for(0, n_bodies, 1024, [&](int64_t b0, int64_t b1) {
+    const uint64_t span = static_cast<uint64_t>(b1 - b0);
+    std::copy(force_in + 3 * b0, force_in + 3 * b1, force_out + 3 * b0);
+    std::copy(torque_in + 3 * b0, torque_in + 3 * b1, torque_out + 3 * b0);
+    for (int64_t e = 0; e < n; ++e) {
+      const T* r = rows + width * e;
+      const int64_t a = body_a[e] - b0;
+      if (static_cast<uint64_t>(a) < span) {
+        T* f = force_out + 3 * (b0 + a);
+        T* t = torque_out + 3 * (b0 + a);
+        f[0] += r[0];
+        f[1] += r[1];
+        f[2] += r[2];
+        t[0] += r[3];
+        t[1] += r[4];
+        t[2] += r[5];
+      }
+      if (body_b != nullptr) {
+        const int64_t b = body_b[e] - b0;
+        if (static_cast<uint64_t>(b) < span) {
+          T* f = force_out + 3 * (b0 + b);
+          T* t = torque_out + 3 * (b0 + b);
+          f[0] -= r[0];
+          f[1] -= r[1];
+          f[2] -= r[2];
+          t[0] += r[6];
+          t[1] += r[7];
+          t[2] += r[8];
+        }
+      }
+    }
+  });
+}
+
+void check_cpu(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t rows, int64_t cols) {
+  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor, got ", t.device());
+  TORCH_CHECK(t.scalar_type() == dtype, name, " has dtype ", t.scalar_type(), "; expected ", dtype);
+  if (cols == 0) {
+    TORCH_CHECK(t.dim() == 1 && t.size(0) == rows, name, " has shape ", t.sizes(), "; expected [", rows, "]");
+  } else {
+    TORCH_CHECK(t.dim() == 2 && t.size(0) == rows && t.size(1) == cols, name, " has shape ", t.sizes(),
+                "; expected [", rows, ", ", cols, "]");
+  }
+}
+
+int64_t rows_of(const at::Tensor& t, const char* name) {
+  TORCH_CHECK(t.dim() >= 1, name, " must have at least one dimension, got shape ", t.sizes());
+  return t.size(0);
+}
+
+// Inputs and outputs of the pair loop (all arrays contiguous; see pair_kernel).
+template <typename T>
+struct PairData {
+  const T *x, *X, *V, *W;                 // [S, 3], [NB, 3] x3
+  const int64_t *i, *j, *body_i, *body_j;  // [P]
+  const T *radius_i, *radius_j, *radius_eff, *mass_eff, *young_eff, *shear_eff, *beta, *mu_s, *mu_r,
+      *rolling_damping, *rolling_inertia;  // [P]
+  const T *tangential, *rolling;          // [P, 3]
+  T *tangential_new, *rolling_new;        // [P, 3]
+  T* rows;                                // [P, 9]: force on i, torque on i, torque on j
+  T period[3], inv_period[3];
+  T dt;
+  bool ai2011;
+};
+
+constexpr int64_t kBlock = 64;  // contacts per block: gathered operands stay in L1
+
+// Gathered operands of a block, one array per component (see pair_block).
+enum PairOperand { kXA, kXB = 3, kBA = 6, kBB = 9, kVA = 12, kVB = 15, kWA = 18, kWB = 21, kTG = 24, kRL = 27, kPairOperands = 30 };
+
+// Stage 1 of pair_block, kept scalar on purpose: vector gather instructions are slow on
+// many x86 CPUs (microcode mitigations of "gather data sampling"), scalar loads are not.
+template <typename T>
+TORCHDEM_SCALAR_LOOP void gather_pairs(const PairData<T>& data, int64_t p0, int64_t n, T (*g)[kBlock]) {
+  for (int64_t k = 0; k < n; ++k) {
+    const int64_t p = p0 + k;
+    const int64_t a = data.i[p], b = data.j[p], ba = data.body_i[p], bb = data.body_j[p];
+    for (int c = 0; c < 3; ++c) {
+      g[kXA + c][k] = data.x[3 * a + c];
+      g[kXB + c][k] = data.x[3 * b + c];
+      g[kBA + c][k] = data.X[3 * ba + c];
+      g[kBB + c][k] = data.X[3 * bb + c];
+      g[kVA + c][k] = data.V[3 * ba + c];
+      g[kVB + c][k] = data.V[3 * bb + c];
+      g[kWA + c][k] = data.W[3 * ba + c];
+      g[kWB + c][k] = data.W[3 * bb + c];
+      g[kTG + c][k] = data.tangential[3 * p + c];
+      g[kRL + c][k] = data.rolling[3 * p + c];
+    }
+  }
+}
+
+// Pairs [p0, p0 + n), n <= kBlock, in three stages: (1) gather the operands of every pair
+// into local arrays, one per component; (2) the contact law on those arrays, a loop without
+// gathers or branches that the compiler vectorises across pairs; (3) write springs and rows.
+template <typename T, bool kAi2011>
+void pair_block(const PairData<T>& data, int64_t p0, int64_t n) {
+  enum { XA = kXA, XB = kXB, BA = kBA, BB = kBB, VA = kVA, VB = kVB, WA = kWA, WB = kWB, TG = kTG, RL = kRL };
+  alignas(64) T g[kPairOperands][kBlock];
+  gather_pairs(data, p0, n, g);
+  // Stage 2: contact law. o[c][k]: outputs.
+  enum { F = 0, TI = 3, TJ = 6, TN = 9, RN = 12, NO = 15 };
+  alignas(64) T o[NO][kBlock];
+  const T *__restrict__ ri = data.radius_i + p0, *__restrict__ rj = data.radius_j + p0,
+          *__restrict__ reff = data.radius_eff + p0, *__restrict__ meff = data.mass_eff + p0,
+          *__restrict__ E = data.young_eff + p0, *__restrict__ G = data.shear_eff + p0,
+          *__restrict__ bt = data.beta + p0, *__restrict__ mus = data.mu_s + p0, *__restrict__ mur = data.mu_r + p0,
+          *__restrict__ eta = data.rolling_damping + p0, *__restrict__ Ir = data.rolling_inertia + p0;
+  const T per[3] = {data.period[0], data.period[1], data.period[2]};
+  const T inv_per[3] = {data.inv_period[0], data.inv_period[1], data.inv_period[2]};
+  const T dt = data.dt;
+  auto vec = [&](int c, int64_t k) { return Vec3<T>{g[c][k], g[c + 1][k], g[c + 2][k]}; };
+  auto put = [&](int c, int64_t k, Vec3<T> v) {
+    o[c][k] = v.x;
+    o[c + 1][k] = v.y;
+    o[c + 2][k] = v.z;
+  };
+  for (int64_t k = 0; k < n; ++k) {  // vectorised by the compiler (see contact_law)
+    const Vec3<T> xa = vec(XA, k);
+    const Vec3<T> d = minimum_image(vec(XB, k) - xa, per, inv_per);
+    const T dist = norm(d);
+    const T overlap = ri[k] + rj[k] - dist;
+    const Vec3<T> nrm = (T(1) / std::max(dist, T(1e-30))) * d;
+    const Vec3<T> cp = xa + (ri[k] - T(0.5) * overlap) * nrm;
+    const Vec3<T> arm_i = minimum_image(cp - vec(BA, k), per, inv_per);
+    const Vec3<T> arm_j = minimum_image(cp - vec(BB, k), per, inv_per);
+    const Vec3<T> wi = vec(WA, k), wj = vec(WB, k);
+    const Vec3<T> v_rel = vec(VA, k) + cross(wi, arm_i) - vec(VB, k) - cross(wj, arm_j);
+    const Coefficients<T> c{reff[k], meff[k], E[k], G[k], bt[k], mus[k], mur[k], eta[k], Ir[k]};
+    const LawResult<T> r = contact_law<T, kAi2011>(overlap, nrm, v_rel, wi - wj, vec(TG, k), vec(RL, k), c, dt);
+    put(F, k, r.force);
+    put(TI, k, cross(arm_i, r.force) + r.m_roll);
+    put(TJ, k, cross(r.force, arm_j) - r.m_roll);
+    put(TN, k, r.tangential_new);
+    put(RN, k, r.rolling_new);
+  }
+  // Stage 3: springs [P, 3] and rows [P, 9].
+  for (int64_t k = 0; k < n; ++k) {
+    const int64_t p = p0 + k;
+    T* row = data.rows + 9 * p;
+    for (int c = 0; c < 9; ++c) row[c] = o[F + c][k];
+    for (int c = 0; c < 3; ++c) {
+      data.tangential_new[3 * p + c] = o[TN + c][k];
+      data.rolling_new[3 * p + c] = o[RN + c][k];
+    }
+  }
+}
+
+// Number of entries of idx [n] outside [0, limit) (vectorised; no early exit).
+inline int64_t count_out_of_range(const int64_t* __restrict__ idx, int64_t n, int64_t limit) {
+  int64_t bad = 0;
+  const uint64_t lim = static_cast<uint64_t>(limit);
+#pragma omp simd reduction(+ : bad)
+  for (int64_t k = 0; k < n; ++k) bad += static_cast<uint64_t>(idx[k]) >= lim ? 1 : 0;
+  return bad;
+}
+
+// Per-contact rows live in a buffer of the calling thread that is kept between calls
+// (allocating ~100 bytes per contact afresh each step costs page faults; the buffer is as
+// large as the largest contact list seen by that thread).
+template <typename T>
+T* scratch_rows(int64_t count) {
+  thread_local std::vector<double> buffer;
+  const size_t doubles = (static_cast<size_t>(count) * sizeof(T) + sizeof(double) - 1) / sizeof(double);
+  if (buffer.size() < doubles) buffer.resize(doubles);
+  return reinterpret_cast<T*>(buffer.data());
+}
+
+// pair_forces for one dtype (inputs validated and contiguous).
+template <typename T>
+void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, at::Tensor& torque_out,
+                      at::Tensor& tang_out, at::Tensor& roll_out, int64_t S, int64_t NB, int64_t P, double dt,
+                      at::ArrayRef<double> period, bool ai2011, bool periodic) {
+  PairData<T> data;
+  data.x = in[0].data_ptr<T>();
+  data.X = in[1].data_ptr<T>();
+  data.V = in[2].data_ptr<T>();
+  data.W = in[3].data_ptr<T>();
+  data.i = in[6].data_ptr<int64_t>();
+  data.j = in[7].data_ptr<int64_t>();
+  data.body_i = in[8].data_ptr<int64_t>();
+  data.body_j = in[9].data_ptr<int64_t>();
+  data.radius_i = in[10].data_ptr<T>();
+  data.radius_j = in[11].data_ptr<T>();
+  data.radius_eff = in[12].data_ptr<T>();
+  data.mass_eff = in[13].data_ptr<T>();
+  data.young_eff = in[14].data_ptr<T>();
+  data.shear_eff = in[15].data_ptr<T>();
+  data.beta = in[16].data_ptr<T>();
+  data.mu_s = in[17].data_ptr<T>();
+  data.mu_r = in[18].data_ptr<T>();
+  data.rolling_damping = in[19].data_ptr<T>();
+  data.rolling_inertia = in[20].data_ptr<T>();
+  data.tangential = in[21].data_ptr<T>();
+  data.rolling = in[22].data_ptr<T>();
+  data.tangential_new = tang_out.data_ptr<T>();
+  data.rolling_new = roll_out.data_ptr<T>();
+  data.rows = scratch_rows<T>(9 * P);
+  for (int d = 0; d < 3; ++d) {
+    data.period[d] = periodic && period[d] > 0 ? T(period[d]) : T(0);
+    data.inv_period[d] = data.period[d] > 0 ? T(1) / data.period[d] : T(0);
+  }
+  data.dt = T(dt);
+  data.ai2011 = ai2011;
+  // One parallel region per pass: every block checks its own indices before it reads
+  // through them (a block with a bad index is skipped and the call fails after the pass).
+  std::atomic<int64_t> bad{0};
+  const unsigned csr = DenormalMode::caller();
+  at::parallel_for(0, (P + kBlock - 1) / kBlock, 4, [&](int64_t b0, int64_t b1) {
+    DenormalMode mode(csr);
+    for (int64_t blk = b0; blk < b1; ++blk) {
+      const int64_t p0 = blk * kBlock, n = std::min(kBlock, P - p0);
+      const int64_t n_bad = count_out_of_range(data.i + p0, n, S) + count_out_of_range(data.j + p0, n, S) +
+                            count_out_of_range(data.body_i + p0, n, NB) + count_out_of_range(data.body_j + p0, n, NB);
+      if (n_bad) {
+        bad += n_bad;
+        continue;
+      }
+      data.ai2011 ? pair_block<T, true>(data, p0, n) : pair_block<T, false>(data, p0, n);
+    }
+  });
+  TORCH_CHECK(bad.load() == 0, "pair_forces: ", bad.load(), " sphere or body indices are outside [0, ", S,
+              ") (spheres) or [0, ", NB, ") (bodies)");
+  scatter_to_bodies<T>(data.body_i, data.body_j, data.rows, 9, P, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
+                       force_out.data_ptr<T>(), torque_out.data_ptr<T>());
+}
+
+std::vector<at::Tensor> pair_forces(
+    at::Tensor xs, at::Tensor X, at::Tensor V, at::Tensor omega, at::Tensor force, at::Tensor torque,
+    at::Tensor i, at::Tensor j, at::Tensor body_i, at::Tensor body_j, at::Tensor radius_i, at::Tensor radius_j,
+    at::Tensor radius_eff, at::Tensor mass_eff, at::Tensor young_eff, at::Tensor shear_eff, at::Tensor beta,
+    at::Tensor mu_s, at::Tensor mu_r, at::Tensor rolling_damping, at::Tensor rolling_inertia,
+    at::Tensor tangential, at::Tensor rolling, double dt, at::ArrayRef<double> period, bool ai2011,
+    bool periodic) {
+  const auto dtype = xs.scalar_type();
+  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
+  TORCH_CHECK(period.size() == 3, "period has ", period.size(), " entries; expected 3");
+  const int64_t S = rows_of(xs, "xs"), NB = rows_of(X, "X"), P = rows_of(i, "i");
+  check_cpu(xs, "xs", dtype, S, 3);
+  for (auto* p : {&X, &V, &omega, &force, &torque}) check_cpu(*p, "body tensor", dtype, NB, 3);
+  for (auto* p : {&i, &j, &body_i, &body_j}) check_cpu(*p, "index tensor", at::kLong, P, 0);
+  for (auto* p : {&radius_i, &radius_j, &radius_eff, &mass_eff, &young_eff, &shear_eff, &beta, &mu_s, &mu_r,
+                  &rolling_damping, &rolling_inertia})
+    check_cpu(*p, "per-pair tensor", dtype, P, 0);
+  check_cpu(tangential, "tangential", dtype, P, 3);
+  check_cpu(rolling, "rolling", dtype, P, 3);
+  std::vector<at::Tensor> in = {xs, X, V, omega, force, torque, i, j, body_i, body_j, radius_i, radius_j,
+                                radius_eff, mass_eff, young_eff, shear_eff, beta, mu_s, mu_r, rolling_damping,
+                                rolling_inertia, tangential, rolling};
+  for (auto& t : in) t = t.contiguous();
+  at::Tensor force_out = at::empty_like(in[4]), torque_out = at::empty_like(in[5]);
+  at::Tensor tang_out = at::empty_like(in[21]), roll_out = at::empty_like(in[22]);
+  AT_DISPATCH_FLOATING_TYPES(dtype, "pair_forces", [&] {
+    pair_forces_impl<scalar_t>(in, force_out, torque_out, tang_out, roll_out, S, NB, P, dt, period, ai2011,
+                               periodic);
+  });
+  return {force_out, torque_out, tang_out, roll_out};
+}
+
+// Gathered operands of a sphere-wall block, one array per component (see wall_block).
+enum WallOperand { kWXW, kWC = 3, kWU = 6, kWVV = 9, kWWV = 12, kWBX = 15, kWBV = 18, kWBW = 21, kWTG = 24,
+                   kWRL = 27, kWHU = 30, kWHV, kWPR, kWallOperands };
+
+// Stage 1 of wall_block, scalar like gather_pairs.
+template <typename T>
+TORCHDEM_SCALAR_LOOP void gather_walls(const std::vector<at::Tensor>& in, int64_t q0, int64_t n, T (*g)[kBlock]) {
+  const T* x = in[0].data_ptr<T>();
+  const T* Xb = in[1].data_ptr<T>();
+  const T* Vb = in[2].data_ptr<T>();
+  const T* Wb = in[3].data_ptr<T>();
+  const int64_t* ps = in[6].data_ptr<int64_t>();
+  const int64_t* pb = in[7].data_ptr<int64_t>();
+  const int64_t* pw = in[8].data_ptr<int64_t>();
+  const T *wc = in[9].data_ptr<T>(), *wu = in[10].data_ptr<T>(), *wv = in[11].data_ptr<T>(),
+          *hu = in[12].data_ptr<T>(), *hv = in[13].data_ptr<T>(), *wvel = in[14].data_ptr<T>();
+  const bool* present = in[15].data_ptr<bool>();
+  const T* tang = in[25].data_ptr<T>();
+  const T* roll = in[26].data_ptr<T>();
+  for (int64_t k = 0; k < n; ++k) {
+    const int64_t q = q0 + k;
+    const int64_t s = ps[q], b = pb[q], w = pw[q];
+    for (int c = 0; c < 3; ++c) {
+      g[kWXW + c][k] = x[3 * s + c];
+      g[kWC + c][k] = wc[3 * w + c];
+      g[kWU + c][k] = wu[3 * w + c];
+      g[kWVV + c][k] = wv[3 * w + c];
+      g[kWWV + c][k] = wvel[3 * w + c];
+      g[kWBX + c][k] = Xb[3 * b + c];
+      g[kWBV + c][k] = Vb[3 * b + c];
+      g[kWBW + c][k] = Wb[3 * b + c];
+      g[kWTG + c][k] = tang[3 * q + c];
+      g[kWRL + c][k] = roll[3 * q + c];
+    }
+    g[kWHU][k] = hu[w];
+    g[kWHV][k] = hv[w];
+    g[kWPR][k] = present[w] ? T(1) : T(0);
+  }
+}
+
+// Sphere-wall contacts [q0, q0 + n), n <= kBlock; same three stages as pair_block.
+template <typename T, bool kAi2011>
+void wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, T* rows, T dt, int64_t q0, int64_t n) {
+  enum { XW = kWXW, C = kWC, U = kWU, VV = kWVV, WV = kWWV, BX = kWBX, BV = kWBV, BW = kWBW, TG = kWTG, RL = kWRL,
+         HU = kWHU, HV = kWHV, PR = kWPR };
+  alignas(64) T g[kWallOperands][kBlock];
+  gather_walls(in, q0, n, g);
+  // Stage 2: contact law.
+  enum { F = 0, TQ = 3, TN = 6, RN = 9, NO = 12 };
+  alignas(64) T o[NO][kBlock];
+  const T *__restrict__ rad = in[16].data_ptr<T>() + q0, *__restrict__ meff = in[17].data_ptr<T>() + q0,
+          *__restrict__ E = in[18].data_ptr<T>() + q0, *__restrict__ G = in[19].data_ptr<T>() + q0,
+          *__restrict__ bt = in[20].data_ptr<T>() + q0, *__restrict__ mus = in[21].data_ptr<T>() + q0,
+          *__restrict__ mur = in[22].data_ptr<T>() + q0, *__restrict__ eta = in[23].data_ptr<T>() + q0,
+          *__restrict__ Ir = in[24].data_ptr<T>() + q0;
+  auto vec = [&](int c, int64_t k) { return Vec3<T>{g[c][k], g[c + 1][k], g[c + 2][k]}; };
+  auto put = [&](int c, int64_t k, Vec3<T> v) {
+    o[c][k] = v.x;
+    o[c + 1][k] = v.y;
+    o[c + 2][k] = v.z;
+  };
+  for (int64_t k = 0; k < n; ++k) {  // vectorised by the compiler (see contact_law)
+    const Vec3<T> xw = vec(XW, k), c = vec(C, k), u = vec(U, k), v = vec(VV, k);
+    const Vec3<T> rel = xw - c;
+    const T h_u = g[HU][k], h_v = g[HV][k];
+    const T su = std::max(std::min(dot(rel, u), h_u), -h_u);
+    const T sv = std::max(std::min(dot(rel, v), h_v), -h_v);
+    const Vec3<T> d = c + su * u + sv * v - xw;
+    const T dist = norm(d);
+    const T overlap = g[PR][k] > 0 ? rad[k] - dist : T(-1);
+    const Vec3<T> nrm = (T(1) / std::max(dist, T(1e-30))) * d;
+    const Vec3<T> cp = xw + (rad[k] - T(0.5) * overlap) * nrm;
+    const Vec3<T> arm = cp - vec(BX, k);
+    const Vec3<T> wb = vec(BW, k);
+    const Vec3<T> v_rel = vec(BV, k) + cross(wb, arm) - vec(WV, k);
+    const Coefficients<T> co{rad[k], meff[k], E[k], G[k], bt[k], mus[k], mur[k], eta[k], Ir[k]};
+    const LawResult<T> r = contact_law<T, kAi2011>(overlap, nrm, v_rel, wb, vec(TG, k), vec(RL, k), co, dt);
+    put(F, k, r.force);
+    put(TQ, k, cross(arm, r.force) + r.m_roll);
+    put(TN, k, r.tangential_new);
+    put(RN, k, r.rolling_new);
+  }
+  // Stage 3: springs [Q, 3] and rows [Q, 6].
+  for (int64_t k = 0; k < n; ++k) {
+    const int64_t q = q0 + k;
+    for (int c = 0; c < 6; ++c) rows[6 * q + c] = o[F + c][k];
+    for (int c = 0; c < 3; ++c) {
+      tang_new[3 * q + c] = o[TN + c][k];
+      roll_new[3 * q + c] = o[RN + c][k];
+    }
+  }
+}
+
+// wall_forces for one dtype (inputs validated and contiguous).
+template <typename T>
+void wall_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, at::Tensor& torque_out,
+                      at::Tensor& tang_out, at::Tensor& roll_out, int64_t S, int64_t NB, int64_t Q, int64_t W,
+                      double dt, bool ai2011) {
+  std::atomic<int64_t> bad{0};
+  const int64_t *ps = in[6].data_ptr<int64_t>(), *pb = in[7].data_ptr<int64_t>(), *pw = in[8].data_ptr<int64_t>();
+  T* tang_new = tang_out.data_ptr<T>();
+  T* roll_new = roll_out.data_ptr<T>();
+  T* row = scratch_rows<T>(6 * Q);
+  const unsigned csr = DenormalMode::caller();
+  at::parallel_for(0, (Q + kBlock - 1) / kBlock, 4, [&](int64_t b0, int64_t b1) {
+    DenormalMode mode(csr);
+    for (int64_t blk = b0; blk < b1; ++blk) {
+      const int64_t q0 = blk * kBlock, n = std::min(kBlock, Q - q0);
+      const int64_t n_bad = count_out_of_range(ps + q0, n, S) + count_out_of_range(pb + q0, n, NB) +
+                            count_out_of_range(pw + q0, n, W);
+      if (n_bad) {
+        bad += n_bad;
+        continue;
+      }
+      ai2011 ? wall_block<T, true>(in, tang_new, roll_new, row, T(dt), q0, n)
+             : wall_block<T, false>(in, tang_new, roll_new, row, T(dt), q0, n);
+    }
+  });
+  TORCH_CHECK(bad.load() == 0, "wall_forces: ", bad.load(), " sphere, body or wall indices are out of range (",
+              S, " spheres, ", NB, " bodies, ", W, " walls)");
+  scatter_to_bodies<T>(pb, nullptr, row, 6, Q, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
+                       force_out.data_ptr<T>(), torque_out.data_ptr<T>());
+}
+
+std::vector<at::Tensor> wall_forces(
+    at::Tensor xs, at::Tensor X, at::Tensor V, at::Tensor omega, at::Tensor force, at::Tensor torque,
+    at::Tensor sphere, at::Tensor body, at::Tensor wall, at::Tensor wall_centre, at::Tensor wall_u,
+    at::Tensor wall_v, at::Tensor half_u, at::Tensor half_v, at::Tensor wall_velocity, at::Tensor wall_present,
+    at::Tensor radius, at::Tensor mass_eff, at::Tensor young_eff, at::Tensor shear_eff, at::Tensor beta,
+    at::Tensor mu_s, at::Tensor mu_r, at::Tensor rolling_damping, at::Tensor rolling_inertia,
+    at::Tensor tangential, at::Tensor rolling, double dt, bool ai2011) {
+  const auto dtype = xs.scalar_type();
+  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
+  const int64_t S = rows_of(xs, "xs"), NB = rows_of(X, "X"), Q = rows_of(sphere, "sphere");
+  const int64_t W = rows_of(wall_centre, "wall_centre");
+  check_cpu(xs, "xs", dtype, S, 3);
+  for (auto* p : {&X, &V, &omega, &force, &torque}) check_cpu(*p, "body tensor", dtype, NB, 3);
+  for (auto* p : {&sphere, &body, &wall}) check_cpu(*p, "index tensor", at::kLong, Q, 0);
+  for (auto* p : {&wall_centre, &wall_u, &wall_v, &wall_velocity}) check_cpu(*p, "wall tensor", dtype, W, 3);
+  for (auto* p : {&half_u, &half_v}) check_cpu(*p, "wall half-extent", dtype, W, 0);
+  check_cpu(wall_present, "wall_present", at::kBool, W, 0);
+  for (auto* p : {&radius, &mass_eff, &young_eff, &shear_eff, &beta, &mu_s, &mu_r, &rolling_damping,
+                  &rolling_inertia})
+    check_cpu(*p, "per-contact tensor", dtype, Q, 0);
+  check_cpu(tangential, "tangential", dtype, Q, 3);
+  check_cpu(rolling, "rolling", dtype, Q, 3);
+  std::vector<at::Tensor> in = {xs, X, V, omega, force, torque, sphere, body, wall, wall_centre, wall_u, wall_v,
+                                half_u, half_v, wall_velocity, wall_present, radius, mass_eff, young_eff,
+                                shear_eff, beta, mu_s, mu_r, rolling_damping, rolling_inertia, tangential,
+                                rolling};
+  for (auto& t : in) t = t.contiguous();
+  at::Tensor force_out = at::empty_like(in[4]), torque_out = at::empty_like(in[5]);
+  at::Tensor tang_out = at::empty_like(in[25]), roll_out = at::empty_like(in[26]);
+  AT_DISPATCH_FLOATING_TYPES(dtype, "wall_forces", [&] {
+    wall_forces_impl<scalar_t>(in, force_out, torque_out, tang_out, roll_out, S, NB, Q, W, dt, ai2011);
+  });
+  return {force_out, torque_out, tang_out, roll_out};
+}
+
+}  // namespace
+
+// Registered as torch.ops.torchdem.pair_forces / wall_forces (a TORCH_LIBRARY fragment: other
+// torchdem extensions add ops to the same namespace; not pybind11:
+// the pybind11 headers of torch take ~4x longer to compile than the whole kernel).
+TORCH_LIBRARY_FRAGMENT(torchdem, m) {
+  m.def("pair_forces(Tensor xs, Tensor X, Tensor V, Tensor omega, Tensor force, Tensor torque, Tensor i, "
+        "Tensor j, Tensor body_i, Tensor body_j, Tensor radius_i, Tensor radius_j, Tensor radius_eff, "
+        "Tensor mass_eff, Tensor young_eff, Tensor shear_eff, Tensor beta, Tensor mu_s, Tensor mu_r, "
+        "Tensor rolling_damping, Tensor rolling_inertia, Tensor tangential, Tensor rolling, float dt, "
+        "float[] period, bool ai2011, bool periodic) -> Tensor[]",
+        &pair_forces);
+  m.def("wall_forces(Tensor xs, Tensor X, Tensor V, Tensor omega, Tensor force, Tensor torque, Tensor sphere, "
+        "Tensor body, Tensor wall, Tensor wall_centre, Tensor wall_u, Tensor wall_v, Tensor half_u, "
+        "Tensor half_v, Tensor wall_velocity, Tensor wall_present, Tensor radius, Tensor mass_eff, "
+        "Tensor young_eff, Tensor shear_eff, Tensor beta, Tensor mu_s, Tensor mu_r, Tensor rolling_damping, "
+        "Tensor rolling_inertia, Tensor tangential, Tensor rolling, float dt, bool ai2011) -> Tensor[]",
+        &wall_forces);
+}
