@@ -150,7 +150,8 @@ class DrawDownResult:
         images: per member {"upper": BGR image, "lower": BGR image}.
         members: per member (parameter-set index, replicate index, seed).
         wall_time_s, steps, particles: run statistics.
-        conservation: per member (upper, lower, in flight, lost, total) masses at the end, kg.
+        conservation: per member (upper, lower, in flight, lost, total) masses at the end, kg,
+            and the largest body speed when the gate opened (how settled the fill was), m/s.
         errors: per member, KPI name -> message for KPIs that could not be measured.
         build_time_s: wall time of placing the particles (part of ``wall_time_s``).
         spheres: spheres per member (padded to the largest member), dt: time step, s.
@@ -358,6 +359,7 @@ class DrawDownTest:
         times: list[float] = []
         masses: list[np.ndarray] = []
         ckpt = Path(checkpoint) if checkpoint is not None else None
+        gate_speed = [math.nan] * len(members)
         wall_before = 0.0
         sim = None
         if ckpt is not None and ckpt.exists():
@@ -369,6 +371,7 @@ class DrawDownTest:
             times = [float(t) for t in saved["times"]]
             masses = [m.numpy() for m in saved["masses"]]
             wall_before = float(saved["wall_s"])
+            gate_speed[:] = saved["gate_speed"].tolist()
         else:
             sim = Simulation(system, state, s.guards, compile=s.compile)
         ckpt_steps = max(every, int(round(checkpoint_every / system.dt)))
@@ -385,6 +388,7 @@ class DrawDownTest:
             torch.save({"state": to_dict(simulation.state), "failed": simulation.failed, "members": members,
                         "times": torch.tensor(times, dtype=torch.float64),
                         "masses": [torch.as_tensor(m) for m in masses],
+                        "gate_speed": torch.tensor(gate_speed, dtype=torch.float64),
                         "wall_s": wall_before + time.perf_counter() - started}, tmp)
             os.replace(tmp, ckpt)
 
@@ -392,6 +396,9 @@ class DrawDownTest:
             k = simulation.state.step
             if writer is not None:
                 writer(simulation)
+            if k == k_open:  # how settled the fill is when the gate opens
+                b = simulation.state.bodies
+                gate_speed[:] = (b.velocity.norm(dim=-1) * b.active).amax(-1).cpu().tolist()
             if k >= k_open and (k - k_open) % every == 0:  # 50 Hz from the gate opening on
                 times.append(simulation.time - t_open)
                 masses.append(self._upper_mass(simulation).cpu().numpy())
@@ -405,6 +412,8 @@ class DrawDownTest:
         sim.run_until(t_end, callback=on_step, callback_every=1)
         wall = wall_before + time.perf_counter() - started
         result = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), wall)
+        for c, v in zip(result.conservation, gate_speed):
+            c["max_speed_at_gate_open_m_s"] = v
         result = dataclasses.replace(result, build_time_s=build_s, spheres=int(system.n_spheres), dt=float(system.dt))
         if ckpt is not None and ckpt.exists():
             ckpt.unlink()
