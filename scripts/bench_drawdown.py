@@ -47,7 +47,8 @@ def time_run(test: DrawDownTest, members: int) -> dict:
            "dt_s": result.dt, "wall_s": result.wall_time_s, "fill_s": fill_s, "simulation_s": sim_s,
            "particle_steps_per_s": members * spheres * steps / max(sim_s, 1e-9),
            "other_cores": cpu.other_cores,
-           "kpis_member0": result.kpis[0]}
+           "kpis_member0": result.kpis[0], "not_measured_member0": result.errors[0],
+           "mass_balance_member0": result.conservation[0]}
     return out
 
 

@@ -476,9 +476,13 @@ class DrawDownTest:
             except KPIInputError as exc:
                 err["segregation"] = str(exc)
             xs = sphere_positions(system, state.bodies).reshape(system.batch, system.n_spheres, 3)[m]
+            # heap = bodies at rest in the lower box, below the upper box's bottom plates (not
+            # the falling stream, not grains jammed in the slot)
             body = system.sphere_body[m]
-            sel = in_lower[m][body]
-            k["max_heap_height_m"] = float((xs[sel, 2] + system.sphere_radius[m][sel]).max()) if bool(sel.any()) else 0.0
+            top = xs[:, 2] + system.sphere_radius[m]
+            resting = b.velocity[m].norm(dim=-1) < 0.1
+            sel = in_lower[m][body] & resting[body] & (top < g.upper_bottom_z)
+            k["max_heap_height_m"] = float(top[sel].max()) if bool(sel.any()) else 0.0
             kpis.append(k)
             errors.append(err)
             images.append({"upper": upper_img, "lower": lower_img})
