@@ -211,6 +211,19 @@ def _measured_columns(runs: StudyRuns, deciding: Sequence[str] | None, source: s
     return ok
 
 
+
+def _analysed_kpis(runs: StudyRuns, deciding_kpis: Sequence[str] | None, source: str, level: str
+                   ) -> tuple[list[str], list[str], list[str], list[int]]:
+    """KPIs measured twice at every study level (usable), those left out, the deciding ones
+    and the usable columns of ``runs.kpi_values``."""
+    usable = _measured_columns(runs, deciding_kpis, source)
+    left_out = [k for k in runs.kpi_names if k not in usable]
+    deciding = [k for k in (deciding_kpis or usable) if k in usable]
+    if not deciding:
+        raise ConfigError(f"{source}: none of the deciding KPIs {list(deciding_kpis)} was measured with "
+                          f"2 finite replicates at every {level}; measured: {usable}")
+    return usable, left_out, deciding, [runs.kpi_names.index(k) for k in usable]
+
 def time_step_report(runs: StudyRuns, out_dir, *, rayleigh_time_step_s: float | None = None,
                      deciding_kpis: Sequence[str] | None = None, relative_tolerance: float = 0.02,
                      std_growth_factor: float = 2.0) -> tuple[TimeStepChoice, dict[str, Path]]:
@@ -221,14 +234,7 @@ def time_step_report(runs: StudyRuns, out_dir, *, rayleigh_time_step_s: float | 
     """
     from bo.plots import write_time_step_plot
 
-    source = "time_step_report"
-    usable = _measured_columns(runs, deciding_kpis, source)
-    left_out = [k for k in runs.kpi_names if k not in usable]
-    deciding = [k for k in (deciding_kpis or usable) if k in usable]
-    if not deciding:
-        raise ConfigError(f"{source}: none of the deciding KPIs {list(deciding_kpis)} was measured with "
-                          f"2 finite replicates at every fraction; measured: {usable}")
-    cols = [runs.kpi_names.index(k) for k in usable]
+    usable, left_out, deciding, cols = _analysed_kpis(runs, deciding_kpis, "time_step_report", "fraction")
     choice = choose_time_step(runs.values, runs.kpi_values[:, :, cols], usable, kpis=deciding,
                               relative_tolerance=relative_tolerance, std_growth_factor=std_growth_factor,
                               rayleigh_time_step_s=rayleigh_time_step_s)
@@ -255,14 +261,7 @@ def shear_modulus_report(runs: StudyRuns, out_dir, *, deciding_kpis: Sequence[st
                          relative_tolerance: float = 0.02
                          ) -> tuple[ShearModulusSummary, dict[str, Path]]:
     """``summarise_shear_modulus_study`` on the study (wall times included) and its files."""
-    source = "shear_modulus_report"
-    usable = _measured_columns(runs, deciding_kpis, source)
-    left_out = [k for k in runs.kpi_names if k not in usable]
-    deciding = [k for k in (deciding_kpis or usable) if k in usable]
-    if not deciding:
-        raise ConfigError(f"{source}: none of the deciding KPIs {list(deciding_kpis)} was measured with "
-                          f"2 finite replicates at every modulus; measured: {usable}")
-    cols = [runs.kpi_names.index(k) for k in usable]
+    usable, left_out, deciding, cols = _analysed_kpis(runs, deciding_kpis, "shear_modulus_report", "modulus")
     walls = runs.wall_time_s if np.all(np.isfinite(runs.wall_time_s)) else None
     summary = summarise_shear_modulus_study(runs.values, runs.kpi_values[:, :, cols], usable, walls,
                                             relative_tolerance=relative_tolerance, kpis=deciding)

@@ -42,7 +42,7 @@ BOX = ((0.0, 0.0, -0.005), (0.06, 0.05, 0.08))
 
 @pytest.fixture(scope="module")
 def extension():
-    ext = _ext.contact_cpu()
+    ext = _ext.cpu_kernels()
     assert ext is not None, f"the C++ contact kernels did not build: {_ext.build_error()}"
     return ext
 
@@ -210,7 +210,7 @@ def test_missing_compiler_falls_back_to_torch_kernels_with_one_warning(tmp_path)
             Simulation(system, state).advance(3)
         messages = [str(w.message) for w in caught if "C++ contact kernels" in str(w.message)]
         assert len(messages) == 1, messages
-        assert _ext.contact_cpu() is None and _ext.build_error()
+        assert _ext.cpu_kernels() is None and _ext.build_error()
         assert sim.state.pairs.n > 0
         print("fallback ok")
     """)

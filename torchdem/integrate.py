@@ -366,7 +366,7 @@ class Kernels:
             return None
         from torchdem import _ext
 
-        ext = _ext.contact_cpu()
+        ext = _ext.cpu_kernels()
         if ext is None and self.backend == "cpp":
             raise RuntimeError(f"kernel backend 'cpp': the C++ contact kernels could not be built "
                                f"({_ext.build_error()}); use backend 'auto' or 'torch'")

@@ -97,7 +97,7 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
                grid: CellGrid, skin: float, use_extension: bool = True) -> tuple[Tensor, Tensor]:
     """All sphere pairs within contact distance plus skin.
 
-    On CPU the candidate scan runs in the C++ kernel of :mod:`torchdem._ext.cells` (same list,
+    On CPU the candidate scan runs in the C++ kernel of :mod:`torchdem._ext` (same list,
     about two orders of magnitude faster on polydisperse packings) unless ``use_extension``
     is False or it cannot be built.
 
@@ -125,11 +125,11 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
     hashes = torch.where(active, member * n_cells + linear, torch.full_like(linear, int(sentinel)))
     sorted_hash, order = torch.sort(hashes)
     if device.type == "cpu" and use_extension:
-        from torchdem._ext.cells import cells_cpu
+        from torchdem import _ext
 
-        op = cells_cpu()
-        if op is not None:
-            return op(position, radius, body, active, cell, sorted_hash, order, list(grid.dims),
+        ext = _ext.cpu_kernels()
+        if ext is not None:
+            return ext.cell_pairs(position, radius, body, active, cell, sorted_hash, order, list(grid.dims),
                       [float(p) for p in grid.period.tolist()], int(n_per_member), float(skin))
 
     act = torch.nonzero(active).squeeze(1)

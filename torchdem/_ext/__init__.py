@@ -1,9 +1,11 @@
 """Just-in-time built C++ kernels for CPU tensors.
 
 Contract:
-- :func:`contact_cpu` returns the operators of ``contact_cpu.cpp`` (``pair_forces`` and
-  ``wall_forces``, registered as ``torch.ops.torchdem.*``: the CPU twins of
-  :func:`torchdem.integrate.pair_kernel` and :func:`torchdem.integrate.wall_kernel`), or None
+- :func:`cpu_kernels` returns the operators of ``contact_cpu.cpp`` (``pair_forces`` and
+  ``wall_forces``: the CPU twins of :func:`torchdem.integrate.pair_kernel` and
+  :func:`torchdem.integrate.wall_kernel`) and of ``cells_cpu.cpp`` (``cell_pairs``: the
+  candidate scan of :func:`torchdem.neighbors.find_pairs`), registered as
+  ``torch.ops.torchdem.*`` and built as one extension, or None
   when they cannot be built (no C++ compiler, no ninja, ...). The first call in a process
   builds or loads them with ``torch.utils.cpp_extension.load`` (about 30 s to build);
   torch caches the build under ``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``)
@@ -25,7 +27,8 @@ import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
-SOURCE = Path(__file__).with_name("contact_cpu.cpp")
+# One extension, two sources: the contact laws and the cell-list pair search.
+SOURCES = [Path(__file__).with_name("contact_cpu.cpp"), Path(__file__).with_name("cells_cpu.cpp")]
 # -march=native: the loops vectorise across contacts with the widest vector unit of this CPU.
 # -fno-math-errno / -fno-trapping-math let sqrt and rounding vectorise; neither changes a result
 # (no -ffast-math: no reassociation, NaN and inf keep their IEEE meaning).
@@ -35,8 +38,9 @@ _lock = threading.Lock()
 _state: dict[str, object] = {}
 
 
-def contact_cpu() -> SimpleNamespace | None:
-    """The compiled contact kernels, or None if they cannot be built (warns once)."""
+def cpu_kernels() -> SimpleNamespace | None:
+    """The compiled CPU kernels (``pair_forces``, ``wall_forces``, ``cell_pairs``), or None if
+    they cannot be built (warns once)."""
     if "module" in _state:
         return _state["module"]  # type: ignore[return-value]
     with _lock:
@@ -61,7 +65,7 @@ def _module_name() -> str:
                 break
     except OSError:
         signature += platform.processor()
-    return "torchdem_contact_cpu_" + hashlib.sha256(signature.encode()).hexdigest()[:10]
+    return "torchdem_cpu_" + hashlib.sha256(signature.encode()).hexdigest()[:10]
 
 
 def _build() -> SimpleNamespace | None:
@@ -72,14 +76,14 @@ def _build() -> SimpleNamespace | None:
         import torch
         from torch.utils.cpp_extension import load
 
-        load(name=_module_name(), sources=[str(SOURCE)], extra_cflags=CFLAGS, is_python_module=False, verbose=False)
+        load(name=_module_name(), sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS, is_python_module=False, verbose=False)
         ops = torch.ops.torchdem
-        return SimpleNamespace(pair_forces=ops.pair_forces, wall_forces=ops.wall_forces)
+        return SimpleNamespace(pair_forces=ops.pair_forces, wall_forces=ops.wall_forces, cell_pairs=ops.cell_pairs)
     except Exception as err:  # no compiler, no ninja, compile error: fall back to the torch kernels
         message = f"{type(err).__name__}: {err}".strip()
         _state["error"] = message
         warnings.warn(
-            f"torchdem: could not build the C++ contact kernels from {SOURCE} ({message.splitlines()[0]}); "
+            f"torchdem: could not build the C++ contact kernels and pair search from {[p.name for p in SOURCES]} ({message.splitlines()[0]}); "
             "using the slower torch kernels on CPU. Install a C++ compiler and ninja to enable them.",
             RuntimeWarning, stacklevel=3)
         return None

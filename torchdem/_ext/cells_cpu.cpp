@@ -175,7 +175,8 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
 
 }  // namespace
 
-// torch.ops.torchdem.cell_pairs (a fragment: contact_cpu.cpp defines the library).
+// torch.ops.torchdem.cell_pairs (a fragment: contact_cpu.cpp, built into the same extension,
+// defines the library).
 TORCH_LIBRARY_FRAGMENT(torchdem, m) {
   m.def("cell_pairs(Tensor position, Tensor radius, Tensor body, Tensor active, Tensor cell, Tensor sorted_hash, "
         "Tensor order, int[] dims, float[] period, int n_per_member, float skin) -> (Tensor, Tensor)");
