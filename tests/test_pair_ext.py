@@ -59,10 +59,10 @@ def _system(dtype=F64, rolling_stiffness="tangential", B=3, N=60, seed=0, spacin
                                0.8 + 0.3 * torch.rand(B, N, generator=g, dtype=F64))
     q = torch.randn(B, N, 4, generator=g, dtype=F64)
     mats = [glass(), steel()]
-    pp = dict(mu_s=[0.2, 0.5, 0.9], mu_r=[0.02, 0.1, 0.3], restitution=[0.3, 0.6, 0.9],
-              rolling_damping=[0.0, 0.3, 0.7])
-    pw = dict(mu_s=[0.3, 0.4, 0.6], mu_r=[0.05, 0.01, 0.2], restitution=[0.5, 0.7, 0.4],
-              rolling_damping=[0.2, 0.0, 0.5])
+    pp = dict(mu_s=[0.2, 0.5, 0.9, 0.4], mu_r=[0.02, 0.1, 0.3, 0.05], restitution=[0.3, 0.6, 0.9, 0.5],
+              rolling_damping=[0.0, 0.3, 0.7, 0.1])
+    pw = dict(mu_s=[0.3, 0.4, 0.6, 0.5], mu_r=[0.05, 0.01, 0.2, 0.1], restitution=[0.5, 0.7, 0.4, 0.8],
+              rolling_damping=[0.2, 0.0, 0.5, 0.3])
     members = lambda coefficients: {k: v[:B] for k, v in coefficients.items()}  # noqa: E731
     table = interaction_table(mats, {("glass", "glass"): members(pp), ("glass", "steel"): members(pw)}, batch=B)
     walls = [WallSpec("floor", (0.03, 0.025, 0.0), (0, 0, 1), (1, 0, 0), 0.02, 0.015, "steel"),
@@ -170,6 +170,58 @@ def test_cpp_contact_kernels_do_not_depend_on_thread_count(extension):
     for other in results[1:]:
         for name, value in results[0].items():
             assert torch.equal(value, other[name]), name
+
+
+def _raw_call(extension, system, state, xs, omega, members, order=None):
+    """The C++ pair and wall operators on the state's contacts (optionally reordered), with the
+    bodies split into ``members`` for the scatter."""
+    p, w, walls = state.pairs, state.walls, system.walls
+    if order is not None:
+        p = p.set(**{k: getattr(p, k)[order] for k in ("i", "j", "body_i", "body_j", "radius_i", "radius_j",
+                                                        "radius_eff", "mass_eff", "young_eff", "shear_eff", "beta",
+                                                        "mu_s", "mu_r", "rolling_damping", "rolling_inertia",
+                                                        "tangential", "rolling")})
+    X = state.bodies.position.reshape(-1, 3)
+    V = state.bodies.velocity.reshape(-1, 3)
+    zero = torch.zeros_like(X)
+    pair = extension.pair_forces(xs, X, V, omega, zero, zero, p.i, p.j, p.body_i, p.body_j, p.radius_i, p.radius_j,
+                                 p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
+                                 p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, system.dt,
+                                 system.grid.period.tolist(), False, system.grid.is_periodic, members)
+    wall = extension.wall_forces(xs, X, V, omega, zero, zero, w.sphere, w.body, w.wall, walls.centre, walls.axis_u,
+                                 walls.axis_v, walls.half_u, walls.half_v, walls.velocity_at(0.0),
+                                 walls.active_at(0.0), w.radius, w.mass_eff, w.young_eff, w.shear_eff, w.beta,
+                                 w.mu_s, w.mu_r, w.rolling_damping, w.rolling_inertia, w.tangential, w.rolling,
+                                 system.dt, False, members)
+    return [*pair, *wall]
+
+
+def test_cpp_member_partition_equals_two_passes_bitwise(extension):
+    """Threads owning whole members (one pass) give bitwise the two-pass result, for 1 and 2
+    threads; contacts not grouped by member fall back to two passes (same result again)."""
+    system, state = _system(B=4, N=120, seed=6)
+    state, xs, omega = _with_history(system, state, seed=7)
+    assert state.pairs.n > 500 and state.walls.n > 30
+    threads = torch.get_num_threads()
+    shuffled = torch.randperm(state.pairs.n, generator=torch.Generator().manual_seed(8))
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            two_pass = _raw_call(extension, system, state, xs, omega, members=1)
+            for members in (2, 4):
+                one_pass = _raw_call(extension, system, state, xs, omega, members=members)
+                for a, b in zip(one_pass, two_pass):
+                    assert torch.equal(a, b), (n, members)
+            mixed = _raw_call(extension, system, state, xs, omega, members=4, order=shuffled)
+            mixed_ref = _raw_call(extension, system, state, xs, omega, members=1, order=shuffled)
+            for a, b in zip(mixed, mixed_ref):
+                assert torch.equal(a, b), n
+    finally:
+        torch.set_num_threads(threads)
+    # The per-member scatter changes nothing but the schedule: the forces are the torch ones.
+    torch_force = contact_forces(system, state, xs, omega, 0.0, Kernels(backend="torch"))[0]
+    scale = float(torch_force.abs().max())
+    assert float((two_pass[0] + two_pass[4] - torch_force).abs().max()) <= 1e-12 * scale
 
 
 def test_cpp_kernels_reject_bad_indices(extension):

@@ -215,7 +215,7 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
             xs, X, V, omega, force, torque, p.i, p.j, p.body_i, p.body_j, p.radius_i, p.radius_j,
             p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
             p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt=dt, period=system.grid.period,
-            stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic)
+            stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic, members=B)
         p = p.set(tangential=tang, rolling=roll)
     wc = state.walls
     if wc.n:
@@ -225,7 +225,7 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
             walls.centre + walls.shift(time), walls.axis_u, walls.axis_v, walls.half_u, walls.half_v,
             walls.velocity_at(time), walls.active_at(time), wc.radius, wc.mass_eff, wc.young_eff,
             wc.shear_eff, wc.beta, wc.mu_s, wc.mu_r, wc.rolling_damping, wc.rolling_inertia,
-            wc.tangential, wc.rolling, dt=dt, stiffness_model=system.rolling_stiffness)
+            wc.tangential, wc.rolling, dt=dt, stiffness_model=system.rolling_stiffness, members=B)
         wc = wc.set(tangential=tang, rolling=roll)
     return force, torque, state.set(pairs=p, walls=wc)
 
@@ -373,24 +373,29 @@ class Kernels:
         return ext
 
     def pair(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
-             *contacts: Tensor, dt: Tensor, period: Tensor, stiffness_model: str, periodic: bool
-             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """:func:`pair_kernel` (same arguments; ``contacts`` are i ... rolling in its order)."""
+             *contacts: Tensor, dt: Tensor, period: Tensor, stiffness_model: str, periodic: bool,
+             members: int = 1) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """:func:`pair_kernel` (same arguments; ``contacts`` are i ... rolling in its order).
+
+        ``members``: ensemble size B of the flat ``[B*Nb]`` bodies; the C++ kernel then gives
+        each thread whole members (same results, one pass less through memory)."""
         ext = self.extension(xs)
         if ext is None:
             return self.torch_pair(xs, X, V, omega, force, torque, *contacts, dt, period, stiffness_model, periodic)
         f, tau, tang, roll = ext.pair_forces(xs, X, V, omega, force, torque, *contacts, float(dt),
-                                             period.tolist(), _ai2011(stiffness_model), periodic)
+                                             period.tolist(), _ai2011(stiffness_model), periodic, members)
         return f, tau, tang, roll
 
     def wall(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
-             *contacts: Tensor, dt: Tensor, stiffness_model: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """:func:`wall_kernel` (same arguments; ``contacts`` are sphere ... rolling in its order)."""
+             *contacts: Tensor, dt: Tensor, stiffness_model: str, members: int = 1
+             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """:func:`wall_kernel` (same arguments; ``contacts`` are sphere ... rolling in its order;
+        ``members`` as in :meth:`pair`)."""
         ext = self.extension(xs)
         if ext is None:
             return self.torch_wall(xs, X, V, omega, force, torque, *contacts, dt, stiffness_model)
         f, tau, tang, roll = ext.wall_forces(xs, X, V, omega, force, torque, *contacts, float(dt),
-                                             _ai2011(stiffness_model))
+                                             _ai2011(stiffness_model), members)
         return f, tau, tang, roll
 
 

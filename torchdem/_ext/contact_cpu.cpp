@@ -6,15 +6,19 @@
 // history, periodic minimum image), in float32 or float64, and return new tensors
 // (force, torque, tangential, rolling); nothing passed in is modified.
 //
-// Two passes, both parallel over torch's intra-op threads (at::parallel_for):
-//   1. per block of 64 contacts: gather the operands (scalar loads), apply the contact law
-//      in a branch-free loop that the compiler vectorises across contacts, write the
-//      springs and a row (force, torques) per contact;
-//   2. per body: each thread owns a range of bodies and adds the rows of their contacts in
-//      contact order.
-// Every output element is written by one thread and every sum has a fixed order, so the
-// results do not depend on the number of threads or on thread timing (no atomics). They
-// differ from the torch kernels by rounding only (operation order, fused multiply-add).
+// Per block of 64 contacts: gather the operands (scalar loads), apply the contact law in a
+// branch-free loop that the compiler vectorises across contacts, write the springs and a row
+// (force, torques) per contact. The rows reach the bodies in one of two ways:
+//   - ensemble (`members` > 1 and the contacts grouped by member, as the neighbour search
+//     returns them): each thread owns whole members, i.e. their contacts and their bodies,
+//     and adds every block's rows to its bodies right away (one pass; the rows of a large
+//     ensemble never travel through memory);
+//   - otherwise two passes: all rows first, then each thread owns a range of bodies and
+//     adds the rows of their contacts.
+// Either way every body sums its contacts in contact order, each output element is written
+// by one thread and no atomics are used: results are bitwise the same for both schemes and
+// any number of threads. They differ from the torch kernels by rounding only (operation
+// order, fused multiply-add).
 //
 // Each worker runs with the caller's flush-to-zero / denormals-are-zero flags
 // (torch.set_flush_denormal sets them on the calling thread only): contact springs decay
@@ -39,7 +43,8 @@
 
 namespace {
 
-constexpr unsigned kDenormalFlags = 0x8040;  // MXCSR FTZ (bit 15) | DAZ (bit 6)
+constexpr unsigned kDenormalFlags = 0x8040;
+constexpr int64_t kBlockContacts = 64;  // contacts per block: gathered operands stay in L1  // MXCSR FTZ (bit 15) | DAZ (bit 6)
 
 // Applies the caller's denormal flags to a worker thread for one parallel chunk.
 class DenormalMode {
@@ -224,6 +229,85 @@ void scatter_to_bodies(const int64_t* __restrict__ body_a, const int64_t* __rest
   });
 }
 
+// Adds n rows (layout of scatter_to_bodies) to their bodies, in order, single-threaded.
+template <typename T>
+TORCHDEM_INLINE void add_rows(const int64_t* body_a, const int64_t* body_b, const T* rows, int width, int64_t n,
+                              T* force, T* torque) {
+  for (int64_t e = 0; e < n; ++e) {
+    const T* r = rows + width * e;
+    T* f = force + 3 * body_a[e];
+    T* t = torque + 3 * body_a[e];
+    f[0] += r[0];
+    f[1] += r[1];
+    f[2] += r[2];
+    t[0] += r[3];
+    t[1] += r[4];
+    t[2] += r[5];
+    if (body_b != nullptr) {
+      f = force + 3 * body_b[e];
+      t = torque + 3 * body_b[e];
+      f[0] -= r[0];
+      f[1] -= r[1];
+      f[2] -= r[2];
+      t[0] += r[6];
+      t[1] += r[7];
+      t[2] += r[8];
+    }
+  }
+}
+
+// Contacts of an ensemble grouped by member: start[m] is the first contact of member m
+// (start[members] = n), read off body_a (member = body / bodies_per_member), assuming the
+// contacts are sorted by member; callers check ownership while they use it. Empty (use two
+// passes) when the bodies do not split evenly into members, or when whole members would load
+// the threads unevenly (fewer than two members per thread and not a multiple of them).
+inline std::vector<int64_t> member_starts(const int64_t* body_a, int64_t n, int64_t n_bodies, int64_t members) {
+  std::vector<int64_t> start;
+  const int64_t threads = at::get_num_threads();
+  const bool balanced = members % threads == 0 || members >= 2 * threads;
+  if (members < 2 || n_bodies % members != 0 || !balanced) return start;
+  const int64_t per = n_bodies / members;
+  start.resize(members + 1);
+  start[0] = 0;
+  for (int64_t m = 1; m < members; ++m) {
+    const int64_t* first = std::partition_point(body_a + start[m - 1], body_a + n,
+                                                [&](int64_t b) { return b < m * per; });
+    start[m] = first - body_a;
+  }
+  start[members] = n;
+  return start;
+}
+
+// Runs block(c0, cn, force, torque) over the contacts of whole members, each thread owning
+// members [m0, m1): it first copies the input force/torque of their bodies, then the blocks
+// of their contacts add to them. Returns false (outputs then unspecified) if some contact of
+// a member's range touches a body of another member: the caller falls back to two passes.
+template <typename T, typename Block>
+bool per_member(const std::vector<int64_t>& start, const int64_t* body_a, const int64_t* body_b,
+                int64_t n_bodies, const T* force_in, const T* torque_in, T* force_out, T* torque_out,
+                unsigned csr, Block block) {
+  const int64_t members = static_cast<int64_t>(start.size()) - 1;
+  const int64_t per = n_bodies / members;
+  std::atomic<bool> foreign{false};
+  at::parallel_for(0, members, 1, [&](int64_t m0, int64_t m1) {
+    const int64_t lo = m0 * per, hi = m1 * per, c0 = start[m0], c1 = start[m1];
+    bool ok = true;
+    for (int64_t c = c0; c < c1; ++c) {
+      ok &= body_a[c] >= lo && body_a[c] < hi;
+      if (body_b != nullptr) ok &= body_b[c] >= lo && body_b[c] < hi;
+    }
+    if (!ok) {
+      foreign = true;
+      return;
+    }
+    DenormalMode mode(csr);
+    std::copy(force_in + 3 * lo, force_in + 3 * hi, force_out + 3 * lo);
+    std::copy(torque_in + 3 * lo, torque_in + 3 * hi, torque_out + 3 * lo);
+    for (int64_t c = c0; c < c1; c += kBlockContacts) block(c, std::min(kBlockContacts, c1 - c), force_out, torque_out);
+  });
+  return !foreign.load();
+}
+
 void check_cpu(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t rows, int64_t cols) {
   TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor, got ", t.device());
   TORCH_CHECK(t.scalar_type() == dtype, name, " has dtype ", t.scalar_type(), "; expected ", dtype);
@@ -249,13 +333,12 @@ struct PairData {
       *rolling_damping, *rolling_inertia;  // [P]
   const T *tangential, *rolling;          // [P, 3]
   T *tangential_new, *rolling_new;        // [P, 3]
-  T* rows;                                // [P, 9]: force on i, torque on i, torque on j
   T period[3], inv_period[3];
   T dt;
   bool ai2011;
 };
 
-constexpr int64_t kBlock = 64;  // contacts per block: gathered operands stay in L1
+constexpr int64_t kBlock = kBlockContacts;
 
 // Gathered operands of a block, one array per component (see pair_block).
 enum PairOperand { kXA, kXB = 3, kBA = 6, kBB = 9, kVA = 12, kVB = 15, kWA = 18, kWB = 21, kTG = 24, kRL = 27, kPairOperands = 30 };
@@ -285,8 +368,9 @@ TORCHDEM_SCALAR_LOOP void gather_pairs(const PairData<T>& data, int64_t p0, int6
 // Pairs [p0, p0 + n), n <= kBlock, in three stages: (1) gather the operands of every pair
 // into local arrays, one per component; (2) the contact law on those arrays, a loop without
 // gathers or branches that the compiler vectorises across pairs; (3) write springs and rows.
+// rows: where the n rows of this block go (row k at rows + 9 k).
 template <typename T, bool kAi2011>
-void pair_block(const PairData<T>& data, int64_t p0, int64_t n) {
+void pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows) {
   enum { XA = kXA, XB = kXB, BA = kBA, BB = kBB, VA = kVA, VB = kVB, WA = kWA, WB = kWB, TG = kTG, RL = kRL };
   alignas(64) T g[kPairOperands][kBlock];
   gather_pairs(data, p0, n, g);
@@ -329,7 +413,7 @@ void pair_block(const PairData<T>& data, int64_t p0, int64_t n) {
   // Stage 3: springs [P, 3] and rows [P, 9].
   for (int64_t k = 0; k < n; ++k) {
     const int64_t p = p0 + k;
-    T* row = data.rows + 9 * p;
+    T* row = rows + 9 * k;
     for (int c = 0; c < 9; ++c) row[c] = o[F + c][k];
     for (int c = 0; c < 3; ++c) {
       data.tangential_new[3 * p + c] = o[TN + c][k];
@@ -362,7 +446,7 @@ T* scratch_rows(int64_t count) {
 template <typename T>
 void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, at::Tensor& torque_out,
                       at::Tensor& tang_out, at::Tensor& roll_out, int64_t S, int64_t NB, int64_t P, double dt,
-                      at::ArrayRef<double> period, bool ai2011, bool periodic) {
+                      at::ArrayRef<double> period, bool ai2011, bool periodic, int64_t members) {
   PairData<T> data;
   data.x = in[0].data_ptr<T>();
   data.X = in[1].data_ptr<T>();
@@ -387,7 +471,6 @@ void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
   data.rolling = in[22].data_ptr<T>();
   data.tangential_new = tang_out.data_ptr<T>();
   data.rolling_new = roll_out.data_ptr<T>();
-  data.rows = scratch_rows<T>(9 * P);
   for (int d = 0; d < 3; ++d) {
     data.period[d] = periodic && period[d] > 0 ? T(period[d]) : T(0);
     data.inv_period[d] = data.period[d] > 0 ? T(1) / data.period[d] : T(0);
@@ -398,23 +481,44 @@ void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
   // through them (a block with a bad index is skipped and the call fails after the pass).
   std::atomic<int64_t> bad{0};
   const unsigned csr = DenormalMode::caller();
-  at::parallel_for(0, (P + kBlock - 1) / kBlock, 4, [&](int64_t b0, int64_t b1) {
-    DenormalMode mode(csr);
-    for (int64_t blk = b0; blk < b1; ++blk) {
-      const int64_t p0 = blk * kBlock, n = std::min(kBlock, P - p0);
-      const int64_t n_bad = count_out_of_range(data.i + p0, n, S) + count_out_of_range(data.j + p0, n, S) +
-                            count_out_of_range(data.body_i + p0, n, NB) + count_out_of_range(data.body_j + p0, n, NB);
-      if (n_bad) {
-        bad += n_bad;
-        continue;
+  // Checks a block's indices before anything reads through them (a block with a bad index is
+  // skipped and the call fails after the pass).
+  auto block_ok = [&](int64_t p0, int64_t n) {
+    const int64_t n_bad = count_out_of_range(data.i + p0, n, S) + count_out_of_range(data.j + p0, n, S) +
+                          count_out_of_range(data.body_i + p0, n, NB) + count_out_of_range(data.body_j + p0, n, NB);
+    bad += n_bad;
+    return n_bad == 0;
+  };
+  auto run_block = [&](int64_t p0, int64_t n, T* rows) {
+    data.ai2011 ? pair_block<T, true>(data, p0, n, rows) : pair_block<T, false>(data, p0, n, rows);
+  };
+  T* f_out = force_out.data_ptr<T>();
+  T* t_out = torque_out.data_ptr<T>();
+  const auto start = member_starts(data.body_i, P, NB, members);
+  const bool direct = !start.empty() &&
+      per_member<T>(start, data.body_i, data.body_j, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(), f_out, t_out, csr,
+                    [&](int64_t p0, int64_t n, T* f, T* t) {
+                      if (!block_ok(p0, n)) return;
+                      alignas(64) T rows[9 * kBlock];
+                      run_block(p0, n, rows);
+                      add_rows(data.body_i + p0, data.body_j + p0, rows, 9, n, f, t);
+                    });
+  if (!direct) {
+    bad = 0;
+    T* rows = scratch_rows<T>(9 * P);
+    at::parallel_for(0, (P + kBlock - 1) / kBlock, 4, [&](int64_t b0, int64_t b1) {
+      DenormalMode mode(csr);
+      for (int64_t blk = b0; blk < b1; ++blk) {
+        const int64_t p0 = blk * kBlock, n = std::min(kBlock, P - p0);
+        if (block_ok(p0, n)) run_block(p0, n, rows + 9 * p0);
       }
-      data.ai2011 ? pair_block<T, true>(data, p0, n) : pair_block<T, false>(data, p0, n);
-    }
-  });
+    });
+    if (bad.load() == 0)
+      scatter_to_bodies<T>(data.body_i, data.body_j, rows, 9, P, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
+                           f_out, t_out);
+  }
   TORCH_CHECK(bad.load() == 0, "pair_forces: ", bad.load(), " sphere or body indices are outside [0, ", S,
               ") (spheres) or [0, ", NB, ") (bodies)");
-  scatter_to_bodies<T>(data.body_i, data.body_j, data.rows, 9, P, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
-                       force_out.data_ptr<T>(), torque_out.data_ptr<T>());
 }
 
 std::vector<at::Tensor> pair_forces(
@@ -423,7 +527,7 @@ std::vector<at::Tensor> pair_forces(
     at::Tensor radius_eff, at::Tensor mass_eff, at::Tensor young_eff, at::Tensor shear_eff, at::Tensor beta,
     at::Tensor mu_s, at::Tensor mu_r, at::Tensor rolling_damping, at::Tensor rolling_inertia,
     at::Tensor tangential, at::Tensor rolling, double dt, at::ArrayRef<double> period, bool ai2011,
-    bool periodic) {
+    bool periodic, int64_t members) {
   const auto dtype = xs.scalar_type();
   TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
   TORCH_CHECK(period.size() == 3, "period has ", period.size(), " entries; expected 3");
@@ -444,7 +548,7 @@ std::vector<at::Tensor> pair_forces(
   at::Tensor tang_out = at::empty_like(in[21]), roll_out = at::empty_like(in[22]);
   AT_DISPATCH_FLOATING_TYPES(dtype, "pair_forces", [&] {
     pair_forces_impl<scalar_t>(in, force_out, torque_out, tang_out, roll_out, S, NB, P, dt, period, ai2011,
-                               periodic);
+                               periodic, members);
   });
   return {force_out, torque_out, tang_out, roll_out};
 }
@@ -489,7 +593,8 @@ TORCHDEM_SCALAR_LOOP void gather_walls(const std::vector<at::Tensor>& in, int64_
   }
 }
 
-// Sphere-wall contacts [q0, q0 + n), n <= kBlock; same three stages as pair_block.
+// Sphere-wall contacts [q0, q0 + n), n <= kBlock; same three stages as pair_block (row k of
+// this block at rows + 6 k).
 template <typename T, bool kAi2011>
 void wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, T* rows, T dt, int64_t q0, int64_t n) {
   enum { XW = kWXW, C = kWC, U = kWU, VV = kWVV, WV = kWWV, BX = kWBX, BV = kWBV, BW = kWBW, TG = kWTG, RL = kWRL,
@@ -534,7 +639,7 @@ void wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, T* 
   // Stage 3: springs [Q, 3] and rows [Q, 6].
   for (int64_t k = 0; k < n; ++k) {
     const int64_t q = q0 + k;
-    for (int c = 0; c < 6; ++c) rows[6 * q + c] = o[F + c][k];
+    for (int c = 0; c < 6; ++c) rows[6 * k + c] = o[F + c][k];
     for (int c = 0; c < 3; ++c) {
       tang_new[3 * q + c] = o[TN + c][k];
       roll_new[3 * q + c] = o[RN + c][k];
@@ -546,31 +651,48 @@ void wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, T* 
 template <typename T>
 void wall_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, at::Tensor& torque_out,
                       at::Tensor& tang_out, at::Tensor& roll_out, int64_t S, int64_t NB, int64_t Q, int64_t W,
-                      double dt, bool ai2011) {
+                      double dt, bool ai2011, int64_t members) {
   std::atomic<int64_t> bad{0};
   const int64_t *ps = in[6].data_ptr<int64_t>(), *pb = in[7].data_ptr<int64_t>(), *pw = in[8].data_ptr<int64_t>();
   T* tang_new = tang_out.data_ptr<T>();
   T* roll_new = roll_out.data_ptr<T>();
-  T* row = scratch_rows<T>(6 * Q);
   const unsigned csr = DenormalMode::caller();
-  at::parallel_for(0, (Q + kBlock - 1) / kBlock, 4, [&](int64_t b0, int64_t b1) {
-    DenormalMode mode(csr);
-    for (int64_t blk = b0; blk < b1; ++blk) {
-      const int64_t q0 = blk * kBlock, n = std::min(kBlock, Q - q0);
-      const int64_t n_bad = count_out_of_range(ps + q0, n, S) + count_out_of_range(pb + q0, n, NB) +
-                            count_out_of_range(pw + q0, n, W);
-      if (n_bad) {
-        bad += n_bad;
-        continue;
+  auto block_ok = [&](int64_t q0, int64_t n) {
+    const int64_t n_bad = count_out_of_range(ps + q0, n, S) + count_out_of_range(pb + q0, n, NB) +
+                          count_out_of_range(pw + q0, n, W);
+    bad += n_bad;
+    return n_bad == 0;
+  };
+  auto run_block = [&](int64_t q0, int64_t n, T* rows) {
+    ai2011 ? wall_block<T, true>(in, tang_new, roll_new, rows, T(dt), q0, n)
+           : wall_block<T, false>(in, tang_new, roll_new, rows, T(dt), q0, n);
+  };
+  T* f_out = force_out.data_ptr<T>();
+  T* t_out = torque_out.data_ptr<T>();
+  const auto start = member_starts(pb, Q, NB, members);
+  const bool direct = !start.empty() &&
+      per_member<T>(start, pb, nullptr, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(), f_out, t_out, csr,
+                    [&](int64_t q0, int64_t n, T* f, T* t) {
+                      if (!block_ok(q0, n)) return;
+                      alignas(64) T rows[6 * kBlock];
+                      run_block(q0, n, rows);
+                      add_rows<T>(pb + q0, nullptr, rows, 6, n, f, t);
+                    });
+  if (!direct) {
+    bad = 0;
+    T* rows = scratch_rows<T>(6 * Q);
+    at::parallel_for(0, (Q + kBlock - 1) / kBlock, 4, [&](int64_t b0, int64_t b1) {
+      DenormalMode mode(csr);
+      for (int64_t blk = b0; blk < b1; ++blk) {
+        const int64_t q0 = blk * kBlock, n = std::min(kBlock, Q - q0);
+        if (block_ok(q0, n)) run_block(q0, n, rows + 6 * q0);
       }
-      ai2011 ? wall_block<T, true>(in, tang_new, roll_new, row, T(dt), q0, n)
-             : wall_block<T, false>(in, tang_new, roll_new, row, T(dt), q0, n);
-    }
-  });
+    });
+    if (bad.load() == 0)
+      scatter_to_bodies<T>(pb, nullptr, rows, 6, Q, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(), f_out, t_out);
+  }
   TORCH_CHECK(bad.load() == 0, "wall_forces: ", bad.load(), " sphere, body or wall indices are out of range (",
               S, " spheres, ", NB, " bodies, ", W, " walls)");
-  scatter_to_bodies<T>(pb, nullptr, row, 6, Q, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
-                       force_out.data_ptr<T>(), torque_out.data_ptr<T>());
 }
 
 std::vector<at::Tensor> wall_forces(
@@ -579,7 +701,7 @@ std::vector<at::Tensor> wall_forces(
     at::Tensor wall_v, at::Tensor half_u, at::Tensor half_v, at::Tensor wall_velocity, at::Tensor wall_present,
     at::Tensor radius, at::Tensor mass_eff, at::Tensor young_eff, at::Tensor shear_eff, at::Tensor beta,
     at::Tensor mu_s, at::Tensor mu_r, at::Tensor rolling_damping, at::Tensor rolling_inertia,
-    at::Tensor tangential, at::Tensor rolling, double dt, bool ai2011) {
+    at::Tensor tangential, at::Tensor rolling, double dt, bool ai2011, int64_t members) {
   const auto dtype = xs.scalar_type();
   TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
   const int64_t S = rows_of(xs, "xs"), NB = rows_of(X, "X"), Q = rows_of(sphere, "sphere");
@@ -603,7 +725,7 @@ std::vector<at::Tensor> wall_forces(
   at::Tensor force_out = at::empty_like(in[4]), torque_out = at::empty_like(in[5]);
   at::Tensor tang_out = at::empty_like(in[25]), roll_out = at::empty_like(in[26]);
   AT_DISPATCH_FLOATING_TYPES(dtype, "wall_forces", [&] {
-    wall_forces_impl<scalar_t>(in, force_out, torque_out, tang_out, roll_out, S, NB, Q, W, dt, ai2011);
+    wall_forces_impl<scalar_t>(in, force_out, torque_out, tang_out, roll_out, S, NB, Q, W, dt, ai2011, members);
   });
   return {force_out, torque_out, tang_out, roll_out};
 }
@@ -618,12 +740,12 @@ TORCH_LIBRARY_FRAGMENT(torchdem, m) {
         "Tensor j, Tensor body_i, Tensor body_j, Tensor radius_i, Tensor radius_j, Tensor radius_eff, "
         "Tensor mass_eff, Tensor young_eff, Tensor shear_eff, Tensor beta, Tensor mu_s, Tensor mu_r, "
         "Tensor rolling_damping, Tensor rolling_inertia, Tensor tangential, Tensor rolling, float dt, "
-        "float[] period, bool ai2011, bool periodic) -> Tensor[]",
+        "float[] period, bool ai2011, bool periodic, int members=1) -> Tensor[]",
         &pair_forces);
   m.def("wall_forces(Tensor xs, Tensor X, Tensor V, Tensor omega, Tensor force, Tensor torque, Tensor sphere, "
         "Tensor body, Tensor wall, Tensor wall_centre, Tensor wall_u, Tensor wall_v, Tensor half_u, "
         "Tensor half_v, Tensor wall_velocity, Tensor wall_present, Tensor radius, Tensor mass_eff, "
         "Tensor young_eff, Tensor shear_eff, Tensor beta, Tensor mu_s, Tensor mu_r, Tensor rolling_damping, "
-        "Tensor rolling_inertia, Tensor tangential, Tensor rolling, float dt, bool ai2011) -> Tensor[]",
+        "Tensor rolling_inertia, Tensor tangential, Tensor rolling, float dt, bool ai2011, int members=1) -> Tensor[]",
         &wall_forces);
 }
