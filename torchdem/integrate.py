@@ -346,7 +346,8 @@ class Kernels:
     the torch kernels with ``torch.compile`` (dynamic shapes): fusing the element-wise contact
     law into a few loops (one pass over the contacts instead of ~100 tensor operations); the
     first call of each kernel compiles (tens of seconds on a CPU), later calls and other
-    contact counts reuse it. Drift and kick are always torch (compiled if asked).
+    contact counts reuse it. The drift follows the contact kernels (C++ with them, else torch,
+    compiled if asked); the kick, a handful of operations, is always torch.
     """
 
     def __init__(self, compile: bool = False, backend: str = "auto"):
@@ -357,7 +358,7 @@ class Kernels:
         wrap = (lambda f: torch.compile(f, dynamic=True)) if compile else (lambda f: f)  # noqa: E731
         self.torch_pair = wrap(pair_kernel)
         self.torch_wall = wrap(wall_kernel)
-        self.drift = wrap(drift_kernel)
+        self.torch_drift = wrap(drift_kernel)
         self.kick = wrap(kick_kernel)
 
     def extension(self, like: Tensor):
@@ -371,6 +372,16 @@ class Kernels:
             raise RuntimeError(f"kernel backend 'cpp': the C++ contact kernels could not be built "
                                f"({_ext.build_error()}); use backend 'auto' or 'torch'")
         return ext
+
+    def drift(self, position: Tensor, *args) -> tuple[Tensor, ...]:
+        """:func:`drift_kernel` (same arguments), by the C++ kernel when the contact kernels are."""
+        ext = self.extension(position)
+        if ext is None:
+            return self.torch_drift(position, *args)
+        (velocity, angular_momentum, orientation, force, torque, mass, inertia, active, sphere_body,
+         sphere_offset, reference, dt, spheres_only) = args
+        return tuple(ext.drift(position, velocity, angular_momentum, orientation, force, torque, mass, inertia,
+                               active, sphere_body, sphere_offset, reference, float(dt), spheres_only))
 
     def pair(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
              *contacts: Tensor, dt: Tensor, period: Tensor, stiffness_model: str, periodic: bool,

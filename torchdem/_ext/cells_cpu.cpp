@@ -6,12 +6,12 @@
 // different bodies whose minimum-image centre distance is below r_i + r_j + skin, as two
 // int64 tensors sorted by (i, j) -- exactly the list of the torch path.
 //
-// Two passes, parallel over query spheres (at::parallel_for), no atomics:
-//   1. count the pairs of every query sphere i (partners j > i in the up-to-27 neighbouring
-//      cells; on a periodic axis with fewer than 3 cells the wrapped cells repeat and are
-//      visited once);
-//   2. exclusive prefix sum, then every i writes its partners, sorted by j, at its offset.
-// Output order is fixed, so results do not depend on the number of threads.
+// One scan, parallel over chunks of consecutive query spheres (at::parallel_for), no atomics:
+// every chunk collects, for each of its spheres i in order, the partners j > i found in the
+// up-to-27 neighbouring cells (on a periodic axis with fewer than 3 cells the wrapped cells
+// repeat and are visited once), sorted by j, into its own buffer; the buffers are then copied
+// into the output in chunk order. Output order is fixed, so results do not depend on the
+// number of threads. (An earlier version scanned twice, counting first and writing second.)
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -133,7 +133,6 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
   const int64_t* bd = bod.data_ptr<int64_t>();
   std::vector<double> spos(3 * S), srad(S);
   std::vector<int64_t> sbody(S);
-  std::vector<int64_t> count(S + 1, 0);
   at::Tensor out_i, out_j;
   AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "cell_pairs", [&] {
     const scalar_t* x = pos.data_ptr<scalar_t>();
@@ -147,26 +146,34 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
     const bool* active_i = act.data_ptr<bool>();
     Search<scalar_t> s{x, bd, cel.data_ptr<int64_t>(), od, start.data(), spos.data(), srad.data(), sbody.data(),
                        n_per_member, g, skin};
-    at::parallel_for(0, S, 256, [&](int64_t i0, int64_t i1) {
-      for (int64_t i = i0; i < i1; ++i) {
-        if (!active_i[i]) continue;
-        int64_t c = 0;
-        s.partners(i, static_cast<double>(r[i]), [&](int64_t) { ++c; });
-        count[i + 1] = c;
+    constexpr int64_t kChunk = 256;  // query spheres per chunk
+    const int64_t n_chunks = (S + kChunk - 1) / kChunk;
+    std::vector<std::vector<int64_t>> chunk_i(n_chunks), chunk_j(n_chunks);
+    at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
+      for (int64_t c = c0; c < c1; ++c) {
+        auto& ci = chunk_i[c];
+        auto& cj = chunk_j[c];
+        cj.reserve(8 * kChunk);
+        for (int64_t i = c * kChunk; i < std::min(S, (c + 1) * kChunk); ++i) {
+          if (!active_i[i]) continue;
+          const size_t first = cj.size();
+          s.partners(i, static_cast<double>(r[i]), [&](int64_t j) { cj.push_back(j); });
+          std::sort(cj.begin() + first, cj.end());
+          ci.resize(cj.size(), i);
+        }
       }
     });
-    for (int64_t i = 0; i < S; ++i) count[i + 1] += count[i];
-    const int64_t P = count[S];
+    std::vector<int64_t> offset(n_chunks + 1, 0);
+    for (int64_t c = 0; c < n_chunks; ++c) offset[c + 1] = offset[c] + static_cast<int64_t>(chunk_j[c].size());
+    const int64_t P = offset[n_chunks];
     out_i = at::empty({P}, bod.options());
     out_j = at::empty({P}, bod.options());
     int64_t* oi = out_i.data_ptr<int64_t>();
     int64_t* oj = out_j.data_ptr<int64_t>();
-    at::parallel_for(0, S, 256, [&](int64_t i0, int64_t i1) {
-      for (int64_t i = i0; i < i1; ++i) {
-        if (!active_i[i]) continue;
-        int64_t w = count[i];
-        s.partners(i, static_cast<double>(r[i]), [&](int64_t j) { oi[w] = i; oj[w++] = j; });
-        std::sort(oj + count[i], oj + w);
+    at::parallel_for(0, n_chunks, 4, [&](int64_t c0, int64_t c1) {
+      for (int64_t c = c0; c < c1; ++c) {
+        std::copy(chunk_i[c].begin(), chunk_i[c].end(), oi + offset[c]);
+        std::copy(chunk_j[c].begin(), chunk_j[c].end(), oj + offset[c]);
       }
     });
   });
