@@ -32,27 +32,35 @@ struct Grid {
   int64_t n_cells;
 };
 
+// The distinct cell coordinates next to coordinate c along one axis (at most 3): c - 1, c,
+// c + 1 clipped at a wall face, wrapped on a periodic axis; a periodic axis of 2 cells has
+// both of them once, of 1 cell that one.
+inline int axis_neighbours(const Grid& g, int a, int64_t c, int64_t* out) {
+  const int64_t n = g.dims[a];
+  if (g.periodic[a] && n < 3) {
+    for (int64_t k = 0; k < n; ++k) out[k] = k;
+    return static_cast<int>(n);
+  }
+  int m = 0;
+  for (int64_t d = -1; d <= 1; ++d) {
+    int64_t x = c + d;
+    if (g.periodic[a]) x = (x + n) % n;
+    else if (x < 0 || x >= n) continue;
+    out[m++] = x;
+  }
+  return m;
+}
+
 // Distinct neighbour cells (linear, in [0, n_cells)) of cell c, wrapping periodic axes.
 inline int neighbour_cells(const Grid& g, const int64_t* c, int64_t* out) {
+  int64_t xs[3], ys[3], zs[3];
+  const int nx = axis_neighbours(g, 0, c[0], xs), ny = axis_neighbours(g, 1, c[1], ys),
+            nz = axis_neighbours(g, 2, c[2], zs);
   int n = 0;
-  for (int dx = -1; dx <= 1; ++dx) {
-    int64_t x = c[0] + dx;
-    if (g.periodic[0]) x = ((x % g.dims[0]) + g.dims[0]) % g.dims[0];
-    else if (x < 0 || x >= g.dims[0]) continue;
-    for (int dy = -1; dy <= 1; ++dy) {
-      int64_t y = c[1] + dy;
-      if (g.periodic[1]) y = ((y % g.dims[1]) + g.dims[1]) % g.dims[1];
-      else if (y < 0 || y >= g.dims[1]) continue;
-      for (int dz = -1; dz <= 1; ++dz) {
-        int64_t z = c[2] + dz;
-        if (g.periodic[2]) z = ((z % g.dims[2]) + g.dims[2]) % g.dims[2];
-        else if (z < 0 || z >= g.dims[2]) continue;
-        out[n++] = (x * g.dims[1] + y) * g.dims[2] + z;
-      }
-    }
-  }
-  std::sort(out, out + n);
-  return static_cast<int>(std::unique(out, out + n) - out);
+  for (int a = 0; a < nx; ++a)
+    for (int b = 0; b < ny; ++b)
+      for (int d = 0; d < nz; ++d) out[n++] = (xs[a] * g.dims[1] + ys[b]) * g.dims[2] + zs[d];
+  return n;
 }
 
 template <typename scalar_t>
@@ -118,6 +126,7 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
     g.periodic[a] = period[a] > 0;
   }
   g.n_cells = dims[0] * dims[1] * dims[2];
+
   // member-cell start table from the sorted hashes (inactive spheres carry a sentinel hash
   // beyond every member-cell and so fall outside every range)
   const int64_t members = S ? (S + n_per_member - 1) / n_per_member : 0;
