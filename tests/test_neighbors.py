@@ -165,3 +165,34 @@ def test_cpp_cell_search_equals_torch_path(periodic, dtype):
     b = find_pairs(pos, rad, body, active, N, grid, 0.002, use_extension=False)
     assert a[0].numel() > 1000
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cpp_wall_search_equals_torch_path(dtype):
+    """The C++ sphere-wall scan returns exactly the broadcast torch path's (sphere, wall) list:
+    finite rectangles (edges and corners), an infinite plane, a shifted wall, a removed wall,
+    inactive spheres."""
+    from torchdem import _ext
+    from torchdem.neighbors import find_wall_pairs
+    from torchdem.walls import WallSpec, box_walls, make_walls
+
+    if _ext.cpu_kernels() is None:
+        pytest.skip("C++ extension unavailable on this machine")
+    gen = torch.Generator().manual_seed(5)
+    S = 4000
+    pos = (torch.rand(S, 3, generator=gen, dtype=torch.float64) * torch.tensor([0.2, 0.1, 0.15])
+           - torch.tensor([0.0, 0.0, 0.01])).to(dtype)
+    rad = (0.002 + 0.006 * torch.rand(S, generator=gen, dtype=torch.float64)).to(dtype)
+    active = torch.rand(S, generator=gen) > 0.1
+    specs = box_walls("box", (0.0, 0.0, 0.0), (0.2, 0.1, 0.12), "steel") + [
+        WallSpec("plate", (0.1, 0.05, 0.06), (0, 0, 1), (1, 0, 0), 0.03, 0.02, "steel"),
+        WallSpec("plane", (0.0, 0.0, 0.14), (0, 0, -1), (1, 0, 0), float("inf"), float("inf"), "steel")]
+    walls = make_walls(specs, {"steel": 0}, dtype=dtype)
+    shift = torch.zeros(walls.n, 3, dtype=dtype)
+    shift[-2] = torch.tensor([0.01, 0.0, -0.005], dtype=dtype)
+    live = torch.ones(walls.n, dtype=torch.bool)
+    live[1] = False
+    a = find_wall_pairs(pos, rad, active, walls, shift, live, 0.003)
+    b = find_wall_pairs(pos, rad, active, walls, shift, live, 0.003, use_extension=False)
+    assert a[0].numel() > 500 and bool((b[1] == walls.n - 1).any()) and bool((b[1] == walls.n - 2).any())
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])

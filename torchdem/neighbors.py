@@ -170,8 +170,11 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
 
 
 def find_wall_pairs(position: Tensor, radius: Tensor, active: Tensor, walls: Walls, shift: Tensor,
-                    wall_active: Tensor, skin: float) -> tuple[Tensor, Tensor]:
+                    wall_active: Tensor, skin: float, use_extension: bool = True) -> tuple[Tensor, Tensor]:
     """All (sphere, wall) pairs with gap below the skin.
+
+    On CPU the scan runs in the C++ kernel of :mod:`torchdem._ext` (same list) unless
+    ``use_extension`` is False or it cannot be built.
 
     Returns:
         sphere, wall: ``[Q]`` int64, sorted by ``sphere * W + wall``.
@@ -181,6 +184,13 @@ def find_wall_pairs(position: Tensor, radius: Tensor, active: Tensor, walls: Wal
     if W == 0 or position.shape[0] == 0:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return empty, empty
+    if device.type == "cpu" and use_extension:
+        from torchdem import _ext
+
+        ext = _ext.cpu_kernels()
+        if ext is not None:
+            return ext.wall_pairs(position, radius, active, walls.centre + shift, walls.axis_u, walls.axis_v,
+                                  walls.half_u, walls.half_v, wall_active, float(skin))
     act = torch.nonzero(active).squeeze(1)
     live = torch.nonzero(wall_active).squeeze(1)
     # every active sphere against every live wall, broadcast [A, L] (the closest-point rule of

@@ -4,7 +4,8 @@ Contract:
 - :func:`cpu_kernels` returns the operators of ``contact_cpu.cpp`` (``pair_forces`` and
   ``wall_forces``: the CPU twins of :func:`torchdem.integrate.pair_kernel` and
   :func:`torchdem.integrate.wall_kernel`) and of ``cells_cpu.cpp`` (``cell_pairs``: the
-  candidate scan of :func:`torchdem.neighbors.find_pairs`) and ``rigid_cpu.cpp`` (``drift``:
+  candidate scan of :func:`torchdem.neighbors.find_pairs`; ``wall_pairs``: that of
+  :func:`torchdem.neighbors.find_wall_pairs`) and ``rigid_cpu.cpp`` (``drift``:
   the twin of :func:`torchdem.integrate.drift_kernel`), registered as
   ``torch.ops.torchdem.*`` and built as one extension, or None
   when they cannot be built (no C++ compiler, no ninja, ...). The first call in a process
@@ -40,7 +41,7 @@ _state: dict[str, object] = {}
 
 
 def cpu_kernels() -> SimpleNamespace | None:
-    """The compiled CPU kernels (``pair_forces``, ``wall_forces``, ``cell_pairs``, ``drift``), or None if
+    """The compiled CPU kernels (``pair_forces``, ``wall_forces``, ``cell_pairs``, ``wall_pairs``, ``drift``), or None if
     they cannot be built (warns once)."""
     if "module" in _state:
         return _state["module"]  # type: ignore[return-value]
@@ -80,7 +81,7 @@ def _build() -> SimpleNamespace | None:
         load(name=_module_name(), sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS, is_python_module=False, verbose=False)
         ops = torch.ops.torchdem
         return SimpleNamespace(pair_forces=ops.pair_forces, wall_forces=ops.wall_forces, cell_pairs=ops.cell_pairs,
-                               drift=ops.drift)
+                               wall_pairs=ops.wall_pairs, drift=ops.drift)
     except Exception as err:  # no compiler, no ninja, compile error: fall back to the torch kernels
         message = f"{type(err).__name__}: {err}".strip()
         _state["error"] = message

@@ -189,12 +189,81 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
   return {out_i, out_j};
 }
 
+// Every (sphere, wall) pair of an active sphere and a live wall whose gap (distance from the
+// sphere centre to the closest point of the wall rectangle, minus the radius) is below the
+// skin, sorted by (sphere, wall): what neighbors.find_wall_pairs computes with an [A, L]
+// broadcast, in one pass over the spheres (parallel over chunks, copied out in order).
+std::tuple<at::Tensor, at::Tensor> wall_pairs(const at::Tensor& position, const at::Tensor& radius,
+                                              const at::Tensor& active, const at::Tensor& centre,
+                                              const at::Tensor& axis_u, const at::Tensor& axis_v,
+                                              const at::Tensor& half_u, const at::Tensor& half_v,
+                                              const at::Tensor& wall_active, double skin) {
+  TORCH_CHECK(position.device().is_cpu(), "wall_pairs: CPU tensors only");
+  const int64_t S = position.size(0), W = centre.size(0);
+  TORCH_CHECK(radius.numel() == S && active.numel() == S, "wall_pairs: radius/active need ", S, " entries");
+  TORCH_CHECK(axis_u.size(0) == W && axis_v.size(0) == W && half_u.numel() == W && half_v.numel() == W &&
+                  wall_active.numel() == W, "wall_pairs: wall tensors need ", W, " rows");
+  auto pos = position.contiguous().to(at::kDouble);
+  auto rad = radius.contiguous().to(at::kDouble);
+  auto act = active.contiguous().to(at::kBool);
+  auto c = centre.contiguous().to(at::kDouble);
+  auto u = axis_u.contiguous().to(at::kDouble);
+  auto v = axis_v.contiguous().to(at::kDouble);
+  auto hu = half_u.contiguous().to(at::kDouble);
+  auto hv = half_v.contiguous().to(at::kDouble);
+  auto live = wall_active.contiguous().to(at::kBool);
+  const double *x = pos.data_ptr<double>(), *r = rad.data_ptr<double>(), *pc = c.data_ptr<double>(),
+               *pu = u.data_ptr<double>(), *pv = v.data_ptr<double>(), *phu = hu.data_ptr<double>(),
+               *phv = hv.data_ptr<double>();
+  const bool *a = act.data_ptr<bool>(), *l = live.data_ptr<bool>();
+  constexpr int64_t kChunk = 1024;
+  const int64_t n_chunks = (S + kChunk - 1) / kChunk;
+  std::vector<std::vector<int64_t>> chunk_s(n_chunks), chunk_w(n_chunks);
+  at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t ch = c0; ch < c1; ++ch) {
+      for (int64_t i = ch * kChunk; i < std::min(S, (ch + 1) * kChunk); ++i) {
+        if (!a[i]) continue;
+        for (int64_t w = 0; w < W; ++w) {
+          if (!l[w]) continue;
+          const double d[3] = {x[3 * i] - pc[3 * w], x[3 * i + 1] - pc[3 * w + 1], x[3 * i + 2] - pc[3 * w + 2]};
+          const double* uw = pu + 3 * w;
+          const double* vw = pv + 3 * w;
+          const double su = std::min(std::max(d[0] * uw[0] + d[1] * uw[1] + d[2] * uw[2], -phu[w]), phu[w]);
+          const double sv = std::min(std::max(d[0] * vw[0] + d[1] * vw[1] + d[2] * vw[2], -phv[w]), phv[w]);
+          double g2 = 0;
+          for (int k = 0; k < 3; ++k) {
+            const double e = d[k] - su * uw[k] - sv * vw[k];
+            g2 += e * e;
+          }
+          if (std::sqrt(g2) - r[i] < skin) {
+            chunk_s[ch].push_back(i);
+            chunk_w[ch].push_back(w);
+          }
+        }
+      }
+    }
+  });
+  std::vector<int64_t> offset(n_chunks + 1, 0);
+  for (int64_t ch = 0; ch < n_chunks; ++ch) offset[ch + 1] = offset[ch] + static_cast<int64_t>(chunk_s[ch].size());
+  auto opts = at::TensorOptions().dtype(at::kLong);
+  at::Tensor out_s = at::empty({offset[n_chunks]}, opts), out_w = at::empty({offset[n_chunks]}, opts);
+  int64_t *os = out_s.data_ptr<int64_t>(), *ow = out_w.data_ptr<int64_t>();
+  for (int64_t ch = 0; ch < n_chunks; ++ch) {
+    std::copy(chunk_s[ch].begin(), chunk_s[ch].end(), os + offset[ch]);
+    std::copy(chunk_w[ch].begin(), chunk_w[ch].end(), ow + offset[ch]);
+  }
+  return {out_s, out_w};
+}
+
 }  // namespace
 
-// torch.ops.torchdem.cell_pairs (a fragment: contact_cpu.cpp, built into the same extension,
+// torch.ops.torchdem.cell_pairs and wall_pairs (a fragment: contact_cpu.cpp, built into the same extension,
 // defines the library).
 TORCH_LIBRARY_FRAGMENT(torchdem, m) {
   m.def("cell_pairs(Tensor position, Tensor radius, Tensor body, Tensor active, Tensor cell, Tensor sorted_hash, "
         "Tensor order, int[] dims, float[] period, int n_per_member, float skin) -> (Tensor, Tensor)");
   m.impl("cell_pairs", c10::DispatchKey::CPU, TORCH_FN(cell_pairs));
+  m.def("wall_pairs(Tensor position, Tensor radius, Tensor active, Tensor centre, Tensor axis_u, Tensor axis_v, "
+        "Tensor half_u, Tensor half_v, Tensor wall_active, float skin) -> (Tensor, Tensor)");
+  m.impl("wall_pairs", c10::DispatchKey::CPU, TORCH_FN(wall_pairs));
 }
