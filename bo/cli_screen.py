@@ -2,7 +2,7 @@
 
 Usage::
 
-    torchdem-screen                                   # screen=mini: a few minutes on 2 CPU cores
+    torchdem-screen                                   # screen=cpu: 4 parameters, ~4 min on 2 CPU cores
     torchdem-screen store=/tmp/screen.sqlite          # fixed store: rerun resumes, repeats nothing
     torchdem-screen screen=paper store=paper.sqlite   # 12 parameters + 2 fake, 29 runs, 5 replicates
     torchdem-screen replicates=5 executor=dask executor.n_workers=2

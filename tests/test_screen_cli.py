@@ -176,7 +176,11 @@ def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message
 
 
 def test_profiles_compose_to_the_documented_designs():
-    mini = screen_settings_from(_plain([]))
+    default = screen_settings_from(_plain([]))
+    assert default.table.names == ("mu_s_pp", "mu_s_ss", "mu_r_pp", "mu_r_ss") and default.seeds == (0, 1, 2)
+    assert default.n_fake == 2 and definitive_screening_design(4, 2).shape == (13, 4)
+    assert default.table.low[0] == pytest.approx(0.2) and default.table.high[3] == pytest.approx(0.3)
+    mini = screen_settings_from(_plain(["screen=mini"]))
     assert mini.table.names == ("mu_s_pp", "mu_s_ss") and mini.seeds == (0, 1) and mini.n_fake == 0
     paper_plain = _plain(["screen=paper"])
     paper = screen_settings_from(paper_plain)
@@ -214,7 +218,7 @@ def test_screen_app_writes_the_report_and_a_rerun_repeats_no_dem_run(tmp_path):
     store = tmp_path / "screen.sqlite"
     # threshold 0.99: with 2 replicates of the short run most KPIs are noise-dominated; keep
     # them so that Table 5 has columns to check
-    args = [f"store={store}", *FAST_RUN, "screening.stochastic_threshold=0.99",
+    args = [f"store={store}", "screen=mini", *FAST_RUN, "screening.stochastic_threshold=0.99",
             "screening.kpis=[shear_angle_deg,mass_lower_box_full_kg,max_heap_height_m,mass_flow_rate_full_kg_s]"]
     stdout, first_wall = _run_app(args, tmp_path / "run1")
     out = tmp_path / "run1"
