@@ -13,7 +13,8 @@ Contract:
   torch caches the build under ``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``)
   and rebuilds only when the source changes, so later processes load it in well under a second.
 - The build is tuned for the CPU it runs on (``-march=native``); its name carries a hash of
-  the CPU's instruction-set flags.
+  the CPU's instruction-set flags and of the sources, so builds of different source versions
+  (two checkouts sharing the cache) live side by side.
 - A failed build warns once per process (naming the cause) and is not retried; callers
   then use the torch kernels.
 - ``TORCHDEM_NO_EXTENSION=1`` in the environment disables the extension (same as a
@@ -57,9 +58,11 @@ def build_error() -> str | None:
 
 
 def _module_name() -> str:
-    """Extension name tagged with this CPU's instruction sets: a build cache shared between
-    machines (a network home directory) never loads code built for another CPU."""
-    signature = platform.machine()
+    """Extension name tagged with this CPU's instruction sets and the sources' contents: a build
+    cache shared between machines (a network home directory) never loads code built for another
+    CPU, and two checkouts with different sources (two branches, two versions) never overwrite
+    each other's build and load the other's operators."""
+    signature = platform.machine() + "".join(hashlib.sha256(p.read_bytes()).hexdigest() for p in SOURCES)
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith(("flags", "Features")):
