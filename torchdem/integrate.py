@@ -50,7 +50,7 @@ def _pair_table_index(system: System, member: Tensor, mat_a: Tensor, mat_b: Tens
 def _rolling_inertia(system: System, body: Tensor, radius: Tensor) -> Tensor:
     """I + m r^2 about the contact point of a sphere of radius r on its body (mean moment)."""
     m = system.mass.reshape(-1)[body]
-    inertia = system.inertia.reshape(-1, 3)[body].mean(-1)
+    inertia = system.inertia.reshape(-1, 3).mean(-1)[body]  # mean per body, then gather (cheaper)
     return inertia + m * radius * radius
 
 
