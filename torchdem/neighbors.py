@@ -115,6 +115,14 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
     periodic_axis = grid.period > 0
     if grid.is_periodic:
         position = wrap(position, grid.lower, grid.period)
+    if device.type == "cpu" and use_extension:
+        from torchdem import _ext
+
+        ext = _ext.cpu_kernels()
+        if ext is not None:
+            return ext.cell_pairs(position, radius, body, active, grid.lower.tolist(), grid.cell_size.tolist(),
+                                  list(grid.dims), [float(p) for p in grid.period.tolist()], int(n_per_member),
+                                  float(skin))
     cell = torch.floor((position - grid.lower) / grid.cell_size).long()
     cell = torch.minimum(cell.clamp_min(0), dims - 1)
     cell = torch.where(torch.isfinite(position).all(-1, keepdim=True), cell, torch.zeros_like(cell))
@@ -124,13 +132,6 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
     sentinel = (member.max() + 1 if S else 1) * n_cells
     hashes = torch.where(active, member * n_cells + linear, torch.full_like(linear, int(sentinel)))
     sorted_hash, order = torch.sort(hashes)
-    if device.type == "cpu" and use_extension:
-        from torchdem import _ext
-
-        ext = _ext.cpu_kernels()
-        if ext is not None:
-            return ext.cell_pairs(position, radius, body, active, cell, sorted_hash, order, list(grid.dims),
-                      [float(p) for p in grid.period.tolist()], int(n_per_member), float(skin))
 
     act = torch.nonzero(active).squeeze(1)
     nb = cell[act][:, None, :] + _stencil(device)[None, :, :]              # [A, 27, 3]
