@@ -308,6 +308,48 @@ bool per_member(const std::vector<int64_t>& start, const int64_t* body_a, const 
   return !foreign.load();
 }
 
+// Per-contact rows live in a buffer of the calling thread that is kept between calls
+// (allocating ~100 bytes per contact afresh each step costs page faults; the buffer is as
+// large as the largest contact list seen by that thread).
+template <typename T>
+T* scratch_rows(int64_t count) {
+  thread_local std::vector<double> buffer;
+  const size_t doubles = (static_cast<size_t>(count) * sizeof(T) + sizeof(double) - 1) / sizeof(double);
+  if (buffer.size() < doubles) buffer.resize(doubles);
+  return reinterpret_cast<T*>(buffer.data());
+}
+
+// Runs the contact law over n contacts in blocks and adds their rows (kWidth 9 with body_b,
+// 6 without) to the bodies, per member when the contacts allow it, else in two passes (all
+// rows into a scratch buffer, then scatter_to_bodies). block_ok(c0, m) checks a block's
+// indices (counting bad ones in `bad`); run_block(c0, m, rows) writes its m rows to `rows`.
+template <typename T, int kWidth, typename Ok, typename Run>
+void contacts_to_bodies(int64_t n, const int64_t* body_a, const int64_t* body_b, int64_t n_bodies, int64_t members,
+                        const T* force_in, const T* torque_in, T* force_out, T* torque_out, unsigned csr,
+                        std::atomic<int64_t>& bad, Ok block_ok, Run run_block) {
+  const auto start = member_starts(body_a, n, n_bodies, members);
+  const bool direct = !start.empty() &&
+      per_member<T>(start, body_a, body_b, n_bodies, force_in, torque_in, force_out, torque_out, csr,
+                    [&](int64_t c0, int64_t m, T* f, T* t) {
+                      if (!block_ok(c0, m)) return;
+                      alignas(64) T rows[kWidth * kBlockContacts];
+                      run_block(c0, m, rows);
+                      add_rows<T>(body_a + c0, body_b == nullptr ? nullptr : body_b + c0, rows, kWidth, m, f, t);
+                    });
+  if (direct) return;
+  bad = 0;
+  T* rows = scratch_rows<T>(kWidth * n);
+  at::parallel_for(0, (n + kBlockContacts - 1) / kBlockContacts, 4, [&](int64_t b0, int64_t b1) {
+    DenormalMode mode(csr);
+    for (int64_t blk = b0; blk < b1; ++blk) {
+      const int64_t c0 = blk * kBlockContacts, m = std::min(kBlockContacts, n - c0);
+      if (block_ok(c0, m)) run_block(c0, m, rows + kWidth * c0);
+    }
+  });
+  if (bad.load() == 0)
+    scatter_to_bodies<T>(body_a, body_b, rows, kWidth, n, n_bodies, force_in, torque_in, force_out, torque_out);
+}
+
 void check_cpu(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t rows, int64_t cols) {
   TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor, got ", t.device());
   TORCH_CHECK(t.scalar_type() == dtype, name, " has dtype ", t.scalar_type(), "; expected ", dtype);
@@ -431,16 +473,6 @@ inline int64_t count_out_of_range(const int64_t* __restrict__ idx, int64_t n, in
   return bad;
 }
 
-// Per-contact rows live in a buffer of the calling thread that is kept between calls
-// (allocating ~100 bytes per contact afresh each step costs page faults; the buffer is as
-// large as the largest contact list seen by that thread).
-template <typename T>
-T* scratch_rows(int64_t count) {
-  thread_local std::vector<double> buffer;
-  const size_t doubles = (static_cast<size_t>(count) * sizeof(T) + sizeof(double) - 1) / sizeof(double);
-  if (buffer.size() < doubles) buffer.resize(doubles);
-  return reinterpret_cast<T*>(buffer.data());
-}
 
 // pair_forces for one dtype (inputs validated and contiguous).
 template <typename T>
@@ -492,31 +524,8 @@ void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
   auto run_block = [&](int64_t p0, int64_t n, T* rows) {
     data.ai2011 ? pair_block<T, true>(data, p0, n, rows) : pair_block<T, false>(data, p0, n, rows);
   };
-  T* f_out = force_out.data_ptr<T>();
-  T* t_out = torque_out.data_ptr<T>();
-  const auto start = member_starts(data.body_i, P, NB, members);
-  const bool direct = !start.empty() &&
-      per_member<T>(start, data.body_i, data.body_j, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(), f_out, t_out, csr,
-                    [&](int64_t p0, int64_t n, T* f, T* t) {
-                      if (!block_ok(p0, n)) return;
-                      alignas(64) T rows[9 * kBlock];
-                      run_block(p0, n, rows);
-                      add_rows(data.body_i + p0, data.body_j + p0, rows, 9, n, f, t);
-                    });
-  if (!direct) {
-    bad = 0;
-    T* rows = scratch_rows<T>(9 * P);
-    at::parallel_for(0, (P + kBlock - 1) / kBlock, 4, [&](int64_t b0, int64_t b1) {
-      DenormalMode mode(csr);
-      for (int64_t blk = b0; blk < b1; ++blk) {
-        const int64_t p0 = blk * kBlock, n = std::min(kBlock, P - p0);
-        if (block_ok(p0, n)) run_block(p0, n, rows + 9 * p0);
-      }
-    });
-    if (bad.load() == 0)
-      scatter_to_bodies<T>(data.body_i, data.body_j, rows, 9, P, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
-                           f_out, t_out);
-  }
+  contacts_to_bodies<T, 9>(P, data.body_i, data.body_j, NB, members, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
+                           force_out.data_ptr<T>(), torque_out.data_ptr<T>(), csr, bad, block_ok, run_block);
   TORCH_CHECK(bad.load() == 0, "pair_forces: ", bad.load(), " sphere or body indices are outside [0, ", S,
               ") (spheres) or [0, ", NB, ") (bodies)");
 }
@@ -667,30 +676,8 @@ void wall_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
     ai2011 ? wall_block<T, true>(in, tang_new, roll_new, rows, T(dt), q0, n)
            : wall_block<T, false>(in, tang_new, roll_new, rows, T(dt), q0, n);
   };
-  T* f_out = force_out.data_ptr<T>();
-  T* t_out = torque_out.data_ptr<T>();
-  const auto start = member_starts(pb, Q, NB, members);
-  const bool direct = !start.empty() &&
-      per_member<T>(start, pb, nullptr, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(), f_out, t_out, csr,
-                    [&](int64_t q0, int64_t n, T* f, T* t) {
-                      if (!block_ok(q0, n)) return;
-                      alignas(64) T rows[6 * kBlock];
-                      run_block(q0, n, rows);
-                      add_rows<T>(pb + q0, nullptr, rows, 6, n, f, t);
-                    });
-  if (!direct) {
-    bad = 0;
-    T* rows = scratch_rows<T>(6 * Q);
-    at::parallel_for(0, (Q + kBlock - 1) / kBlock, 4, [&](int64_t b0, int64_t b1) {
-      DenormalMode mode(csr);
-      for (int64_t blk = b0; blk < b1; ++blk) {
-        const int64_t q0 = blk * kBlock, n = std::min(kBlock, Q - q0);
-        if (block_ok(q0, n)) run_block(q0, n, rows + 6 * q0);
-      }
-    });
-    if (bad.load() == 0)
-      scatter_to_bodies<T>(pb, nullptr, rows, 6, Q, NB, in[4].data_ptr<T>(), in[5].data_ptr<T>(), f_out, t_out);
-  }
+  contacts_to_bodies<T, 6>(Q, pb, nullptr, NB, members, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
+                           force_out.data_ptr<T>(), torque_out.data_ptr<T>(), csr, bad, block_ok, run_block);
   TORCH_CHECK(bad.load() == 0, "wall_forces: ", bad.load(), " sphere, body or wall indices are out of range (",
               S, " spheres, ", NB, " bodies, ", W, " walls)");
 }
