@@ -307,3 +307,20 @@ def test_unknown_kpi_and_mismatched_inputs_are_named(results):
         stepwise_regression(results.coded, np.zeros(28), results.parameter_names)
     with pytest.raises(ConfigError, match=r"shape \(29, 12\); expected \(runs, 11\)"):
         stepwise_regression(results.coded, np.zeros(29), results.parameter_names[:11])
+
+
+def test_comparable_effects_do_not_mask_each_other_in_a_small_dsd():
+    """13-run DSD (4 factors, 2 fake): three equal effects of 1.2 per coded unit, noise 0.15.
+    From the intercept, each factor alone has p ~ 0.03 (the other two sit in its residual); the
+    stepwise starts from the full model (8 residual df) and keeps exactly the three."""
+    coded = definitive_screening_design(4, 2)
+    rng = np.random.default_rng(7)
+    y = 20.0 + coded @ np.array([1.2, 1.2, 1.2, 0.0]) + rng.normal(0.0, 0.15, len(coded))
+    alone = [_ols_p_values(coded, y, [j])[-1] for j in range(3)]
+    assert min(alone) > 0.01  # what forward selection from the intercept would see
+    fit = stepwise_regression(coded, y, ["a", "b", "c", "d"], 0.01)
+    assert fit.selected == ("a", "b", "c") and max(fit.p_values.values()) < 1e-6
+    assert fit.steps[0].startswith("start from all 4 main effects (8 residual df)")
+    # with too few runs for an error estimate it starts from the intercept
+    few = stepwise_regression(coded[:6], y[:6], ["a", "b", "c", "d"], 0.01)
+    assert not few.steps or not few.steps[0].startswith("start from all")
