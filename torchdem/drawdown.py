@@ -155,6 +155,8 @@ class DrawDownResult:
         errors: per member, KPI name -> message for KPIs that could not be measured.
         build_time_s: wall time of placing the particles (part of ``wall_time_s``).
         spheres: spheres per member (padded to the largest member), dt: time step, s.
+        failed: member -> cause, for members the blow-up guard isolated
+            (``guards.on_blowup = "isolate"``); their KPIs are not measured.
     """
 
     kpis: list[dict]
@@ -169,6 +171,7 @@ class DrawDownResult:
     build_time_s: float = 0.0
     spheres: int = 0
     dt: float = 0.0
+    failed: dict[int, str] = field(default_factory=dict)
 
     def kpi_table(self, name: str) -> np.ndarray:
         """``[members]`` values of one KPI (NaN where it could not be measured)."""
@@ -414,7 +417,8 @@ class DrawDownTest:
         result = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), wall)
         for c, v in zip(result.conservation, gate_speed):
             c["max_speed_at_gate_open_m_s"] = v
-        result = dataclasses.replace(result, build_time_s=build_s, spheres=int(system.n_spheres), dt=float(system.dt))
+        result = dataclasses.replace(result, build_time_s=build_s, spheres=int(system.n_spheres), dt=float(system.dt),
+                                     failed=dict(sim.failed))
         if ckpt is not None and ckpt.exists():
             ckpt.unlink()
         return result
@@ -449,6 +453,13 @@ class DrawDownTest:
             fill_mass = float((system.mass[m] * (torch.arange(system.n_bodies, device=b.active.device) < counts[m])).sum())
             k: dict[str, float] = {"fill_mass_kg": fill_mass, "fill_mass_full_kg": fill_mass * scale}
             err: dict[str, str] = {}
+            if m in sim.failed:  # isolated by the blow-up guard: nothing to measure
+                kpis.append(k)
+                errors.append({"blowup": sim.failed[m]})
+                images.append({})
+                loadcells.append((times, masses[m]))
+                conservation.append({"fill_kg": fill_mass, "lost_bodies": int(state.lost[m])})
+                continue
             signal = LoadCellSignal(times, masses[m], source=f"member {m} load cell")
             try:
                 d = measure_discharge(signal, fill_mass, DischargeConfig(

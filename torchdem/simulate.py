@@ -54,7 +54,7 @@ def simulate_drawdown(test: DrawDownTest, seeds: Sequence[int], output_dir: str 
     for k, (_, replicate, seed) in enumerate(result.members):
         t, m = result.loadcell[k]
         write_loadcell_csv(out / f"loadcell_{seed}.csv", LoadCellSignal(t, m, source="simulation"))
-        if images:
+        if images and result.images[k]:  # a member isolated by the blow-up guard has no images
             write_image(out / f"upper_{seed}.png", result.images[k]["upper"])
             write_image(out / f"lower_{seed}.png", result.images[k]["lower"])
         members.append({"seed": seed, "replicate": replicate, "kpis": result.kpis[k], "not_measured": result.errors[k],
