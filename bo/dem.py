@@ -10,12 +10,17 @@ Contract:
   parameter set is a parameter set of the test, every task a member with its own seed. It
   returns one :class:`~bo.executor.EvalOutcome` per task with every KPI of
   :data:`torchdem.drawdown.KPI_UNITS` (NaN where the lab method could not measure it, e.g. no
-  heap edge) and the wall time of the batch; a blow-up or bad input fails the whole batch
-  with the message.
+  heap edge) and the wall time of the batch. The blow-up guard runs in isolate mode: a member
+  that blows up is frozen and fails alone, with the guard's message; bad input fails the whole
+  batch with the message.
 - A condition name may carry run-setting variants after ``|``:
   ``"50-50|time_step_fraction=0.2|shear_modulus=1e7"`` runs the 50-50 mixture with those
   :class:`~torchdem.drawdown.RunSettings` fields replaced (the time-step and stiffness
   studies store their runs this way, so they resume like any other campaign stage).
+- A task parameter ``density_<material>`` (kg/m^3) is not a contact parameter: it replaces that
+  material's solid density in the mixture of the task's parameter set (bulk-density
+  recalibration, section 3.6 of the paper, and density as a calibration parameter, which the
+  paper recommends). Such parameter sets run in one ensemble with per-member densities.
 - :func:`mixtures_from_measured` builds the mixture of every condition of a measured-data file
   (:mod:`torchdem.measured`) from the materials the model uses.
 """
@@ -35,6 +40,9 @@ from torchdem.errors import BlowUpError, ConfigError
 from torchdem.geometry import DrawDownGeometry
 from torchdem.measured import MeasuredData
 from torchdem.mixture import Mixture, ParticleMaterial
+
+#: Prefix of task parameters that set a material's solid density (kg/m^3), not a contact law.
+DENSITY_PREFIX = "density_"
 
 _VARIANT_FIELDS = {"time_step_fraction": float, "shear_modulus": float, "fines_cut": float,
                    "rolling_damping": float, "loose_fraction": float}
@@ -61,10 +69,46 @@ class DrawDownModel:
     def test_for(self, condition: str, parameter_sets: Sequence[Mapping[str, float]]) -> DrawDownTest:
         """The :class:`DrawDownTest` of a (possibly variant) condition with these parameter sets."""
         base, settings = split_condition(condition, self.settings)
+        # a blow-up fails that member only (its outcome says why), not the whole ensemble
+        settings = dataclasses.replace(settings, guards=dataclasses.replace(settings.guards, on_blowup="isolate"))
         if base not in self.conditions:
             raise ConfigError(f"condition {base!r} is not part of the model; known: {sorted(self.conditions)}")
-        sets = [{**self.fixed, **p} for p in parameter_sets]
-        return DrawDownTest(self.conditions[base], self.geometry, sets, settings)
+        mixture = self.conditions[base]
+        sets, densities = [], []
+        for p in parameter_sets:
+            contact, density = split_density({**self.fixed, **p}, mixture, f"condition {condition!r}")
+            sets.append(contact)
+            densities.append(density)
+        mixtures = None
+        if any(densities):
+            mixtures = [with_densities(mixture, d) for d in densities]
+        return DrawDownTest(mixture, self.geometry, sets, settings, mixtures=mixtures)
+
+
+def split_density(params: Mapping[str, float], mixture: Mixture, source: str
+                  ) -> tuple[dict[str, float], dict[str, float]]:
+    """``(contact parameters, {material: density kg/m^3})`` of a parameter set."""
+    names = {m.name for m in mixture.materials}
+    contact, density = {}, {}
+    for key, value in params.items():
+        if key.startswith(DENSITY_PREFIX):
+            material = key[len(DENSITY_PREFIX):]
+            if material not in names:
+                raise ConfigError(f"{source}: parameter {key!r} names no material of mixture {mixture.name!r}; "
+                                  f"expected {DENSITY_PREFIX}<material> with a material of {sorted(names)}")
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"{source}: {key} = {value!r} is not allowed; expected a solid density > 0 kg/m^3")
+            density[material] = float(value)
+        else:
+            contact[key] = value
+    return contact, density
+
+
+def with_densities(mixture: Mixture, density: Mapping[str, float]) -> Mixture:
+    """The mixture with the given materials' solid densities replaced."""
+    materials = tuple(dataclasses.replace(m, density=density[m.name]) if m.name in density else m
+                      for m in mixture.materials)
+    return dataclasses.replace(mixture, materials=materials)
 
 
 def variant(condition: str, **changes: float) -> str:
@@ -116,7 +160,10 @@ def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask]) -> list[EvalOutc
         return [EvalOutcome.failure(f"{type(exc).__name__}: {exc}", wall) for _ in tasks]
     wall = time.perf_counter() - started
     out = []
-    for k in result.kpis:
+    for m, k in enumerate(result.kpis):
+        if m in result.failed:
+            out.append(EvalOutcome.failure(f"BlowUpError: member {m} (seed {tasks[m].seed}): {result.failed[m]}", wall))
+            continue
         kpis = {name: float(k.get(name, math.nan)) for name in KPI_UNITS}
         out.append(EvalOutcome.success(kpis, wall))
     return out

@@ -6,6 +6,8 @@ Contract:
       a frozen ``MeasuredData``. Every malformed entry raises ``MeasuredDataError`` (a
       ``ConfigError``) naming the file and the key path, e.g.
       ``data.json: conditions["50-50"].kpis.shear_angle_deg.ci95 = -1.0 is not allowed; ...``.
+    * ``path`` may also be the bare name of a file shipped in ``torchdem/data/`` (e.g.
+      ``"mini_box_twin.json"``, the synthetic measurement of the CPU calibration profile).
     * ``MeasuredData.save(path)`` writes the same format, so ``load_measured(save(d)) == d``.
       This format is the input of the calibration/discovery commands: users add their own test
       conditions with any subset of KPIs.
@@ -412,10 +414,25 @@ def _shipped_path():
     return importlib.resources.files("torchdem").joinpath("data", SHIPPED_FILE)
 
 
+def shipped_file(name: str):
+    """The shipped data file ``torchdem/data/<name>`` (a resource), or None if there is none."""
+    if not isinstance(name, str) or not name or os.sep in name or "/" in name:
+        return None
+    resource = importlib.resources.files("torchdem").joinpath("data", name)
+    return resource if resource.is_file() else None
+
+
 def _read_json(path: str | os.PathLike | None) -> tuple[dict[str, Any], str]:
-    """Parse the file (default: the shipped one); return its top-level object and its name."""
-    resource = _shipped_path() if path is None else None
-    where = str(resource if path is None else os.fspath(path))
+    """Parse the file (default: the shipped one; a bare name that is no file here but a shipped
+    file, e.g. ``"mini_box_twin.json"``, is that shipped file); return its top-level object and
+    its name."""
+    if path is None:
+        resource = _shipped_path()
+    elif not os.path.exists(path) and shipped_file(os.fspath(path)) is not None:
+        resource = shipped_file(os.fspath(path))
+    else:
+        resource = pathlib.Path(path)
+    where = str(resource)
 
     def no_duplicate_keys(pairs):
         seen: dict[str, Any] = {}
@@ -426,7 +443,7 @@ def _read_json(path: str | os.PathLike | None) -> tuple[dict[str, Any], str]:
         return seen
 
     try:
-        text = (resource if path is None else pathlib.Path(path)).read_text(encoding="utf-8")
+        text = resource.read_text(encoding="utf-8")
     except OSError as error:
         raise ConfigError(f"{where}: cannot read measured-data file ({error.strerror})") from None
     try:
