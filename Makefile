@@ -17,8 +17,10 @@ $(STAMP): setup.cfg pyproject.toml
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
+# The main job: the whole calibration pipeline on the default CPU profile (torchdem-calibrate,
+# profile=cpu): screening -> surrogate -> GA -> verification -> bulk density -> validation.
 run: $(STAMP)
-	$(VENV)/bin/torchdem-demo
+	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-2} $(VENV)/bin/torchdem-calibrate
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadgroup

@@ -75,6 +75,9 @@ __all__ = [
     "latin_hypercube",
     "propose_batch",
     "next_step",
+    "round_record",
+    "best_kernel_cv",
+    "record_from_cv",
     "adaptive_sampling",
     "plot_actual_vs_predicted",
 ]
@@ -348,6 +351,45 @@ def _round_bounds(n: int, n_initial: int, q: int) -> tuple[int, int, int]:
     return index, n_initial + (index - 1) * q, n
 
 
+def best_kernel_cv(state: SamplingState, bounds, settings: AdaptiveSettings,
+                   config: SurrogateConfig = SurrogateConfig(),
+                   objective: ObjectiveSpec | None = None) -> CVSummary:
+    """Cross-validated R^2 of every candidate kernel on all ``state`` data; the best summary."""
+    b = as_bounds(bounds, "best_kernel_cv")
+    best: CVSummary | None = None
+    for kernel in settings.kernels:
+        summary = cross_validated_r2(state.X, state.y, b, dataclasses.replace(config,
+                                     kernel=kernel), y_var=state.y_var, objective=objective,
+                                     n_folds=settings.n_folds, seeds=settings.cv_seeds)
+        if best is None or summary.mean > best.mean:
+            best = summary
+    return best
+
+
+def round_record(state: SamplingState, bounds, settings: AdaptiveSettings,
+                 config: SurrogateConfig = SurrogateConfig(),
+                 objective: ObjectiveSpec | None = None) -> RoundRecord:
+    """The round that ended at the last point of ``state`` (at least the initial design),
+    with the best kernel's cross-validated R^2 on all data (Table 7, Fig. 13)."""
+    b = as_bounds(bounds, "round_record")
+    n_initial = settings.initial_size(b.shape[1])
+    if state.n < n_initial:
+        raise ConfigError(f"round_record: {state.n} points evaluated; a round ends at or after the "
+                          f"initial design of {n_initial} points")
+    best = best_kernel_cv(state, b, settings, config, objective)
+    index, start, stop = _round_bounds(state.n, n_initial, settings.q)
+    return record_from_cv(best, index, state.n, state.X[start:stop], state.y[start:stop])
+
+
+def record_from_cv(summary: CVSummary, index: int, n_points: int, X, y) -> RoundRecord:
+    """``RoundRecord`` of round ``index`` (its points ``X``, values ``y``) from a CV summary."""
+    first = summary.results[0]
+    return RoundRecord(index=index, n_points=n_points, X=np.array(X, copy=True),
+                       y=np.array(y, copy=True), kernel=summary.kernel, r2_mean=summary.mean,
+                       r2_std=summary.std, r2_per_seed=summary.per_seed,
+                       actual=first.actual.copy(), predicted=first.predicted.copy())
+
+
 def next_step(state: SamplingState, bounds, settings: AdaptiveSettings,
               config: SurrogateConfig = SurrogateConfig(),
               objective: ObjectiveSpec | None = None) -> NextStep:
@@ -363,25 +405,13 @@ def next_step(state: SamplingState, bounds, settings: AdaptiveSettings,
         design = latin_hypercube(b, n_initial, seed=settings.seed)
         return NextStep(points=design[n:], done=False, reason="initial_design", record=None)
 
-    best: CVSummary | None = None
-    for kernel in settings.kernels:
-        summary = cross_validated_r2(state.X, state.y, b, dataclasses.replace(config,
-                                     kernel=kernel), y_var=state.y_var, objective=objective,
-                                     n_folds=settings.n_folds, seeds=settings.cv_seeds)
-        if best is None or summary.mean > best.mean:
-            best = summary
-    index, start, stop = _round_bounds(n, n_initial, settings.q)
-    first = best.results[0]
-    record = RoundRecord(index=index, n_points=n, X=state.X[start:stop].copy(),
-                         y=state.y[start:stop].copy(), kernel=best.kernel, r2_mean=best.mean,
-                         r2_std=best.std, r2_per_seed=best.per_seed,
-                         actual=first.actual.copy(), predicted=first.predicted.copy())
+    record = round_record(state, b, settings, config, objective)
     empty = np.zeros((0, d))
-    if best.mean >= settings.target_r2:
+    if record.r2_mean >= settings.target_r2:
         return NextStep(points=empty, done=True, reason="target_r2", record=record)
     if n >= settings.budget:
         return NextStep(points=empty, done=True, reason="budget", record=record)
-    points = propose_batch(dataclasses.replace(config, kernel=best.kernel), state.X, state.y, b,
+    points = propose_batch(dataclasses.replace(config, kernel=record.kernel), state.X, state.y, b,
                            q=min(settings.q, settings.budget - n), seed=settings.seed + n,
                            y_var=state.y_var, objective=objective,
                            settings=settings.acquisition)

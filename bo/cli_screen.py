@@ -100,9 +100,9 @@ def check_kpis(kpis, where: str) -> tuple[str, ...]:
     return tuple(kpis)
 
 
-def config_hash(plain: Mapping[str, Any]) -> str:
-    """Hash of the result-deciding blocks (``MODEL_KEYS``) of the resolved config."""
-    part = {k: plain.get(k) for k in MODEL_KEYS}
+def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> str:
+    """Hash of the result-deciding blocks (default ``MODEL_KEYS``) of the resolved config."""
+    part = {k: plain.get(k) for k in keys}
     return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -160,22 +160,6 @@ def plain_config(cfg: DictConfig) -> dict:
 # Screening settings
 # --------------------------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class ScreenSettings:
-    """Everything ``torchdem-screen`` needs besides the model, checked."""
-
-    table: Any  # bo.dsd.ParameterTable
-    n_fake: int
-    seeds: tuple[int, ...]
-    condition: str
-    kpis: tuple[str, ...]
-    p_threshold: float
-    selection_fraction: float
-    stochastic_threshold: float
-    extension_factor: float
-    extension_mode: str
-
-
 def parameter_table_from(cfg: Mapping[str, Any], where: str = "screening"):
     """Table 4 restricted to ``parameters`` (null: all 12), levels overridable by ``levels``
     (``{name: [low, mid, high]}``)."""
@@ -216,9 +200,10 @@ def parameter_table_from(cfg: Mapping[str, Any], where: str = "screening"):
                           mid=tuple(r[2] for r in rows), high=tuple(r[3] for r in rows), source=src)
 
 
-def screen_settings_from(plain: Mapping[str, Any]) -> ScreenSettings:
-    """Checked screening settings; every error names the config key and the allowed range."""
+def screen_settings_from(plain: Mapping[str, Any]):
+    """Checked ``bo.screen.ScreenSettings``; every error names the config key and the allowed range."""
     from bo.dsd import conference_order
+    from bo.screen import ScreenSettings
 
     where = "screening"
     cfg = plain.get(where)

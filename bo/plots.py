@@ -16,7 +16,8 @@ parallel with other plotting code.
   (S) shares in percent per KPI, the exclusion threshold as a line, excluded KPIs hatched;
 * ``screening_vs_measured_figure(results, measured)``: one panel per KPI, every replicate value
   of every screening run (small dots) and the run means (markers) against the run number, with
-  the measured mean as a line and its 95 % CI as a band.
+  the measured mean as a line and its 95 % CI as a band;
+* ``relative_error_figure(groups)``: Figs. 14, 16, 18, signed relative error per KPI and group.
 """
 from __future__ import annotations
 
@@ -42,6 +43,8 @@ __all__ = [
     "write_time_step_plot",
     "write_variance_shares_plot",
     "write_screening_vs_measured_plot",
+    "relative_error_figure",
+    "write_relative_error_plot",
     "save_png",
 ]
 
@@ -173,3 +176,45 @@ def write_screening_vs_measured_plot(results: ScreeningResults, measured: Mappin
                                      dpi: int = 150) -> pathlib.Path:
     """Write ``screening_vs_measured_figure`` to a PNG file."""
     return save_png(screening_vs_measured_figure(results, measured, kpis), path, dpi)
+
+
+def relative_error_figure(groups: Mapping[str, Sequence], title: str = "DEM vs measurement") -> Figure:
+    """Figs. 14, 16 and 18: signed relative error in percent per KPI (bars, one colour per group,
+    e.g. per condition), the DEM replicate spread as error bars and the measurement's 95 % CI as a
+    grey band per KPI (both relative to the measured mean). ``groups`` maps a label to a sequence
+    of ``bo.calibrate.KPIAgreement``."""
+    if not groups or not any(groups.values()):
+        raise ConfigError("relative_error_figure: no agreements to plot; expected a mapping label -> "
+                          "non-empty sequence of KPIAgreement")
+    kpis = list(dict.fromkeys(a.kpi for rows in groups.values() for a in rows))
+    fig = Figure(figsize=(min(11.0, max(4.0, 1.1 * len(kpis) + 1.5)), 3.6),
+                 layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    width = 0.8 / len(groups)
+    for j, kpi in enumerate(kpis):
+        ci = [a.measured_ci95 / abs(a.measured_mean) * 100 for rows in groups.values() for a in rows
+              if a.kpi == kpi]
+        if ci:
+            ax.fill_between([j - 0.45, j + 0.45], -ci[0], ci[0], color="0.85", lw=0)
+    for g, (label, rows) in enumerate(groups.items()):
+        by = {a.kpi: a for a in rows}
+        xs = [j - 0.4 + width * (g + 0.5) for j, k in enumerate(kpis) if k in by]
+        vals = [by[k].relative_error_pct for k in kpis if k in by]
+        errs = [0.0 if not math.isfinite(by[k].dem_std) else by[k].dem_std / abs(by[k].measured_mean) * 100
+                for k in kpis if k in by]
+        ax.bar(xs, vals, width * 0.9, yerr=errs, capsize=3, label=label)
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xticks(range(len(kpis)))
+    ax.set_xticklabels([k.replace("_", " ") for k in kpis], rotation=15, fontsize=7)
+    ax.set_ylabel("relative error (%)")
+    ax.set_title(title, fontsize=9)
+    if len(groups) > 1:
+        ax.legend(fontsize=7)
+    return fig
+
+
+def write_relative_error_plot(groups: Mapping[str, Sequence], path: str | os.PathLike,
+                              title: str = "DEM vs measurement") -> pathlib.Path:
+    """Render ``relative_error_figure`` to a PNG."""
+    return save_png(relative_error_figure(groups, title), path)

@@ -66,9 +66,11 @@ from torchdem.errors import ConfigError, out_of_range
 
 __all__ = [
     "SLICE_ONLY_KPIS",
+    "ScreenSettings",
     "ScreeningReport",
     "analyse_and_report",
     "design_id",
+    "json_ready",
     "measured_for",
     "run_screening",
     "screening_batch_key",
@@ -76,6 +78,30 @@ __all__ = [
 
 #: Slice mass KPIs of the DEM; the lab measures the full box, so these are never compared.
 SLICE_ONLY_KPIS = ("mass_flow_rate_kg_s", "mass_lower_box_kg", "fill_mass_kg")
+
+
+@dataclass(frozen=True)
+class ScreenSettings:
+    """A screening stage, checked (``bo.cli_screen.screen_settings_from`` builds it from config).
+
+    Attributes:
+        table: levels of the screened parameters. n_fake: fake factors of the DSD.
+        seeds: one replicate of the design per seed. condition: measured condition screened.
+        kpis: DEM KPI names analysed. p_threshold, selection_fraction: stepwise regression and
+            Table-5 selection. stochastic_threshold: exclude a KPI whose stochastic share S is
+            above it. extension_factor, extension_mode: the Table-6 extension rule.
+    """
+
+    table: ParameterTable
+    n_fake: int
+    seeds: tuple[int, ...]
+    condition: str
+    kpis: tuple[str, ...]
+    p_threshold: float
+    selection_fraction: float
+    stochastic_threshold: float
+    extension_factor: float
+    extension_mode: str
 
 
 # --------------------------------------------------------------------------------------------
@@ -175,14 +201,14 @@ def measured_for(kpi_names: Sequence[str], measured: Mapping) -> dict:
     return out
 
 
-def _strict(value):
+def json_ready(value):
     """JSON-ready copy: numpy scalars to Python, non-finite floats to None."""
     if isinstance(value, Mapping):
-        return {str(k): _strict(v) for k, v in value.items()}
+        return {str(k): json_ready(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_strict(v) for v in value]
+        return [json_ready(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _strict(value.tolist())
+        return json_ready(value.tolist())
     if isinstance(value, (bool, np.bool_)):
         return bool(value)
     if isinstance(value, (int, np.integer)):
@@ -251,7 +277,7 @@ def analyse_and_report(results: ScreeningResults, measured: Mapping, out_dir, *,
     files["table5_md"] = out / "table5.md"
     files["table5_md"].write_text((analysis.table.to_markdown() if analysis is not None else no_table) + "\n")
     files["table5_json"] = out / "table5.json"
-    files["table5_json"].write_text(json.dumps(_strict(
+    files["table5_json"].write_text(json.dumps(json_ready(
         analysis.table.to_dict() if analysis is not None else
         {"kpis": [], "rows": [], "selected_parameters": [], "note": no_table}), indent=2, allow_nan=False) + "\n")
     lab = measured_for(results.kpi_names, measured)
@@ -308,7 +334,7 @@ def analyse_and_report(results: ScreeningResults, measured: Mapping, out_dir, *,
                      "extension_factor": extension_factor, "extension_mode": extension_mode},
     }
     files["screening_json"] = out / "screening.json"
-    files["screening_json"].write_text(json.dumps(_strict(payload), indent=2, allow_nan=False) + "\n")
+    files["screening_json"].write_text(json.dumps(json_ready(payload), indent=2, allow_nan=False) + "\n")
     return ScreeningReport(results=results, variance=variance, unmeasurable_kpis=unmeasurable,
                            calibration_kpis=tuple(calibration), analysis=analysis, proposal=proposal,
                            files=dict(files), text=text)

@@ -43,7 +43,7 @@ import numpy as np
 
 from bo.dem import variant
 from bo.executor import Executor, canonical_params, run_pending
-from bo.screen import _check_kpis, _strict
+from bo.screen import _check_kpis, json_ready
 from bo.store import CampaignStore
 from bo.timestep import ShearModulusSummary, TimeStepChoice, choose_time_step, summarise_shear_modulus_study
 from torchdem.errors import ConfigError, out_of_range
@@ -87,7 +87,7 @@ class StudyRuns:
     n_failed: np.ndarray
 
     def to_dict(self) -> dict:
-        return _strict({"setting": self.setting, "values": list(self.values),
+        return json_ready({"setting": self.setting, "values": list(self.values),
                         "conditions": list(self.conditions), "seeds": list(self.seeds),
                         "kpi_names": list(self.kpi_names), "kpi_values": self.kpi_values,
                         "wall_time_s": self.wall_time_s, "n_failed": self.n_failed})
@@ -251,7 +251,7 @@ def time_step_report(runs: StudyRuns, out_dir, *, rayleigh_time_step_s: float | 
     files["timestep_md"] = out / "timestep.md"
     files["timestep_md"].write_text(text)
     files["timestep_json"] = out / "timestep.json"
-    files["timestep_json"].write_text(json.dumps(_strict({"runs": runs.to_dict(), "choice": choice.to_dict(),
+    files["timestep_json"].write_text(json.dumps(json_ready({"runs": runs.to_dict(), "choice": choice.to_dict(),
                                                           "left_out_kpis": left_out}),
                                                  indent=2, allow_nan=False) + "\n")
     return choice, files
@@ -282,5 +282,5 @@ def shear_modulus_report(runs: StudyRuns, out_dir, *, deciding_kpis: Sequence[st
                            else list(summary.measured_speedup),
                            "recommended_modulus_pa": summary.recommended_modulus_pa,
                            "reasoning": list(summary.reasoning)}}
-    files["shear_modulus_json"].write_text(json.dumps(_strict(payload), indent=2, allow_nan=False) + "\n")
+    files["shear_modulus_json"].write_text(json.dumps(json_ready(payload), indent=2, allow_nan=False) + "\n")
     return summary, files
