@@ -159,3 +159,31 @@ def rolling_epsd(
     c_r = rolling_damping * 2.0 * torch.sqrt(rolling_inertia * k_r)
     m_damp = torch.where(full[:, None], torch.zeros_like(w_t), -c_r[:, None] * w_t)
     return m_spring + m_damp, m_spring
+
+
+def sjkr_contact_area(overlap: Tensor, distance: Tensor, radius_i: Tensor, radius_j: Tensor | None = None) -> Tensor:
+    """Area of the contact circle of two overlapping spheres (or a sphere and a wall), m^2.
+
+    Two spheres at centre distance d: the intersection circle of their surfaces has area
+    ``pi / 4 (d - ri - rj)(d + ri - rj)(d - ri + rj)(d + ri + rj) / d^2`` (the LIGGGHTS ``sjkr``
+    formula), about ``2 pi R* delta`` for small overlaps; a sphere at distance d from a wall:
+    ``pi (r^2 - d^2)``. Zero where the bodies do not touch.
+    """
+    touching = overlap > 0
+    if radius_j is None:
+        area = math.pi * (radius_i * radius_i - distance * distance)
+    else:
+        d = distance.clamp_min(torch.finfo(distance.dtype).tiny)
+        area = (-0.25 * math.pi * (d - radius_i - radius_j) * (d + radius_i - radius_j)
+                * (d - radius_i + radius_j) * (d + radius_i + radius_j) / (d * d))
+    return torch.where(touching, area.clamp_min(0.0), torch.zeros_like(area))
+
+
+def sjkr_cohesion(area: Tensor, cohesion: Tensor) -> Tensor:
+    """Simplified JKR cohesion (LIGGGHTS ``cohesion sjkr``; Johnson, Kendall, Roberts 1971): an
+    attractive normal force ``k_c A`` with ``k_c`` the cohesion energy density (J/m^3 = N/m^2) and
+    ``A`` the contact area (:func:`sjkr_contact_area`). Returns the force magnitude, N (>= 0),
+    pulling the first body towards the second (``+f * normal`` on the first body). The Coulomb
+    and rolling limits of :func:`hertz_mindlin` and :func:`rolling_epsd` use the repulsive Hertz
+    force only."""
+    return cohesion * area

@@ -1,7 +1,8 @@
 """Named contact parameters of a mixture, as calibration sees them.
 
 Contract: parameters are named ``<coefficient>_<a><b>`` with coefficient ``mu_s`` (sliding
-friction), ``mu_r`` (rolling friction) or ``e`` (restitution) and ``a``, ``b`` one-letter
+friction), ``mu_r`` (rolling friction), ``e`` (restitution) or ``coh`` (SJKR cohesion energy
+density, J/m^3; optional, 0 when not given) and ``a``, ``b`` one-letter
 abbreviations of two materials (``p`` pellet, ``s`` sinter, ``g`` geometry by default):
 ``mu_s_pp``, ``e_sg``, ... — the paper's 12 parameters. A value is a scalar or a sequence of B
 values (one per ensemble member). Pairs of two different particle materials that are not
@@ -17,7 +18,7 @@ import numpy as np
 
 from torchdem.errors import ConfigError
 
-COEFFICIENTS = {"mu_s": "mu_s", "mu_r": "mu_r", "e": "restitution"}
+COEFFICIENTS = {"mu_s": "mu_s", "mu_r": "mu_r", "e": "restitution", "coh": "cohesion"}
 
 # Reference case of Hadi et al. (Table 4, middle level; from their ref. [40]).
 PAPER_REFERENCE: dict[str, float] = {
@@ -31,11 +32,11 @@ DEFAULT_ABBREVIATIONS = {"p": "pellet", "s": "sinter", "g": "geometry"}
 
 
 def _split(name: str) -> tuple[str, str]:
-    for coeff in ("mu_s", "mu_r", "e"):
+    for coeff in ("mu_s", "mu_r", "e", "coh"):
         prefix = coeff + "_"
         if name.startswith(prefix) and len(name) == len(prefix) + 2:
             return coeff, name[len(prefix):]
-    raise ConfigError(f"contact parameter {name!r}: expected <mu_s|mu_r|e>_<a><b> with one-letter material "
+    raise ConfigError(f"contact parameter {name!r}: expected <mu_s|mu_r|e|coh>_<a><b> with one-letter material "
                       "abbreviations, e.g. mu_s_pp or e_sg")
 
 
@@ -76,6 +77,10 @@ def interaction_pairs(params: Mapping[str, object], particle_materials: Sequence
                         continue
                 short = {"restitution": "e"}.get(coeff, coeff)
                 raise ConfigError(f"{source}: missing {short}_{letter[a]}{letter[b]} (pair {a}-{b})")
+            if "cohesion" not in coeffs and b != geometry_material and a != b:  # optional: 0 unless given
+                pa, pb = given.get((a, a), {}), given.get((b, b), {})
+                if "cohesion" in pa and "cohesion" in pb:
+                    coeffs["cohesion"] = _average(pa["cohesion"], pb["cohesion"])
             coeffs.setdefault("rolling_damping", rolling_damping)
             pairs[(a, b)] = coeffs
     return pairs

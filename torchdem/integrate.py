@@ -22,6 +22,7 @@ from torchdem import contact, neighbors
 from torchdem.rigid import advance_orientation, angular_velocity, quat_rotate
 from torchdem.state import Bodies, PairContacts, State, WallContacts
 from torchdem.system import System
+from torchdem.walls import closest_points
 
 Tensor = torch.Tensor
 
@@ -88,7 +89,7 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[Stat
         mass_eff=mass[bi] * mass[bj] / (mass[bi] + mass[bj]),
         young_eff=flat(t.young_eff)[idx], shear_eff=flat(t.shear_eff)[idx], beta=flat(t.beta)[idx],
         mu_s=flat(t.mu_s)[idx], mu_r=flat(t.mu_r)[idx], rolling_damping=flat(t.rolling_damping)[idx],
-        rolling_inertia=ir_i * ir_j / (ir_i + ir_j),
+        rolling_inertia=ir_i * ir_j / (ir_i + ir_j), cohesion=flat(t.cohesion)[idx],
     )
 
     W = system.walls.n
@@ -104,7 +105,7 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[Stat
         sphere=s, body=bs, wall=w, key=wkey, tangential=wt, rolling=wr, radius=rs, mass_eff=mass[bs],
         young_eff=flat(t.young_eff)[widx], shear_eff=flat(t.shear_eff)[widx], beta=flat(t.beta)[widx],
         mu_s=flat(t.mu_s)[widx], mu_r=flat(t.mu_r)[widx], rolling_damping=flat(t.rolling_damping)[widx],
-        rolling_inertia=_rolling_inertia(system, bs, rs),
+        rolling_inertia=_rolling_inertia(system, bs, rs), cohesion=flat(t.cohesion)[widx],
     )
     state = state.set(pairs=pairs, walls=wall_contacts, reference=xs.clone(), wall_shift=shift,
                       wall_active=wall_active, rebuilds=state.rebuilds + 1)
@@ -227,7 +228,51 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
             wc.shear_eff, wc.beta, wc.mu_s, wc.mu_r, wc.rolling_damping, wc.rolling_inertia,
             wc.tangential, wc.rolling, dt=dt, stiffness_model=system.rolling_stiffness, members=B)
         wc = wc.set(tangential=tang, rolling=roll)
+    if system.has_cohesion:
+        force, torque = cohesion_forces(system, state, xs, X, force, torque, time)
     return force, torque, state.set(pairs=p, walls=wc)
+
+
+def cohesion_forces(system: System, state: State, xs: Tensor, X: Tensor, force: Tensor, torque: Tensor,
+                    time: float) -> tuple[Tensor, Tensor]:
+    """Add the SJKR cohesion (:func:`contact.sjkr_cohesion`) of every touching sphere pair and
+    sphere-wall contact: an attractive normal force at the contact point (its torque included).
+    A separate pass over the neighbour lists, run only for systems with cohesion, so the force
+    kernels (torch, compiled or C++) stay as they are."""
+    p = state.pairs
+    if p.n:
+        xi = torch.index_select(xs, 0, p.i)
+        d = torch.index_select(xs, 0, p.j) - xi
+        if system.grid.is_periodic:
+            d = neighbors.minimum_image(d, system.grid.period)
+        dist = d.norm(dim=-1)
+        overlap = p.radius_i + p.radius_j - dist
+        n = d / dist.clamp_min(1e-30)[:, None]
+        f = (contact.sjkr_cohesion(contact.sjkr_contact_area(overlap, dist, p.radius_i, p.radius_j),
+                                   p.cohesion))[:, None] * n  # on i, towards j
+        cp = xi + (p.radius_i - 0.5 * overlap)[:, None] * n
+        arm_i, arm_j = cp - torch.index_select(X, 0, p.body_i), cp - torch.index_select(X, 0, p.body_j)
+        if system.grid.is_periodic:
+            arm_i = neighbors.minimum_image(arm_i, system.grid.period)
+            arm_j = neighbors.minimum_image(arm_j, system.grid.period)
+        force = force.index_add(0, p.body_i, f).index_add(0, p.body_j, -f)
+        torque = (torque.index_add(0, p.body_i, torch.linalg.cross(arm_i, f, dim=-1))
+                  .index_add(0, p.body_j, torch.linalg.cross(arm_j, -f, dim=-1)))
+    wc = state.walls
+    if wc.n:
+        walls = system.walls
+        xw = torch.index_select(xs, 0, wc.sphere)
+        d = closest_points(walls, walls.shift(time), xw, wc.wall) - xw
+        dist = d.norm(dim=-1)
+        present = torch.index_select(walls.active_at(time), 0, wc.wall)
+        overlap = torch.where(present, wc.radius - dist, torch.full_like(dist, -1.0))
+        n = d / dist.clamp_min(1e-30)[:, None]
+        f = contact.sjkr_cohesion(contact.sjkr_contact_area(overlap, dist, wc.radius), wc.cohesion)[:, None] * n
+        cp = xw + (wc.radius - 0.5 * overlap)[:, None] * n
+        arm = cp - torch.index_select(X, 0, wc.body)
+        force = force.index_add(0, wc.body, f)
+        torque = torque.index_add(0, wc.body, torch.linalg.cross(arm, f, dim=-1))
+    return force, torque
 
 
 def body_angular_velocity(system: System, bodies: Bodies) -> Tensor:

@@ -64,7 +64,10 @@ COEFFICIENT_RANGES: dict[str, tuple[float, float, bool, bool]] = {
     "mu_r": (0.0, math.inf, True, False),
     "restitution": (0.0, 1.0, False, True),
     "rolling_damping": (0.0, math.inf, True, False),
+    "cohesion": (0.0, math.inf, True, False),
 }
+#: Coefficients a pair may leave out, with their default (every other one is required).
+OPTIONAL_COEFFICIENTS = {"rolling_damping": 0.0, "cohesion": 0.0}
 
 
 def _range_text(low: float, high: float, lo_inc: bool, hi_inc: bool) -> str:
@@ -97,6 +100,8 @@ class InteractionTable:
             ``mu_r * R_eff * F_n``).
         restitution: coefficient of restitution, in (0, 1].
         rolling_damping: viscous rolling damping ratio eta_r of the EPSD model (0 disables it).
+        cohesion: SJKR cohesion energy density k_c, J/m^3 (0: no cohesion; see
+            :func:`torchdem.contact.sjkr_cohesion`).
     And ``density`` ``[B, M]`` in kg/m^3: particle density per member and material.
     """
 
@@ -105,13 +110,19 @@ class InteractionTable:
     restitution: Tensor
     rolling_damping: Tensor
     density: Tensor
+    cohesion: Tensor | None = None
+
+    def __post_init__(self):
+        if self.cohesion is None:
+            object.__setattr__(self, "cohesion", torch.where(torch.isnan(self.mu_s), self.mu_s,
+                                                             torch.zeros_like(self.mu_s)))
 
     @property
     def batch(self) -> int:
         return self.mu_s.shape[0]
 
     def validate(self, source: str = "InteractionTable") -> "InteractionTable":
-        for name in ("mu_s", "mu_r", "restitution", "rolling_damping"):
+        for name in ("mu_s", "mu_r", "restitution", "rolling_damping", "cohesion"):
             values = getattr(self, name)
             check_coefficient(name, values, source)
             if not torch.equal(torch.nan_to_num(values, nan=-1.0), torch.nan_to_num(values.transpose(1, 2), nan=-1.0)):
@@ -148,11 +159,11 @@ def interaction_table(
     Args:
         materials: the M materials; their order defines material ids.
         pairs: ``{(name_a, name_b): {"mu_s": v, "mu_r": v, "restitution": v,
-            "rolling_damping": v}}``; each v is a scalar or a length-B sequence (one value per
-            ensemble member). Every unordered pair of materials that can touch must appear
-            once (either order); pairs left out (wall-wall) stay undefined (NaN) and the
-            system builder refuses a system in which an undefined pair can touch.
-            ``rolling_damping`` defaults to 0.
+            "rolling_damping": v, "cohesion": v}}``; each v is a scalar or a length-B sequence
+            (one value per ensemble member). Every unordered pair of materials that can touch
+            must appear once (either order); pairs left out (wall-wall) stay undefined (NaN) and
+            the system builder refuses a system in which an undefined pair can touch.
+            ``rolling_damping`` and ``cohesion`` default to 0.
         batch: B, the number of ensemble members.
         density: optional per-material density override, scalar or length-B per name
             (defaults to ``Material.density``).
@@ -167,7 +178,7 @@ def interaction_table(
     index = {n: k for k, n in enumerate(names)}
     M = len(names)
     tables = {k: torch.full((batch, M, M), float("nan"), dtype=dtype, device=device)
-              for k in ("mu_s", "mu_r", "restitution", "rolling_damping")}
+              for k in ("mu_s", "mu_r", "restitution", "rolling_damping", "cohesion")}
     for (a, b), coeffs in pairs.items():
         for n in (a, b):
             if n not in index:
@@ -177,9 +188,9 @@ def interaction_table(
             raise ConfigError(f"{source}: pair ({a}, {b}) has unknown coefficient(s) {sorted(unknown)}; "
                               f"allowed: {sorted(tables)}")
         for key in tables:
-            if key not in coeffs and key != "rolling_damping":
+            if key not in coeffs and key not in OPTIONAL_COEFFICIENTS:
                 raise ConfigError(f"{source}: pair ({a}, {b}) is missing {key!r}")
-            value = coeffs.get(key, 0.0)
+            value = coeffs.get(key, OPTIONAL_COEFFICIENTS.get(key))
             v = _as_member_tensor(value, batch, key, f"{source}[{a},{b}]", dtype, device)
             check_coefficient(key, v, f"{source}[{a},{b}]")
             ia, ib = index[a], index[b]
@@ -225,7 +236,7 @@ class MaterialTables:
 
     Attributes (``[B, M, M]`` unless noted):
         young_eff: E* [Pa]; shear_eff: G* [Pa]; beta: damping factor (<= 0);
-        mu_s, mu_r, rolling_damping: as in :class:`InteractionTable`;
+        mu_s, mu_r, rolling_damping, cohesion: as in :class:`InteractionTable`;
         density: ``[B, M]`` kg/m^3.
     """
 
@@ -236,6 +247,7 @@ class MaterialTables:
     mu_r: Tensor
     rolling_damping: Tensor
     density: Tensor
+    cohesion: Tensor
 
     @property
     def n_materials(self) -> int:
@@ -260,4 +272,5 @@ def material_tables(materials: Sequence[Material], table: InteractionTable) -> M
         mu_r=table.mu_r,
         rolling_damping=table.rolling_damping,
         density=table.density,
+        cohesion=table.cohesion,
     )

@@ -70,6 +70,7 @@ class PairContacts(_Replaceable):
         young_eff, shear_eff: ``[P]`` E*, G*, Pa. beta: ``[P]`` damping factor from e.
         mu_s, mu_r, rolling_damping: ``[P]`` interaction coefficients.
         rolling_inertia: ``[P]`` I_r of the EPSD damping, kg m^2.
+        cohesion: ``[P]`` SJKR cohesion energy density, J/m^3.
     """
 
     i: Tensor
@@ -90,6 +91,7 @@ class PairContacts(_Replaceable):
     mu_r: Tensor
     rolling_damping: Tensor
     rolling_inertia: Tensor
+    cohesion: Tensor
 
     @property
     def n(self) -> int:
@@ -105,7 +107,7 @@ class WallContacts(_Replaceable):
         key: ``[Q]`` int64 ``sphere * W + wall``, sorted ascending.
         tangential: ``[Q, 3]`` m. rolling: ``[Q, 3]`` N m.
         radius: ``[Q]`` sphere radius = R*, m. mass_eff: ``[Q]`` body mass, kg.
-        young_eff, shear_eff, beta, mu_s, mu_r, rolling_damping, rolling_inertia: ``[Q]``.
+        young_eff, shear_eff, beta, mu_s, mu_r, rolling_damping, rolling_inertia, cohesion: ``[Q]``.
     """
 
     sphere: Tensor
@@ -123,6 +125,7 @@ class WallContacts(_Replaceable):
     mu_r: Tensor
     rolling_damping: Tensor
     rolling_inertia: Tensor
+    cohesion: Tensor
 
     @property
     def n(self) -> int:

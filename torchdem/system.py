@@ -53,6 +53,8 @@ class System:
         material_names: names of the M materials.
         wall_events: finite times at which a wall appears or disappears, s.
         walls_move: True if any wall has a non-zero velocity and a move window.
+        has_cohesion: True if any pair of any member has a cohesion energy density > 0 (the
+            SJKR pass runs only then).
     """
 
     sphere_body: Tensor
@@ -75,6 +77,7 @@ class System:
     material_names: tuple[str, ...]
     wall_events: tuple[float, ...] = ()
     walls_move: bool = False
+    has_cohesion: bool = False
 
     @property
     def batch(self) -> int:
@@ -328,6 +331,7 @@ def build_system(
         wall_events=tuple(sorted({float(t) for t in torch.cat((wall_t.active_from, wall_t.active_until)).tolist()
                                   if math.isfinite(t)})),
         walls_move=bool(((wall_t.velocity.norm(dim=-1) > 0) & (wall_t.move_until > wall_t.move_from)).any()),
+        has_cohesion=bool((torch.nan_to_num(interactions.cohesion) > 0).any()),
     )
     state = initial_state(system, bodies)
     return system, state
@@ -335,21 +339,22 @@ def build_system(
 
 def _cast_tables(t: MaterialTables, dtype) -> MaterialTables:
     return MaterialTables(*(getattr(t, f).to(dtype) for f in
-                            ("young_eff", "shear_eff", "beta", "mu_s", "mu_r", "rolling_damping", "density")))
+                            ("young_eff", "shear_eff", "beta", "mu_s", "mu_r", "rolling_damping", "density",
+                             "cohesion")))
 
 
 def _empty_pairs(dtype, device) -> PairContacts:
     li = torch.zeros(0, dtype=torch.long, device=device)
     f = torch.zeros(0, dtype=dtype, device=device)
     v = torch.zeros((0, 3), dtype=dtype, device=device)
-    return PairContacts(li, li, li, li, li, v, v, f, f, f, f, f, f, f, f, f, f, f)
+    return PairContacts(li, li, li, li, li, v, v, f, f, f, f, f, f, f, f, f, f, f, f)
 
 
 def _empty_walls(dtype, device) -> WallContacts:
     li = torch.zeros(0, dtype=torch.long, device=device)
     f = torch.zeros(0, dtype=dtype, device=device)
     v = torch.zeros((0, 3), dtype=dtype, device=device)
-    return WallContacts(li, li, li, li, v, v, f, f, f, f, f, f, f, f, f)
+    return WallContacts(li, li, li, li, v, v, f, f, f, f, f, f, f, f, f, f)
 
 
 def initial_state(system: System, bodies: Bodies) -> State:
