@@ -20,7 +20,9 @@ Contract:
 - A task parameter ``density_<material>`` (kg/m^3) is not a contact parameter: it replaces that
   material's solid density in the mixture of the task's parameter set (bulk-density
   recalibration, section 3.6 of the paper, and density as a calibration parameter, which the
-  paper recommends). Such parameter sets run in one ensemble with per-member densities.
+  paper recommends); ``lobe_spacing_<material>`` makes that material a trilobe clump of that
+  lobe spacing (:func:`torchdem.mixture.trilobe_template`). Such parameter sets run in one
+  ensemble with per-member mixtures.
 - :func:`mixtures_from_measured` builds the mixture of every condition of a measured-data file
   (:mod:`torchdem.measured`) from the materials the model uses.
 """
@@ -39,10 +41,13 @@ from torchdem.drawdown import KPI_UNITS, DrawDownTest, RunSettings
 from torchdem.errors import BlowUpError, ConfigError
 from torchdem.geometry import DrawDownGeometry
 from torchdem.measured import MeasuredData
-from torchdem.mixture import Mixture, ParticleMaterial
+from torchdem.mixture import Mixture, ParticleMaterial, trilobe_shape
 
 #: Prefix of task parameters that set a material's solid density (kg/m^3), not a contact law.
 DENSITY_PREFIX = "density_"
+#: Per-material task parameters: prefix -> (exclusive low, inclusive high, allowed range text).
+MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3"),
+                     "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size")}
 
 _VARIANT_FIELDS = {"time_step_fraction": float, "shear_modulus": float, "fines_cut": float,
                    "rolling_damping": float, "loose_fraction": float}
@@ -74,41 +79,69 @@ class DrawDownModel:
         if base not in self.conditions:
             raise ConfigError(f"condition {base!r} is not part of the model; known: {sorted(self.conditions)}")
         mixture = self.conditions[base]
-        sets, densities = [], []
+        sets, properties = [], []
         for p in parameter_sets:
-            contact, density = split_density({**self.fixed, **p}, mixture, f"condition {condition!r}")
+            contact, props = split_material_parameters({**self.fixed, **p}, mixture, f"condition {condition!r}")
             sets.append(contact)
-            densities.append(density)
+            properties.append(props)
         mixtures = None
-        if any(densities):
-            mixtures = [with_densities(mixture, d) for d in densities]
+        if any(properties):
+            mixtures = [with_material_properties(mixture, props) for props in properties]
         return DrawDownTest(mixture, self.geometry, sets, settings, mixtures=mixtures)
+
+
+def split_material_parameters(params: Mapping[str, float], mixture: Mixture, source: str
+                              ) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
+    """``(contact parameters, {material: {property: value}})`` of a parameter set: the per-material
+    parameters ``density_<material>`` (solid density, kg/m^3) and ``lobe_spacing_<material>``
+    (trilobe clump shape, :func:`torchdem.mixture.trilobe_template`, in (0, 0.3] of the sieve size)
+    are taken out; everything else is a contact parameter."""
+    names = {m.name for m in mixture.materials}
+    contact: dict[str, float] = {}
+    material: dict[str, dict[str, float]] = {}
+    for key, value in params.items():
+        prefix = next((p for p in MATERIAL_PREFIXES if key.startswith(p)), None)
+        if prefix is None:
+            contact[key] = value
+            continue
+        name = key[len(prefix):]
+        if name not in names:
+            raise ConfigError(f"{source}: parameter {key!r} names no material of mixture {mixture.name!r}; "
+                              f"expected {prefix}<material> with a material of {sorted(names)}")
+        low, high, allowed = MATERIAL_PREFIXES[prefix]
+        if not (math.isfinite(value) and low < value <= high):
+            raise ConfigError(f"{source}: {key} = {value!r} is not allowed; expected {allowed}")
+        material.setdefault(name, {})[prefix[:-1]] = float(value)
+    return contact, material
 
 
 def split_density(params: Mapping[str, float], mixture: Mixture, source: str
                   ) -> tuple[dict[str, float], dict[str, float]]:
-    """``(contact parameters, {material: density kg/m^3})`` of a parameter set."""
-    names = {m.name for m in mixture.materials}
-    contact, density = {}, {}
-    for key, value in params.items():
-        if key.startswith(DENSITY_PREFIX):
-            material = key[len(DENSITY_PREFIX):]
-            if material not in names:
-                raise ConfigError(f"{source}: parameter {key!r} names no material of mixture {mixture.name!r}; "
-                                  f"expected {DENSITY_PREFIX}<material> with a material of {sorted(names)}")
-            if not (math.isfinite(value) and value > 0):
-                raise ConfigError(f"{source}: {key} = {value!r} is not allowed; expected a solid density > 0 kg/m^3")
-            density[material] = float(value)
-        else:
-            contact[key] = value
-    return contact, density
+    """``(contact parameters, {material: density kg/m^3})`` (other material parameters are refused)."""
+    contact, material = split_material_parameters(params, mixture, source)
+    other = sorted(k for props in material.values() for k in props if k != "density")
+    if other:
+        raise ConfigError(f"{source}: split_density got material parameters {other}; use split_material_parameters")
+    return contact, {m: props["density"] for m, props in material.items()}
+
+
+def with_material_properties(mixture: Mixture, properties: Mapping[str, Mapping[str, float]]) -> Mixture:
+    """The mixture with the given materials' densities and trilobe lobe spacings replaced."""
+    materials = []
+    for m in mixture.materials:
+        props = properties.get(m.name, {})
+        changes = {}
+        if "density" in props:
+            changes["density"] = props["density"]
+        if "lobe_spacing" in props:
+            changes["shape"] = trilobe_shape(props["lobe_spacing"])
+        materials.append(dataclasses.replace(m, **changes) if changes else m)
+    return dataclasses.replace(mixture, materials=tuple(materials))
 
 
 def with_densities(mixture: Mixture, density: Mapping[str, float]) -> Mixture:
     """The mixture with the given materials' solid densities replaced."""
-    materials = tuple(dataclasses.replace(m, density=density[m.name]) if m.name in density else m
-                      for m in mixture.materials)
-    return dataclasses.replace(mixture, materials=materials)
+    return with_material_properties(mixture, {m: {"density": rho} for m, rho in density.items()})
 
 
 def variant(condition: str, **changes: float) -> str:

@@ -97,7 +97,7 @@ def test_density_parameters_set_the_member_mixtures_densities():
     assert test.parameter_sets[1]["mu_s_pp"] == 0.5
     with pytest.raises(ConfigError, match=r"density_coke.*names no material.*\['pellet', 'sinter'\]"):
         split_density({"density_coke": 900.0}, mix, "here")
-    with pytest.raises(ConfigError, match=r"density_pellet = -1.0 is not allowed; expected a solid density > 0"):
+    with pytest.raises(ConfigError, match=r"density_pellet = -1.0 is not allowed; expected a solid density > 0 kg"):
         split_density({"density_pellet": -1.0}, mix, "here")
 
 

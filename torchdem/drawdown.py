@@ -49,6 +49,10 @@ from torchdem.simulation import GuardSettings, Simulation
 from torchdem.state import to_dict
 from torchdem.system import build_system
 
+#: Contact parameter setting the EPSD viscous rolling damping ratio of every pair, per parameter
+#: set (default: ``RunSettings.rolling_damping``).
+ROLLING_DAMPING_PARAMETER = "eta_r"
+
 KPI_UNITS = {
     "angle_of_repose_deg": "deg", "shear_angle_deg": "deg", "mass_flow_rate_kg_s": "kg/s",
     "mass_flow_rate_full_kg_s": "kg/s", "mass_lower_box_kg": "kg", "mass_lower_box_full_kg": "kg",
@@ -220,6 +224,13 @@ class DrawDownTest:
             if any(k not in p for p in per_member):
                 raise ConfigError(f"contact: parameter {k!r} is missing from some parameter sets")
             stacked[k] = [float(p[k]) for p in per_member]
+        # eta_r: the EPSD viscous rolling damping ratio of every pair, per member (default: the settings')
+        rolling_damping = s.rolling_damping
+        if ROLLING_DAMPING_PARAMETER in stacked:
+            rolling_damping = stacked.pop(ROLLING_DAMPING_PARAMETER)
+            bad = [v for v in rolling_damping if not (math.isfinite(v) and v >= 0)]
+            if bad:
+                raise out_of_range(ROLLING_DAMPING_PARAMETER, bad[0], ">= 0 (viscous rolling damping ratio)", "contact")
         fb = s.front_back_material
         own = {}
         if fb is not None:  # front/back wall pairs: letter w, defaulting to the geometry pair's value
@@ -231,11 +242,11 @@ class DrawDownTest:
                     else _letters(names, wall))
 
         pairs = interaction_pairs(stacked, names, s.geometry_material.name, abbreviations=abbreviations(
-            s.geometry_material.name), rolling_damping=s.rolling_damping)
+            s.geometry_material.name), rolling_damping=rolling_damping)
         if fb is not None:
             walled = {**stacked, **{k[:-1] + "g": v for k, v in own.items()}}
             pairs.update({k: v for k, v in interaction_pairs(walled, names, fb.name, abbreviations=abbreviations(
-                fb.name), rolling_damping=s.rolling_damping, source="contact (front/back walls)").items()
+                fb.name), rolling_damping=rolling_damping, source="contact (front/back walls)").items()
                 if fb.name in k})
         density = None
         if self.member_mixtures is not None:
