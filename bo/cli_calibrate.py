@@ -30,7 +30,7 @@ import hydra
 from omegaconf import DictConfig
 
 from bo.cli_screen import (MODEL_KEYS, _int, check_kpis, config_hash, executor_from, executor_settings_from, plain_config,
-                           replicate_seeds, screen_settings_from, store_path_from)
+                           replicate_seeds, screen_settings_from, store_path_from, with_extension)
 from torchdem.cli import CONF_DIR
 from torchdem.errors import ConfigError, out_of_range
 
@@ -168,9 +168,9 @@ def calibration_model_from(plain: Mapping[str, Any], measured):
                                         total_mass=mixture.total_mass,
                                         layers_source=f"measured data ({plain.get('measured') or 'shipped Table 2'})")
     device = device_from(str(plain["sim"]["device"]), "sim.device")
-    model = DrawDownModel(conditions=conditions, geometry=config.geometry_from(plain["geometry"]),
-                          settings=config.run_settings_from(plain["sim"], plain["run"]),
-                          fixed=config.contact_from(plain["contact"]), device=str(device))
+    model = with_extension(DrawDownModel(conditions=conditions, geometry=config.geometry_from(plain["geometry"]),
+                                         settings=config.run_settings_from(plain["sim"], plain["run"]),
+                                         fixed=config.contact_from(plain["contact"]), device=str(device)), plain)
     return model, {m.name: m.density for m in mixture.materials}
 
 

@@ -34,7 +34,7 @@ from torchdem.cli import CONF_DIR
 from torchdem.errors import ConfigError, out_of_range
 
 #: Config blocks that decide DEM results; the store's config hash covers exactly these.
-MODEL_KEYS = ("sim", "geometry", "mixture", "contact", "run", "condition")
+MODEL_KEYS = ("sim", "geometry", "mixture", "contact", "run", "condition", "extension")
 
 
 # --------------------------------------------------------------------------------------------
@@ -128,10 +128,40 @@ def model_from(plain: Mapping[str, Any]):
     if not isinstance(condition, str) or not condition or "|" in condition:
         raise out_of_range("condition", condition, "a condition name such as '50-50'", "config")
     device = device_from(str(plain["sim"]["device"]), "sim.device")
-    return DrawDownModel(conditions={condition: config.mixture_from(plain["mixture"])},
-                         geometry=config.geometry_from(plain["geometry"]),
-                         settings=config.run_settings_from(plain["sim"], plain["run"]),
-                         fixed=config.contact_from(plain["contact"]), device=str(device))
+    return with_extension(DrawDownModel(conditions={condition: config.mixture_from(plain["mixture"])},
+                                        geometry=config.geometry_from(plain["geometry"]),
+                                        settings=config.run_settings_from(plain["sim"], plain["run"]),
+                                        fixed=config.contact_from(plain["contact"]), device=str(device)), plain)
+
+
+def extension_from(plain: Mapping[str, Any]) -> tuple[str | None, dict[str, float]]:
+    """``(mechanism name or None, values)`` of the ``extension`` block (conf/extension/)."""
+    ext = plain.get("extension") or {}
+    if not isinstance(ext, Mapping):
+        raise out_of_range("extension", ext, "a mapping {name, values} (conf/extension/)", "config")
+    name, values = ext.get("name"), ext.get("values") or {}
+    if name is not None and not isinstance(name, str):
+        raise out_of_range("name", name, "a mechanism name of bo/mechanisms/ or null", "extension")
+    if not isinstance(values, Mapping):
+        raise out_of_range("values", values, "a mapping parameter -> number", "extension")
+    out = {}
+    for k, v in values.items():
+        try:
+            out[str(k)] = float(v)
+        except (TypeError, ValueError):
+            raise out_of_range(f"values.{k}", v, "a number", "extension") from None
+    return name, out
+
+
+def with_extension(model, plain: Mapping[str, Any]):
+    """``model`` (a ``bo.dem.DrawDownModel``) with the configured extension switched on."""
+    name, values = extension_from(plain)
+    if name is None and not values:
+        return model
+    from bo.discovery import model_context
+    from bo.mechanisms import apply_extension
+
+    return apply_extension(model, name, values, model_context(model, model.fixed), source="extension")
 
 
 def executor_from(settings: ExecutorSettings, model):

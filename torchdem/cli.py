@@ -81,6 +81,15 @@ def simulate_main(cfg: DictConfig) -> None:
     out = Path(HydraConfig.get().runtime.output_dir)
     test = DrawDownTest(config.mixture_from(plain["mixture"]), config.geometry_from(plain["geometry"]),
                         config.contact_from(plain["contact"]), config.run_settings_from(plain["sim"], plain["run"]))
+    if (plain.get("extension") or {}).get("name") is not None:
+        # A model extension (conf/extension/) is a mechanism of bo/mechanisms/: this entry point, an
+        # edge of the system, lets bo apply it (torchdem's library code never imports bo).
+        from bo.cli_screen import with_extension
+        from bo.dem import DrawDownModel
+
+        model = with_extension(DrawDownModel({"run": test.mixture}, test.geometry, test.settings,
+                                             fixed=test.parameter_sets[0]), plain)
+        test = model.test_for("run", [{}], isolate=False)
     replicates = int(cfg.replicates)
     if replicates < 1:
         raise ConfigError(f"replicates = {replicates} is not allowed; expected an integer >= 1")
