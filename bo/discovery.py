@@ -1,0 +1,520 @@
+"""Model discovery: where a calibrated model disagrees with the measurements, which candidate
+mechanism explains it, and what that mechanism gains on conditions it was not fitted on.
+
+Contract
+--------
+``run_discovery(store, executor_for, model, calibrated, measured, settings)`` works through the
+campaign store (``bo.store``; resumable, nothing repeated) in four steps; ``executor_for(model)``
+returns an executor (``bo.executor``) that evaluates a ``bo.dem.DrawDownModel``.
+
+1. Discrepancy (stage ``discrepancy``): the calibrated model on every measured condition with
+   ``settings.seeds``. For every condition c and KPI k: DEM mean and its standard error
+   ``se = s / sqrt(r)``, the measured mean and its standard uncertainty ``u = ci95 / 1.96``, and
+   ``z = (DEM - lab) / sqrt(se^2 + u^2)``. ``chi2 = sum z^2`` over the cells, compared with a
+   chi^2 distribution of as many degrees of freedom, is the probability that measurement
+   uncertainty and DEM stochasticity alone explain the disagreement; the discrepancy is
+   ``significant`` when that probability is below ``settings.alpha``.
+2. Hypotheses (stage ``discovery-<name>``): ``parameters`` (the calibrated parameters named in
+   ``settings.refit`` free within ``+- refit_fraction`` of their value; no new physics) and every
+   candidate of the registry (``bo.mechanisms``; ``settings.candidates`` or all available), each
+   with its extra parameters and prior ranges plus the refit ones. Per hypothesis: a Latin
+   hypercube of ``max(min_points, points_per_parameter x d)`` points, each run on every condition
+   with ``fit_seeds``, and one GP per (condition, KPI) (``bo.surrogate``, per-output strategy).
+   Leave-one-condition-out: for each condition c, the parameters that minimise the chi^2 of the
+   other conditions (GP means, GA of ``bo.ga``) predict c; the held-out chi^2 of c uses the GP's
+   predictive variance, the DEM replicate variance and the measurement's. A hypothesis with no
+   free parameter (``parameters`` with ``refit`` empty) is the calibrated model itself, scored on
+   the discrepancy runs. Score = sum of held-out chi^2 + ``penalty`` x (parameters it adds beyond
+   the ``parameters`` hypothesis) (an AIC-like penalty).
+3. Cause: the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
+   than ``margin``; else none: no candidate explains the discrepancy better than the parameters
+   and noise. If the discrepancy is not significant, no hypothesis is fitted (unless
+   ``always_score``) and the cause is none.
+4. Gain (stage ``discovery-gain``): the DEM, with the chosen mechanism at the parameters fitted
+   without each condition, runs on that held-out condition (``settings.seeds``); error per KPI and
+   condition before (step 1) and after, each with its uncertainty. The mechanism's values fitted
+   on all conditions are the extension (``DiscoveryResult.extension``).
+
+Everything returned is plain data; ``bo.discovery_report`` writes ``discovery.json`` and figures.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+from scipy import stats
+
+from bo.acquisition import latin_hypercube
+from bo.dem import DrawDownModel
+from bo.executor import Executor, run_pending
+from bo.ga import GASettings, minimise_surrogate
+from bo.mechanisms import Mechanism, ModelContext, registry
+from bo.objective import ObjectiveSpec
+from bo.screen import measured_for
+from bo.store import CampaignStore
+from bo.surrogate import SurrogateConfig, fit_surrogate
+from torchdem.errors import ConfigError, out_of_range
+from torchdem.measured import MeasuredData
+
+__all__ = ["PARAMETERS", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore", "GainRow",
+           "DiscoveryResult", "discovery_stages", "measure_discrepancy", "run_discovery"]
+
+#: Name of the no-new-physics hypothesis (the calibrated parameters refitted).
+PARAMETERS = "parameters"
+
+
+def discovery_stages(names: Sequence[str] | None = None) -> tuple[str, ...]:
+    """Store stages discovery uses (for ``CampaignStore(extra_stages=...)``)."""
+    names = sorted(registry()) if names is None else list(names)
+    return ("discrepancy", "discovery-gain", f"discovery-{PARAMETERS}", *(f"discovery-{n}" for n in names))
+
+
+@dataclass(frozen=True)
+class DiscoverySettings:
+    """Settings of ``run_discovery`` (see the module docstring).
+
+    Attributes:
+        kpis: DEM KPI names compared (each needs a measurement in some condition).
+        seeds: replicates of the discrepancy and gain runs. fit_seeds: replicates of every
+            hypothesis design point.
+        candidates: registry names tried; None: every mechanism available for the model.
+        refit: calibrated parameters free in every hypothesis; refit_fraction: their range,
+            ``value x (1 +- fraction)`` (friction >= 0, restitution in (0, 1]).
+        points_per_parameter, min_points: design size per hypothesis.
+        alpha: significance of the discrepancy test. penalty: held-out chi^2 per added
+            parameter. margin: held-out chi^2 a cause must gain over the parameters hypothesis.
+        always_score: fit the hypotheses even without a significant discrepancy.
+        ga: GA on the surrogate means. kernel: GP kernel. seed: LHS and GA seed.
+    """
+
+    kpis: tuple[str, ...]
+    seeds: tuple[int, ...] = (0, 1, 2)
+    fit_seeds: tuple[int, ...] = (0, 1)
+    candidates: tuple[str, ...] | None = None
+    refit: tuple[str, ...] = ()
+    refit_fraction: float = 0.2
+    points_per_parameter: int = 5
+    min_points: int = 6
+    alpha: float = 0.05
+    penalty: float = 2.0
+    margin: float = 4.0
+    always_score: bool = False
+    ga: GASettings = GASettings(pop_size=200, n_generations=200, stall_generations=30)
+    kernel: str = "matern52"
+    seed: int = 0
+
+    def validate(self, source: str = "discovery") -> "DiscoverySettings":
+        if not self.kpis or len(set(self.kpis)) != len(self.kpis):
+            raise out_of_range("kpis", self.kpis, "a non-empty list of distinct DEM KPI names", source)
+        for name in ("seeds", "fit_seeds"):
+            s = getattr(self, name)
+            if not s or len(set(s)) != len(s):
+                raise out_of_range(name, s, "a non-empty list of distinct seeds", source)
+        if not 0 < self.refit_fraction < 1:
+            raise out_of_range("refit_fraction", self.refit_fraction, "a fraction in (0, 1)", source)
+        if not 0 < self.alpha < 1:
+            raise out_of_range("alpha", self.alpha, "a probability in (0, 1)", source)
+        for name in ("penalty", "margin"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise out_of_range(name, getattr(self, name), "a finite number >= 0", source)
+        for name in ("points_per_parameter", "min_points"):
+            if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), int) \
+                    or getattr(self, name) < 2:
+                raise out_of_range(name, getattr(self, name), "an integer >= 2", source)
+        return self
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One KPI of one condition: DEM against the measurement (``se``, ``u``: standard
+    uncertainties of the DEM mean and of the measured mean; ``z`` their normalised difference)."""
+
+    condition: str
+    kpi: str
+    dem_mean: float
+    dem_se: float
+    n: int
+    measured_mean: float
+    measured_u: float
+    z: float
+    relative_error_pct: float
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class Discrepancy:
+    """Step 1: every cell, chi^2 over them, its degrees of freedom and p-value."""
+
+    cells: tuple[Cell, ...]
+    chi2: float
+    dof: int
+    p_value: float
+    significant: bool
+
+    def chi2_of(self, condition: str) -> float:
+        return float(sum(c.z ** 2 for c in self.cells if c.condition == condition and math.isfinite(c.z)))
+
+
+@dataclass(frozen=True)
+class HypothesisScore:
+    """Step 2 for one hypothesis.
+
+    Attributes:
+        name: ``"parameters"`` or a registry name. description: the mechanism in words.
+        parameters: free parameter names; bounds: name -> (low, high); added: how many are new
+            physics (beyond the refit ones).
+        held_out_chi2: condition -> chi^2 of that condition predicted from the others.
+        fitted_without: condition -> parameters fitted without that condition.
+        fitted_all: parameters fitted on every condition; in_sample_chi2: their chi^2.
+        score: sum of held-out chi^2 + penalty x added. points: design points run.
+        skipped: why the hypothesis was not fitted (unavailable for this model), else None.
+    """
+
+    name: str
+    description: str
+    parameters: tuple[str, ...]
+    bounds: Mapping[str, tuple[float, float]]
+    added: int
+    held_out_chi2: Mapping[str, float]
+    fitted_without: Mapping[str, Mapping[str, float]]
+    fitted_all: Mapping[str, float]
+    in_sample_chi2: float
+    score: float
+    points: int
+    skipped: str | None = None
+
+
+@dataclass(frozen=True)
+class GainRow:
+    """Step 4: one KPI of one held-out condition, before and after the extension."""
+
+    condition: str
+    kpi: str
+    measured_mean: float
+    measured_u: float
+    before_mean: float
+    before_se: float
+    after_mean: float
+    after_se: float
+    before_error_pct: float
+    after_error_pct: float
+    before_z: float
+    after_z: float
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class DiscoveryResult:
+    """Everything ``run_discovery`` found (plain data)."""
+
+    discrepancy: Discrepancy
+    hypotheses: tuple[HypothesisScore, ...]
+    cause: str | None
+    explanation: str
+    gain: tuple[GainRow, ...]
+    extension: Mapping[str, float]
+    evaluations: Mapping[str, int]
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+
+def _key(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=repr).encode()).hexdigest()[:12]
+
+
+def _lab(measured: MeasuredData, kpis: Sequence[str]) -> dict[tuple[str, str], tuple[float, float]]:
+    """(condition, DEM KPI) -> (measured mean, standard uncertainty ci95 / 1.96), measured cells only."""
+    out = {}
+    for c in measured.names:
+        for kpi, value in measured_for(kpis, measured.condition(c).kpis).items():
+            out[(c, kpi)] = (float(value.mean), float(value.ci95) / 1.96)
+    return out
+
+
+def _run(store: CampaignStore, executor: Executor, stage: str, key: str, points: Sequence[Mapping[str, float]],
+         seeds: Sequence[int], conditions: Sequence[str], kpis: Sequence[str]) -> np.ndarray:
+    """Run (resume) a batch; ``[n_points, n_conditions, r, K]`` KPI values (NaN: failed/unmeasured)."""
+    stored = store.batch(stage, key, lambda: [dict(p) for p in points], seeds=list(seeds),
+                         conditions=list(conditions))
+    run_pending(store, executor, stage)
+    out = np.full((len(stored), len(conditions), len(seeds), len(kpis)), np.nan)
+    ci = {c: i for i, c in enumerate(conditions)}
+    si = {s: i for i, s in enumerate(seeds)}
+    for rec in store.records(stage, batch_key=key, status="done"):
+        if rec.condition in ci and rec.seed in si and rec.kpis is not None:
+            out[rec.point_index, ci[rec.condition], si[rec.seed]] = [rec.kpis.get(k, math.nan) for k in kpis]
+    out[~np.isfinite(out)] = np.nan
+    return out
+
+
+def _mean_se(values: np.ndarray) -> tuple[float, float, int]:
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return math.nan, math.nan, 0
+    return float(v.mean()), (float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else math.nan), int(v.size)
+
+
+def _cells(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str],
+           lab: Mapping[tuple[str, str], tuple[float, float]]) -> list[Cell]:
+    """Cells of ``reps [C, r, K]`` against the lab (only measured cells)."""
+    cells = []
+    for i, c in enumerate(conditions):
+        for j, k in enumerate(kpis):
+            if (c, k) not in lab:
+                continue
+            mean, se, n = _mean_se(reps[i, :, j])
+            m, u = lab[(c, k)]
+            var = (se if math.isfinite(se) else 0.0) ** 2 + u ** 2
+            z = (mean - m) / math.sqrt(var) if n and var > 0 else math.nan
+            cells.append(Cell(c, k, mean, se, n, m, u, z, (mean - m) / m * 100 if m else math.nan))
+    return cells
+
+
+# --------------------------------------------------------------------------------------------
+# step 1
+# --------------------------------------------------------------------------------------------
+
+def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Mapping[str, float],
+                        measured: MeasuredData, settings: DiscoverySettings) -> tuple[Discrepancy, np.ndarray]:
+    """Step 1 (see the module docstring); also returns the replicates ``[C, r, K]``."""
+    conditions = list(measured.names)
+    reps = _run(store, executor, "discrepancy", "calibrated/" + _key(sorted(calibrated.items())),
+                [dict(calibrated)], settings.seeds, conditions, settings.kpis)[0]
+    cells = _cells(reps, conditions, settings.kpis, _lab(measured, settings.kpis))
+    finite = [c for c in cells if math.isfinite(c.z)]
+    if not finite:
+        raise ConfigError(f"discrepancy: no KPI of {list(settings.kpis)} was both simulated and measured; measured "
+                          f"KPIs: {sorted({k for c in measured.names for k in measured.condition(c).kpis})}")
+    chi2 = float(sum(c.z ** 2 for c in finite))
+    p = float(stats.chi2.sf(chi2, len(finite)))
+    return Discrepancy(tuple(cells), chi2, len(finite), p, p < settings.alpha), reps
+
+
+# --------------------------------------------------------------------------------------------
+# step 2
+# --------------------------------------------------------------------------------------------
+
+def _refit_bounds(calibrated: Mapping[str, float], names: Sequence[str], fraction: float) -> dict[str, tuple]:
+    out = {}
+    for n in names:
+        if n not in calibrated:
+            raise ConfigError(f"discovery.refit: {n!r} is not a calibrated parameter; calibrated: {sorted(calibrated)}")
+        v = float(calibrated[n])
+        lo, hi = v * (1 - fraction), v * (1 + fraction)
+        if n.startswith("e_"):
+            hi = min(hi, 1.0)
+        out[n] = (max(lo, 0.0), hi) if hi > max(lo, 0.0) else (0.0, max(fraction, 1e-6))
+    return out
+
+
+def _chi2_terms(mean: np.ndarray, var: np.ndarray, lab_mean: np.ndarray, lab_var: np.ndarray) -> np.ndarray:
+    return (mean - lab_mean) ** 2 / (var + lab_var)
+
+
+def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel, context: ModelContext,
+                      store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor],
+                      calibrated: Mapping[str, float], measured: MeasuredData, settings: DiscoverySettings,
+                      baseline: Discrepancy, echo: Callable[[str], None]) -> HypothesisScore:
+    conditions = list(measured.names)
+    kpis = list(settings.kpis)
+    lab = _lab(measured, kpis)
+    bounds = _refit_bounds(calibrated, settings.refit, settings.refit_fraction)
+    extra = {} if mechanism is None else dict(mechanism.parameters(context))
+    bounds.update(extra)
+    names = tuple(bounds)
+    description = "the calibrated parameters refitted, no new physics" if mechanism is None else mechanism.description
+    if not names:  # the calibrated model as is: held-out chi^2 = the discrepancy's
+        held = {c: baseline.chi2_of(c) for c in conditions}
+        return HypothesisScore(name, description, (), {}, 0, held, {c: {} for c in conditions}, {},
+                               float(sum(held.values())), float(sum(held.values())), 0)
+    b = np.array([[bounds[n][0] for n in names], [bounds[n][1] for n in names]], dtype=np.float64)
+    n_points = max(settings.min_points, settings.points_per_parameter * len(names))
+    X = latin_hypercube(b, n_points, seed=settings.seed)
+    points = [{**calibrated, **dict(zip(names, map(float, x)))} for x in X]
+    hyp_model = model if mechanism is None else mechanism.apply(model)
+    with executor_for(hyp_model) as executor:
+        reps = _run(store, executor, f"discovery-{name}", f"lhs/{_key(names, b.tolist(), n_points, settings.seed)}",
+                    points, settings.fit_seeds, conditions, kpis)
+    # outputs: measured (condition, KPI) cells; y = replicate means, y_var = variance of the mean
+    cells = [(i, c, j, k) for i, c in enumerate(conditions) for j, k in enumerate(kpis) if (c, k) in lab]
+    Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i, _, j, _ in cells], axis=1)
+    counts = np.stack([np.isfinite(reps[:, i, :, j]).sum(axis=1) for i, _, j, _ in cells], axis=1)
+    V = np.stack([np.nanvar(reps[:, i, :, j], axis=1, ddof=1) for i, _, j, _ in cells], axis=1) / np.maximum(counts, 1)
+    usable = (counts >= min(2, len(settings.fit_seeds))).all(axis=1) & np.isfinite(Y).all(axis=1)
+    if usable.sum() < max(4, len(names) + 2):
+        raise ConfigError(f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points have "
+                          f"every KPI measured on every condition; check the runs in {store.path}")
+    V = np.where(np.isfinite(V), V, 0.0) if len(settings.fit_seeds) > 1 else None
+    lab_mean = np.array([lab[(c, k)][0] for _, c, _, k in cells])
+    lab_var = np.array([lab[(c, k)][1] ** 2 for _, c, _, k in cells])
+    output_names = tuple(f"{c}|{k}" for _, c, _, k in cells)
+    spec = ObjectiveSpec(output_names, tuple(np.where(lab_mean == 0, 1.0, lab_mean)), source=f"hypothesis {name}")
+    surrogate = fit_surrogate(X[usable], Y[usable], b, SurrogateConfig(kernel=settings.kernel, strategy="per_kpi"),
+                              y_var=None if V is None else V[usable], objective=spec)
+    dem_var = np.nanmean(V[usable], axis=0) if V is not None else np.zeros(len(cells))
+    cond_of = np.array([c for _, c, _, _ in cells])
+
+    def fit(mask: np.ndarray) -> dict[str, float]:
+        def chi2(x: np.ndarray) -> np.ndarray:
+            mean, var = surrogate.predict_outputs(x)
+            return _chi2_terms(mean[:, mask], var[:, mask] + dem_var[mask], lab_mean[mask], lab_var[mask]).sum(-1)
+        res = minimise_surrogate(chi2, b, settings.ga, seed=settings.seed)
+        return dict(zip(names, map(float, res.x)))
+
+    held, without = {}, {}
+    for c in conditions:
+        train = cond_of != c
+        if not train.any() or not (~train).any():
+            continue
+        x = fit(train)
+        mean, var = surrogate.predict_outputs(np.array([[x[n] for n in names]]))
+        test = ~train
+        held[c] = float(_chi2_terms(mean[0, test], var[0, test] + dem_var[test], lab_mean[test], lab_var[test]).sum())
+        without[c] = x
+    every = fit(np.ones(len(cells), dtype=bool))
+    mean, var = surrogate.predict_outputs(np.array([[every[n] for n in names]]))
+    in_sample = float(_chi2_terms(mean[0], var[0] + dem_var, lab_mean, lab_var).sum())
+    score = float(sum(held.values()) + settings.penalty * len(extra))
+    echo(f"  {name}: {len(names)} parameters, {n_points} points; held-out chi^2 "
+         + ", ".join(f"{c} {v:.1f}" for c, v in held.items()) + f"; score {score:.1f}")
+    return HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names}, len(extra),
+                           held, without, every, in_sample, score, n_points)
+
+
+def model_context(model: DrawDownModel, calibrated: Mapping[str, float]) -> ModelContext:
+    """What the mechanisms see of ``model`` (first condition's materials)."""
+    from torchdem.materials import effective_young_modulus
+    import torch
+
+    mixture = next(iter(model.conditions.values()))
+    names = tuple(m.name for m in mixture.materials)
+    letters = ({"pellet": "p", "sinter": "s"} if set(names) <= {"pellet", "sinter"} else
+               {n: a for a, n in _letters_of(names).items()})
+    m0 = mixture.materials[0]
+    G = model.settings.shear_modulus if model.settings.shear_modulus is not None else m0.shear_modulus
+    E = 2 * G * (1 + m0.poisson_ratio)
+    e_eff = float(effective_young_modulus(torch.tensor(E), torch.tensor(m0.poisson_ratio), torch.tensor(E),
+                                          torch.tensor(m0.poisson_ratio)))
+    return ModelContext(materials=names, letters=letters, densities={m.name: m.density for m in mixture.materials},
+                        shapes={m.name: m.shape for m in mixture.materials}, calibrated=dict(calibrated),
+                        young_eff=e_eff, periodic_slice=bool(model.geometry.is_slice and not model.geometry.slice_walls))
+
+
+def _letters_of(names: Sequence[str]) -> dict[str, str]:
+    from torchdem.drawdown import _letters
+
+    return {k: v for k, v in _letters(names, "geometry").items() if k != "g"}
+
+
+# --------------------------------------------------------------------------------------------
+# steps 3 and 4
+# --------------------------------------------------------------------------------------------
+
+def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor], model: DrawDownModel,
+                  calibrated: Mapping[str, float], measured: MeasuredData, settings: DiscoverySettings,
+                  echo: Callable[[str], None] = print) -> DiscoveryResult:
+    """Steps 1-4 (see the module docstring)."""
+    settings = settings.validate()
+    missing = [c for c in measured.names if c not in model.conditions]
+    if missing:
+        raise ConfigError(f"discovery: conditions {missing} of the measured data have no mixture in the model "
+                          f"(model conditions: {sorted(model.conditions)})")
+    if len(measured.names) < 2:
+        raise ConfigError(f"discovery: {len(measured.names)} condition(s) in the measured data; leave-one-condition-out "
+                          "needs at least 2")
+    context = model_context(model, calibrated)
+    mechanisms = registry()
+    names = list(settings.candidates) if settings.candidates is not None else sorted(mechanisms)
+    unknown = [n for n in names if n not in mechanisms]
+    if unknown:
+        raise ConfigError(f"discovery.candidates: {unknown} are not in the registry (bo/mechanisms/); known: "
+                          f"{sorted(mechanisms)}")
+    conditions = list(measured.names)
+    with executor_for(model) as executor:
+        discrepancy, base_reps = measure_discrepancy(store, executor, calibrated, measured, settings)
+    echo(f"discrepancy: chi^2 {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} "
+         f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise)")
+    hypotheses: list[HypothesisScore] = []
+    cause, explanation = None, ""
+    if not discrepancy.significant and not settings.always_score:
+        explanation = (f"The model agrees with the measurements within their uncertainty and the DEM's stochasticity "
+                       f"(chi^2 = {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} >= "
+                       f"{settings.alpha}): there is nothing to explain, so no candidate was fitted.")
+    else:
+        echo(f"scoring hypotheses: {PARAMETERS}, " + ", ".join(names))
+        hypotheses.append(_score_hypothesis(PARAMETERS, None, model, context, store, executor_for, calibrated,
+                                            measured, settings, discrepancy, echo))
+        for n in names:
+            why = mechanisms[n].available(context)
+            if why is not None:
+                hypotheses.append(HypothesisScore(n, mechanisms[n].description, (), {}, 0, {}, {}, {}, math.nan,
+                                                  math.inf, 0, skipped=why))
+                echo(f"  {n}: skipped ({why})")
+                continue
+            hypotheses.append(_score_hypothesis(n, mechanisms[n], model, context, store, executor_for, calibrated,
+                                                measured, settings, discrepancy, echo))
+        reference = hypotheses[0]
+        candidates = [h for h in hypotheses[1:] if h.skipped is None]
+        best = min(candidates, key=lambda h: h.score) if candidates else None
+        if best is not None and best.score < reference.score - settings.margin:
+            cause = best.name
+            explanation = (f"{best.name} ({best.description}) predicts the held-out conditions best: score "
+                           f"{best.score:.1f} against {reference.score:.1f} for refitting the calibrated parameters "
+                           f"alone (held-out chi^2 + {settings.penalty:g} per added parameter; a cause must gain more "
+                           f"than {settings.margin:g}).")
+        else:
+            explanation = ("No candidate explains the discrepancy better than the calibrated parameters and noise: "
+                           + (f"the best, {best.name}, scores {best.score:.1f} against {reference.score:.1f} "
+                              f"(it must gain more than {settings.margin:g})." if best is not None
+                              else "no candidate could be fitted."))
+    echo(f"cause: {cause}. {explanation}")
+    gain: list[GainRow] = []
+    extension: dict[str, float] = {}
+    if cause is not None:
+        chosen = next(h for h in hypotheses if h.name == cause)
+        extension = {n: v for n, v in chosen.fitted_all.items() if n in chosen.parameters}
+        gain = _gain(store, executor_for, model, mechanisms[cause], chosen, calibrated, measured, settings, base_reps)
+    evaluations = {}
+    for stage in discovery_stages(names):
+        c = store.counts(stage)
+        if c["done"] + c["failed"]:
+            evaluations[stage] = c["done"] + c["failed"]
+    evaluations["total"] = sum(evaluations.values())
+    return DiscoveryResult(discrepancy, tuple(hypotheses), cause, explanation, tuple(gain), extension, evaluations)
+
+
+def _gain(store, executor_for, model, mechanism: Mechanism, chosen: HypothesisScore, calibrated, measured,
+          settings: DiscoverySettings, base_reps: np.ndarray) -> list[GainRow]:
+    """Step 4: DEM runs of the mechanism fitted without each condition, on that condition."""
+    conditions = list(measured.names)
+    kpis = list(settings.kpis)
+    lab = _lab(measured, kpis)
+    rows = []
+    with executor_for(mechanism.apply(model)) as executor:
+        for i, c in enumerate(conditions):
+            if c not in chosen.fitted_without:
+                continue
+            params = {**calibrated, **chosen.fitted_without[c]}
+            after = _run(store, executor, "discovery-gain", f"{chosen.name}/{c}/" + _key(sorted(params.items())),
+                         [params], settings.seeds, [c], kpis)[0, 0]
+            for j, k in enumerate(kpis):
+                if (c, k) not in lab:
+                    continue
+                m, u = lab[(c, k)]
+                b_mean, b_se, _ = _mean_se(base_reps[i, :, j])
+                a_mean, a_se, _ = _mean_se(after[:, j])
+                z = lambda mean, se: (mean - m) / math.sqrt((se if math.isfinite(se) else 0) ** 2 + u ** 2)  # noqa: E731
+                rows.append(GainRow(c, k, m, u, b_mean, b_se, a_mean, a_se, (b_mean - m) / m * 100,
+                                    (a_mean - m) / m * 100, z(b_mean, b_se), z(a_mean, a_se)))
+    return rows

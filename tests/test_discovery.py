@@ -1,0 +1,190 @@
+"""Tests of model discovery (bo/discovery.py, bo/mechanisms/, bo/cli_discover.py).
+
+- The registry holds the six required mechanisms; a new file in the package is picked up; every
+  mechanism applies to the CPU profile's model and builds a DEM ensemble.
+- The discrepancy test: z, chi^2 and p-value recomputed independently.
+- The pipeline on the known-answer model (tests/_calibration_model.py): "measured" data with a
+  hidden effect (the sinter 25 % heavier than the model's, the pellet as modelled) must be
+  explained by density_per_material, with a gain on held-out conditions; data without a hidden
+  effect must give no cause.
+- Slow: the same on real DEM runs of the small draw down box: data made with the DEM itself with
+  sinter 30 % heavier; the pipeline, given only the data and the baseline model, names
+  density_per_material and reduces the held-out error.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from scipy import stats
+
+from bo.cli_calibrate import calibration_model_from
+from bo.cli_discover import discover, discovery_settings_from, extension_command
+from bo.cli_screen import plain_config
+from bo.discovery import PARAMETERS, DiscoverySettings, discovery_stages, model_context, run_discovery
+from bo.executor import InProcessExecutor
+from bo.mechanisms import apply_extension, registry
+from bo.store import CampaignStore
+from torchdem.cli import CONF_DIR
+from torchdem.errors import ConfigError
+from torchdem.measured import Condition, KPIValue, MeasuredData, load_measured
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _calibration_model as km  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
+
+
+def _plain(overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return plain_config(compose(config_name="discover", overrides=list(overrides)))
+
+
+# -- registry --------------------------------------------------------------------------------
+
+def test_registry_has_the_required_mechanisms_and_each_builds_a_dem_ensemble():
+    mechanisms = registry()
+    assert set(mechanisms) >= {"density_per_material", "free_interaction", "cohesion", "front_back_walls",
+                               "rolling_ai2011", "clump_shape"}
+    plain = _plain(["data=mini_box_twin.json"])
+    model, _ = calibration_model_from({**plain, "measured": "mini_box_twin.json"}, load_measured("mini_box_twin.json"))
+    context = model_context(model, model.fixed)
+    for name, m in mechanisms.items():
+        assert m.available(context) is None, name
+        bounds = m.parameters(context)
+        assert bounds and all(lo < hi for lo, hi in bounds.values()), name
+        mid = {k: 0.5 * (lo + hi) for k, (lo, hi) in bounds.items()}
+        extended = apply_extension(model, name, mid, context)
+        system, _, _ = extended.test_for("50-50", [{}]).build([0], [0])  # the DEM accepts it
+        assert system.batch == 1
+        if name == "cohesion":
+            assert system.has_cohesion
+        if name == "rolling_ai2011":
+            assert system.rolling_stiffness == "ai2011"
+    with pytest.raises(ConfigError, match=r"mechanism 'gravity_waves' is not in the registry"):
+        apply_extension(model, "gravity_waves", {}, context)
+    with pytest.raises(ConfigError, match=r"unknown \['density_coke'\], missing \['density_pellet', 'density_sinter'\]"):
+        apply_extension(model, "density_per_material", {"density_coke": 1.0}, context)
+
+
+def test_a_new_mechanism_is_one_file(tmp_path, monkeypatch):
+    import bo.mechanisms as package
+
+    (tmp_path / "wet_fines.py").write_text(
+        "from bo.mechanisms import Mechanism\n"
+        "MECHANISM = Mechanism(name='wet_fines', description='moist fines', parameters=lambda c: {'coh_pp': (0, 1)})\n")
+    monkeypatch.setattr(package, "__path__", [*package.__path__, str(tmp_path)])
+    assert "wet_fines" in registry()
+    (tmp_path / "broken.py").write_text("X = 1\n")
+    with pytest.raises(ConfigError, match=r"broken.py defines no MECHANISM"):
+        registry()
+
+
+def test_extension_command_uses_the_config_group():
+    assert extension_command("density_per_material", {"density_sinter": 3100.0, "density_pellet": 3500.0}) == \
+        "extension=density_per_material extension.values.density_sinter=3100 extension.values.density_pellet=3500"
+    assert extension_command("wet_fines", {"coh_pp": 2.0}) == "extension.name=wet_fines +extension.values.coh_pp=2"
+    assert extension_command(None, {}) is None
+
+
+# -- the pipeline on a known answer ----------------------------------------------------------
+
+def _lab(densities: dict) -> MeasuredData:
+    """Noise-free known-model 'lab' at the true friction, with the given densities."""
+    conditions = []
+    for name in ("50-50", "75-25", "25-75"):
+        k = km.known_kpis({**km.TRUE, **densities}, 0, name, noise=False)
+        kpis = {"angle_of_repose_deg": KPIValue(k["angle_of_repose_deg"], 0.3, "deg"),
+                "shear_angle_deg": KPIValue(k["shear_angle_deg"], 0.5, "deg"),
+                "mass_flow_rate_kg_s": KPIValue(k["mass_flow_rate_full_kg_s"], 0.1, "kg/s"),
+                "mass_lower_box_kg": KPIValue(k["mass_lower_box_full_kg"], 0.15, "kg")}
+        conditions.append(Condition(name=name, pellet_mass_fraction=km.SHARE[name], layering=("pellet", "sinter") * 2,
+                                    fill_mass_kg=40.0, kpis=kpis))
+    return MeasuredData(source="known-answer lab", conditions=tuple(conditions))
+
+
+def _known_model():
+    plain = _plain([])
+    model, _ = calibration_model_from({**plain, "measured": None}, load_measured())
+    return model
+
+
+def _discover(tmp_path, lab, **changes):
+    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1),
+                                 candidates=("density_per_material", "free_interaction", "cohesion", "clump_shape"),
+                                 **changes)
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    executor_for = lambda model: InProcessExecutor(functools.partial(km.known_batch), batch_size=12)  # noqa: E731
+    calibrated = {**_known_model().fixed, **km.TRUE}
+    return run_discovery(store, executor_for, _known_model(), calibrated, lab, settings, echo=lambda s: None)
+
+
+def test_discrepancy_z_chi2_and_p_value(tmp_path):
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    result = _discover(tmp_path, lab)
+    d = result.discrepancy
+    assert d.dof == 12 and d.significant
+    calibrated = {**_known_model().fixed, **km.TRUE}
+    for cell in d.cells:  # recompute every cell from the model's replicates
+        reps = [km.known_kpis(calibrated, s, cell.condition)[cell.kpi] for s in (0, 1, 2)]
+        se = np.std(reps, ddof=1) / math.sqrt(3)
+        m = lab.condition(cell.condition).kpis[cell.kpi.replace("_full_", "_")]
+        assert cell.dem_mean == pytest.approx(np.mean(reps))
+        assert cell.z == pytest.approx((np.mean(reps) - m.mean) / math.sqrt(se ** 2 + (m.ci95 / 1.96) ** 2))
+    assert d.chi2 == pytest.approx(sum(c.z ** 2 for c in d.cells))
+    assert d.p_value == pytest.approx(stats.chi2.sf(d.chi2, 12))
+    # the mass-like KPIs of sinter-rich conditions carry the discrepancy, the angles do not
+    z = {(c.condition, c.kpi): c.z for c in d.cells}
+    assert abs(z[("25-75", "mass_flow_rate_full_kg_s")]) > abs(z[("75-25", "mass_flow_rate_full_kg_s")]) > 2
+    assert abs(z[("25-75", "angle_of_repose_deg")]) < 2
+
+
+def test_hidden_density_effect_is_named_and_gains_on_held_out_conditions(tmp_path):
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    result = _discover(tmp_path, lab)
+    assert result.cause == "density_per_material", result.explanation
+    scores = {h.name: h.score for h in result.hypotheses}
+    assert scores["density_per_material"] < scores[PARAMETERS] - 4
+    assert all(scores["density_per_material"] < v for k, v in scores.items() if k != "density_per_material")
+    assert result.extension["density_sinter"] == pytest.approx(km.NOMINAL_DENSITY["sinter"] * 1.25, rel=0.03)
+    assert result.extension["density_pellet"] == pytest.approx(km.NOMINAL_DENSITY["pellet"], rel=0.03)
+    flow = [g for g in result.gain if g.kpi == "mass_flow_rate_full_kg_s"]
+    assert len(flow) == 3
+    for g in flow:
+        assert abs(g.after_error_pct) < 0.3 * abs(g.before_error_pct), g
+
+
+def test_no_hidden_effect_invents_no_cause(tmp_path):
+    result = _discover(tmp_path, _lab({}))
+    assert not result.discrepancy.significant
+    assert result.cause is None and result.hypotheses == () and result.gain == ()
+    scored = _discover(tmp_path / "scored", _lab({}), always_score=True)
+    assert scored.cause is None, scored.explanation  # fitted anyway: nothing beats the parameters + noise
+    assert {h.name for h in scored.hypotheses} == {PARAMETERS, "density_per_material", "free_interaction",
+                                                   "cohesion", "clump_shape"}
+
+
+# -- config ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("override, message", [
+    ("discovery.candidates=[telepathy]", r"discovery: candidates = \['telepathy'\] is not allowed"),
+    ("discovery.replicates=1", r"discovery: replicates = 1 is not allowed; expected an int >= 2"),
+    ("discovery.kpis=[flow]", r"discovery: kpis = \['flow'\] is not allowed"),
+    ("discovery.alpha=2", r"discovery: alpha = 2.0 is not allowed; expected a probability in \(0, 1\)"),
+    ("calibration=/nonexistent/calibration.json", r"calibration = '/nonexistent/calibration.json': cannot read it"),
+    ("data=/nonexistent/lab.json", r"/nonexistent/lab.json: cannot read measured-data file"),
+])
+def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message):
+    store = tmp_path / "never.sqlite"
+    with pytest.raises(ConfigError, match=message):
+        discover(_plain([override, f"store={store}"]), tmp_path, echo=lambda s: None)
+    assert not store.exists()
