@@ -21,19 +21,20 @@ returns an executor (``bo.executor``) that evaluates a ``bo.dem.DrawDownModel``.
    hypercube of ``max(min_points, points_per_parameter x d)`` points, each run on every condition
    with ``fit_seeds``, and one GP per (condition, KPI) (``bo.surrogate``, per-output strategy).
    Leave-one-condition-out: for each condition c, the parameters that minimise the chi^2 of the
-   other conditions (GP means, GA of ``bo.ga``) predict c; the held-out chi^2 of c uses the GP's
-   predictive variance, the DEM replicate variance and the measurement's. A hypothesis with no
-   free parameter (``parameters`` with ``refit`` empty) is the calibrated model itself, scored on
-   the discrepancy runs. Score = sum of held-out chi^2 + ``penalty`` x (parameters it adds beyond
-   the ``parameters`` hypothesis) (an AIC-like penalty).
+   other conditions (GP means, GA of ``bo.ga``) are run with the DEM on c (``settings.seeds``); the
+   held-out chi^2 of c is that of these runs against the measurement (as in step 1). The surrogate
+   only fits; it never scores (a poor GP's wide predictive variance would flatter its hypothesis;
+   its prediction is reported as ``predicted_chi2``). A hypothesis with no free parameter
+   (``parameters`` with ``refit`` empty) is the calibrated model itself, scored on the
+   discrepancy runs. Score = sum of held-out chi^2 + ``penalty`` x (parameters it adds beyond the
+   ``parameters`` hypothesis) (an AIC-like penalty).
 3. Cause: the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
    than ``margin``; else none: no candidate explains the discrepancy better than the parameters
    and noise. If the discrepancy is not significant, no hypothesis is fitted (unless
    ``always_score``) and the cause is none.
-4. Gain (stage ``discovery-gain``): the DEM, with the chosen mechanism at the parameters fitted
-   without each condition, runs on that held-out condition (``settings.seeds``); error per KPI and
-   condition before (step 1) and after, each with its uncertainty. The mechanism's values fitted
-   on all conditions are the extension (``DiscoveryResult.extension``).
+4. Gain: the chosen mechanism's held-out runs of step 2 next to the calibrated model's runs of
+   step 1: error per KPI and condition before and after, each with its uncertainty. The
+   mechanism's values fitted on all conditions are the extension (``DiscoveryResult.extension``).
 
 Everything returned is plain data; ``bo.discovery_report`` writes ``discovery.json`` and figures.
 """
@@ -71,7 +72,7 @@ PARAMETERS = "parameters"
 def discovery_stages(names: Sequence[str] | None = None) -> tuple[str, ...]:
     """Store stages discovery uses (for ``CampaignStore(extra_stages=...)``)."""
     names = sorted(registry()) if names is None else list(names)
-    return ("discrepancy", "discovery-gain", f"discovery-{PARAMETERS}", *(f"discovery-{n}" for n in names))
+    return ("discrepancy", f"discovery-{PARAMETERS}", *(f"discovery-{n}" for n in names))
 
 
 @dataclass(frozen=True)
@@ -170,9 +171,12 @@ class HypothesisScore:
         name: ``"parameters"`` or a registry name. description: the mechanism in words.
         parameters: free parameter names; bounds: name -> (low, high); added: how many are new
             physics (beyond the refit ones).
-        held_out_chi2: condition -> chi^2 of that condition predicted from the others.
+        held_out_chi2: condition -> chi^2 of the DEM runs on that condition with the parameters
+            fitted without it (``held_out_cells``: those runs' cells).
+        predicted_chi2: condition -> the same chi^2 as the surrogate predicted it (for reference;
+            a poor surrogate's wide predictive variance would flatter it, so it does not score).
         fitted_without: condition -> parameters fitted without that condition.
-        fitted_all: parameters fitted on every condition; in_sample_chi2: their chi^2.
+        fitted_all: parameters fitted on every condition; in_sample_chi2: their surrogate chi^2.
         score: sum of held-out chi^2 + penalty x added. points: design points run.
         skipped: why the hypothesis was not fitted (unavailable for this model), else None.
     """
@@ -189,6 +193,8 @@ class HypothesisScore:
     score: float
     points: int
     skipped: str | None = None
+    held_out_cells: tuple[Cell, ...] = ()
+    predicted_chi2: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -318,8 +324,12 @@ def _refit_bounds(calibrated: Mapping[str, float], names: Sequence[str], fractio
     return out
 
 
-def _chi2_terms(mean: np.ndarray, var: np.ndarray, lab_mean: np.ndarray, lab_var: np.ndarray) -> np.ndarray:
-    return (mean - lab_mean) ** 2 / (var + lab_var)
+def _expected_chi2_terms(mean: np.ndarray, gp_var: np.ndarray, dem_var: np.ndarray, lab_mean: np.ndarray,
+                         lab_var: np.ndarray) -> np.ndarray:
+    """chi^2 terms expected under the GP posterior, E[(f - y)^2] / (u^2 + s^2) with
+    E[(f - y)^2] = (mu - y)^2 + sigma_GP^2: the GP's uncertainty adds to the misfit (putting it in
+    the denominator instead would reward the least known corners of the parameter box)."""
+    return ((mean - lab_mean) ** 2 + gp_var) / (dem_var + lab_var)
 
 
 def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel, context: ModelContext,
@@ -337,7 +347,8 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
     if not names:  # the calibrated model as is: held-out chi^2 = the discrepancy's
         held = {c: baseline.chi2_of(c) for c in conditions}
         return HypothesisScore(name, description, (), {}, 0, held, {c: {} for c in conditions}, {},
-                               float(sum(held.values())), float(sum(held.values())), 0)
+                               float(sum(held.values())), float(sum(held.values())), 0,
+                               held_out_cells=baseline.cells, predicted_chi2=dict(held))
     b = np.array([[bounds[n][0] for n in names], [bounds[n][1] for n in names]], dtype=np.float64)
     n_points = max(settings.min_points, settings.points_per_parameter * len(names))
     X = latin_hypercube(b, n_points, seed=settings.seed)
@@ -368,11 +379,12 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
     def fit(mask: np.ndarray) -> dict[str, float]:
         def chi2(x: np.ndarray) -> np.ndarray:
             mean, var = surrogate.predict_outputs(x)
-            return _chi2_terms(mean[:, mask], var[:, mask] + dem_var[mask], lab_mean[mask], lab_var[mask]).sum(-1)
+            return _expected_chi2_terms(mean[:, mask], var[:, mask], dem_var[mask], lab_mean[mask],
+                                        lab_var[mask]).sum(-1)
         res = minimise_surrogate(chi2, b, settings.ga, seed=settings.seed)
         return dict(zip(names, map(float, res.x)))
 
-    held, without = {}, {}
+    predicted, without = {}, {}
     for c in conditions:
         train = cond_of != c
         if not train.any() or not (~train).any():
@@ -380,16 +392,29 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
         x = fit(train)
         mean, var = surrogate.predict_outputs(np.array([[x[n] for n in names]]))
         test = ~train
-        held[c] = float(_chi2_terms(mean[0, test], var[0, test] + dem_var[test], lab_mean[test], lab_var[test]).sum())
+        predicted[c] = float(_expected_chi2_terms(mean[0, test], var[0, test], dem_var[test], lab_mean[test],
+                                                  lab_var[test]).sum())
         without[c] = x
     every = fit(np.ones(len(cells), dtype=bool))
     mean, var = surrogate.predict_outputs(np.array([[every[n] for n in names]]))
-    in_sample = float(_chi2_terms(mean[0], var[0] + dem_var, lab_mean, lab_var).sum())
+    in_sample = float(_expected_chi2_terms(mean[0], var[0], dem_var, lab_mean, lab_var).sum())
+    # the held-out predictions checked with the DEM: each condition run with the parameters
+    # fitted without it
+    held_cells: list[Cell] = []
+    with executor_for(hyp_model) as executor:
+        for c, x in without.items():
+            params = {**calibrated, **x}
+            runs = _run(store, executor, f"discovery-{name}", f"held-out/{c}/" + _key(sorted(params.items())),
+                        [params], settings.seeds, [c], kpis)[0]
+            held_cells += _cells(runs, [c], kpis, lab)
+    held = {c: float(sum(x.z ** 2 for x in held_cells if x.condition == c and math.isfinite(x.z))) for c in without}
     score = float(sum(held.values()) + settings.penalty * len(extra))
-    echo(f"  {name}: {len(names)} parameters, {n_points} points; held-out chi^2 "
-         + ", ".join(f"{c} {v:.1f}" for c, v in held.items()) + f"; score {score:.1f}")
+    echo(f"  {name}: {len(names)} parameters, {n_points} points; held-out chi^2 (DEM) "
+         + ", ".join(f"{c} {v:.1f}" for c, v in held.items()) + " (surrogate "
+         + ", ".join(f"{v:.1f}" for v in predicted.values()) + f"); score {score:.1f}")
     return HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names}, len(extra),
-                           held, without, every, in_sample, score, n_points)
+                           held, without, every, in_sample, score, n_points, held_out_cells=tuple(held_cells),
+                           predicted_chi2=predicted)
 
 
 def model_context(model: DrawDownModel, calibrated: Mapping[str, float]) -> ModelContext:
@@ -442,7 +467,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
                           f"{sorted(mechanisms)}")
     conditions = list(measured.names)
     with executor_for(model) as executor:
-        discrepancy, base_reps = measure_discrepancy(store, executor, calibrated, measured, settings)
+        discrepancy, _ = measure_discrepancy(store, executor, calibrated, measured, settings)
     echo(f"discrepancy: chi^2 {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} "
          f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise)")
     hypotheses: list[HypothesisScore] = []
@@ -484,7 +509,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
     if cause is not None:
         chosen = next(h for h in hypotheses if h.name == cause)
         extension = {n: v for n, v in chosen.fitted_all.items() if n in chosen.parameters}
-        gain = _gain(store, executor_for, model, mechanisms[cause], chosen, calibrated, measured, settings, base_reps)
+        gain = _gain(chosen, discrepancy)
     evaluations = {}
     for stage in discovery_stages(names):
         c = store.counts(stage)
@@ -494,27 +519,14 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
     return DiscoveryResult(discrepancy, tuple(hypotheses), cause, explanation, tuple(gain), extension, evaluations)
 
 
-def _gain(store, executor_for, model, mechanism: Mechanism, chosen: HypothesisScore, calibrated, measured,
-          settings: DiscoverySettings, base_reps: np.ndarray) -> list[GainRow]:
-    """Step 4: DEM runs of the mechanism fitted without each condition, on that condition."""
-    conditions = list(measured.names)
-    kpis = list(settings.kpis)
-    lab = _lab(measured, kpis)
+def _gain(chosen: HypothesisScore, baseline: Discrepancy) -> list[GainRow]:
+    """Step 4: every held-out cell of the chosen mechanism next to the calibrated model's cell."""
+    before = {(c.condition, c.kpi): c for c in baseline.cells}
     rows = []
-    with executor_for(mechanism.apply(model)) as executor:
-        for i, c in enumerate(conditions):
-            if c not in chosen.fitted_without:
-                continue
-            params = {**calibrated, **chosen.fitted_without[c]}
-            after = _run(store, executor, "discovery-gain", f"{chosen.name}/{c}/" + _key(sorted(params.items())),
-                         [params], settings.seeds, [c], kpis)[0, 0]
-            for j, k in enumerate(kpis):
-                if (c, k) not in lab:
-                    continue
-                m, u = lab[(c, k)]
-                b_mean, b_se, _ = _mean_se(base_reps[i, :, j])
-                a_mean, a_se, _ = _mean_se(after[:, j])
-                z = lambda mean, se: (mean - m) / math.sqrt((se if math.isfinite(se) else 0) ** 2 + u ** 2)  # noqa: E731
-                rows.append(GainRow(c, k, m, u, b_mean, b_se, a_mean, a_se, (b_mean - m) / m * 100,
-                                    (a_mean - m) / m * 100, z(b_mean, b_se), z(a_mean, a_se)))
+    for a in chosen.held_out_cells:
+        b = before.get((a.condition, a.kpi))
+        if b is None:
+            continue
+        rows.append(GainRow(a.condition, a.kpi, a.measured_mean, a.measured_u, b.dem_mean, b.dem_se, a.dem_mean,
+                            a.dem_se, b.relative_error_pct, a.relative_error_pct, b.z, a.z))
     return rows

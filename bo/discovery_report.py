@@ -8,7 +8,7 @@ Contract
   ``explanation``, ``discrepancy`` (chi^2, degrees of freedom, p-value, significant, and every
   cell: condition, KPI, DEM mean and standard error, measured mean and standard uncertainty, z,
   relative error), ``candidates`` (every hypothesis: name, description, parameters, bounds,
-  parameters added, held-out chi^2 per condition, score, in-sample chi^2, fitted values, or
+  parameters added, held-out chi^2 per condition of the DEM runs and as the surrogate predicted it, score, in-sample chi^2, fitted values, or
   why it was skipped), ``errors`` (per held-out condition and KPI: measured, before and after
   with standard errors, relative errors and z), ``extension`` (the chosen mechanism's values
   fitted on every condition) and ``dem_evaluations`` (per stage and total);
@@ -44,7 +44,8 @@ def discovery_payload(result: DiscoveryResult) -> dict:
                         "cells": [c.to_dict() for c in d.cells]},
         "candidates": [{"name": h.name, "description": h.description, "parameters": list(h.parameters),
                         "bounds": {k: list(v) for k, v in h.bounds.items()}, "added_parameters": h.added,
-                        "held_out_chi2": dict(h.held_out_chi2), "score": h.score, "in_sample_chi2": h.in_sample_chi2,
+                        "held_out_chi2": dict(h.held_out_chi2), "predicted_held_out_chi2": dict(h.predicted_chi2),
+                        "score": h.score, "in_sample_chi2": h.in_sample_chi2,
                         "fitted_all": dict(h.fitted_all), "fitted_without": {c: dict(v) for c, v in
                                                                              h.fitted_without.items()},
                         "design_points": h.points, "skipped": h.skipped} for h in result.hypotheses],

@@ -9,10 +9,14 @@
   effect must give no cause.
 - Slow: the same on real DEM runs of the small draw down box: data made with the DEM itself with
   sinter 30 % heavier; the pipeline, given only the data and the baseline model, names
-  density_per_material and reduces the held-out error.
+  density_per_material among it and the clump shape, and cuts the held-out chi^2. (Against free
+  pellet-sinter interaction parameters the small box's 3 conditions x 4 KPIs do not decide: with
+  15 design points that candidate scored 21 against density's 25, both far below the calibrated
+  model's 59; the registry's other candidates are left out of this test for its run time.)
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -188,3 +192,79 @@ def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message
     with pytest.raises(ConfigError, match=message):
         discover(_plain([override, f"store={store}"]), tmp_path, echo=lambda s: None)
     assert not store.exists()
+
+
+# -- on real DEM runs ------------------------------------------------------------------------
+
+# In the small box a heavier sinter barely moves the flow rate (6.42 vs 6.49 kg/s at +25 %); it shows
+# as fewer sinter particles in the mass-filled box: a smaller heap and a lower angle of repose.
+DEM_KPIS = ("mass_flow_rate_full_kg_s", "mass_lower_box_full_kg", "angle_of_repose_deg", "max_heap_height_m")
+DEM_CONDITIONS = ("50-50", "75-25", "25-75")
+
+
+def _dem_model():
+    """The small draw down box of the CPU profile (0.35 s fill, 2.0 s discharge: at 1.5 s the 75-25
+    flow rate was unmeasured in 2 of 4 seeds, still trickling), reference contact parameters, the
+    paper's conditions: ~3 s of DEM per member here."""
+    plain = _plain(["profile=cpu"])
+    measured = load_measured("mini_box_twin.json")
+    model, _ = calibration_model_from({**plain, "measured": "mini_box_twin.json"}, measured)
+    return model, measured
+
+
+def _dem_lab(model, hidden: dict, seeds) -> MeasuredData:
+    """'Measured' data made with the DEM (the hidden parameters switched on): mean and the
+    t-based 95 % CI half-width over the seeds, per condition."""
+    template = load_measured("mini_box_twin.json")
+    conditions = []
+    for name in DEM_CONDITIONS:
+        result = model.test_for(name, [hidden]).run(replicates=len(seeds), seeds=list(seeds))
+        c = template.condition(name)
+        kpis = {}
+        for k in DEM_KPIS:
+            v = result.kpi_table(k)
+            v = v[np.isfinite(v)]
+            assert v.size >= 3, (name, k)
+            lab_name = k.replace("_full_", "_")
+            half = float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / math.sqrt(v.size))
+            kpis[lab_name] = KPIValue(float(v.mean()), half, c.kpis[lab_name].unit)
+        conditions.append(Condition(name=name, pellet_mass_fraction=c.pellet_mass_fraction, layering=c.layering,
+                                    fill_mass_kg=c.fill_mass_kg, kpis=kpis))
+    return MeasuredData(source="DEM-made test data", conditions=tuple(conditions))
+
+
+def _dem_discover(tmp_path, model, lab):
+    from bo.dem import evaluate_batch
+
+    restricted = dataclasses.replace(model, conditions={c: model.conditions[c] for c in DEM_CONDITIONS})
+    settings = DiscoverySettings(kpis=DEM_KPIS, seeds=(0, 1, 2, 3), fit_seeds=(0,),
+                                 candidates=("density_per_material", "clump_shape"), points_per_parameter=5,
+                                 min_points=6)
+    store = CampaignStore(tmp_path / "d.sqlite", "dem", extra_stages=discovery_stages())
+    executor_for = lambda m: InProcessExecutor(functools.partial(evaluate_batch, m), batch_size=18)  # noqa: E731
+    return run_discovery(store, executor_for, restricted, dict(model.fixed), lab, settings, echo=print)
+
+
+@pytest.mark.slow
+def test_dem_hidden_heavier_sinter_is_named_and_gains_on_held_out_conditions(tmp_path):
+    model, _ = _dem_model()
+    hidden = {"density_sinter": 1.3 * model.conditions["50-50"].materials[1].density}
+    lab = _dem_lab(model, hidden, seeds=range(500, 508))
+    result = _dem_discover(tmp_path, model, lab)
+    assert result.discrepancy.significant
+    assert result.cause == "density_per_material", result.explanation
+    # the direction is identified; the magnitude from 10 noisy single-replicate points only roughly
+    # (x 1.11 fitted on every condition here, against the hidden x 1.3)
+    nominal = model.conditions["50-50"].materials[1].density
+    assert result.extension["density_sinter"] > 1.05 * nominal, result.extension
+    z2 = lambda rows, which: sum(getattr(g, which) ** 2 for g in rows)  # noqa: E731
+    # held-out chi^2 of the DEM with the extension against the calibrated model's (0.36 measured here)
+    assert z2(result.gain, "after_z") < 0.7 * z2(result.gain, "before_z"), result.gain
+
+
+@pytest.mark.slow
+def test_dem_without_hidden_effect_names_no_cause(tmp_path):
+    model, _ = _dem_model()
+    lab = _dem_lab(model, {}, seeds=range(600, 608))
+    result = _dem_discover(tmp_path, model, lab)
+    assert result.cause is None, result.explanation
