@@ -45,10 +45,10 @@ def discovery_settings_from(plain: Mapping[str, Any]):
     candidates = cfg.get("candidates")
     if candidates is not None:
         known = registry()
-        if isinstance(candidates, str) or not isinstance(candidates, (list, tuple)) or not candidates \
+        if isinstance(candidates, str) or not isinstance(candidates, (list, tuple)) \
                 or [c for c in candidates if c not in known]:
-            raise out_of_range("candidates", candidates, f"a list of mechanisms of bo/mechanisms/ {sorted(known)} "
-                               "or null (all)", where)
+            raise out_of_range("candidates", candidates, f"a list of mechanisms of bo/mechanisms/ {sorted(known)}, "
+                               "[] (the discrepancy only) or null (all)", where)
         candidates = tuple(candidates)
     refit = cfg.get("refit") or []
     if isinstance(refit, str) or not isinstance(refit, (list, tuple)):
@@ -66,12 +66,22 @@ def discovery_settings_from(plain: Mapping[str, Any]):
         raise ConfigError(f"config {where}: {exc}") from None
 
 
+PAPER_DATA = "hadi2025_pellet_sinter.json"
+
+
 def calibrated_from(plain: Mapping[str, Any], fixed: Mapping[str, float]) -> tuple[dict[str, float], str]:
     """The calibrated parameters: ``calibration.json``'s ``calibrated_parameters`` over the
-    config's contact parameters, or the contact parameters alone."""
+    config's contact parameters, the paper's own calibrated set (``calibration=paper``: Table 8,
+    the mode it selected, from the shipped data file), or the contact parameters alone."""
     path = plain.get("calibration")
     if path is None:
         return dict(fixed), "the config's contact parameters (no calibration= given)"
+    if path == "paper":
+        from torchdem.measured import shipped_file
+        table = json.loads(shipped_file(PAPER_DATA).read_text())["dem_reported"]["ga_calibration"]
+        values = table[table["selected"]]
+        return ({**fixed, **{k: float(v) for k, v in values.items()}},
+                f"the paper's calibrated set ({table['table']}, {table['selected']} GA, in {PAPER_DATA})")
     try:
         doc = json.loads(Path(path).read_text())
     except OSError as exc:

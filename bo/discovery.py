@@ -83,7 +83,8 @@ class DiscoverySettings:
         kpis: DEM KPI names compared (each needs a measurement in some condition).
         seeds: replicates of the discrepancy and gain runs. fit_seeds: replicates of every
             hypothesis design point.
-        candidates: registry names tried; None: every mechanism available for the model.
+        candidates: registry names tried; None: every mechanism available for the model; ():
+            the discrepancy only.
         refit: calibrated parameters free in every hypothesis; refit_fraction: their range,
             ``value x (1 +- fraction)`` (friction >= 0, restitution in (0, 1]).
         points_per_parameter, min_points: design size per hypothesis.
@@ -472,7 +473,10 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
          f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise)")
     hypotheses: list[HypothesisScore] = []
     cause, explanation = None, ""
-    if not discrepancy.significant and not settings.always_score:
+    if not names:
+        explanation = (f"discovery.candidates = []: only the discrepancy was measured (chi^2 = {discrepancy.chi2:.1f} "
+                       f"on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g}); no candidate was scored.")
+    elif not discrepancy.significant and not settings.always_score:
         explanation = (f"The model agrees with the measurements within their uncertainty and the DEM's stochasticity "
                        f"(chi^2 = {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} >= "
                        f"{settings.alpha}): there is nothing to explain, so no candidate was fitted.")

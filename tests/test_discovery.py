@@ -31,7 +31,7 @@ from hydra import compose, initialize_config_dir
 from scipy import stats
 
 from bo.cli_calibrate import calibration_model_from
-from bo.cli_discover import discover, discovery_settings_from, extension_command
+from bo.cli_discover import calibrated_from, discover, discovery_settings_from, extension_command
 from bo.cli_screen import plain_config
 from bo.discovery import PARAMETERS, DiscoverySettings, discovery_stages, model_context, run_discovery
 from bo.executor import InProcessExecutor
@@ -123,9 +123,8 @@ def _known_model():
 
 
 def _discover(tmp_path, lab, **changes):
-    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1),
-                                 candidates=("density_per_material", "free_interaction", "cohesion", "clump_shape"),
-                                 **changes)
+    changes = {"candidates": ("density_per_material", "free_interaction", "cohesion", "clump_shape"), **changes}
+    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1), **changes)
     store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
     executor_for = lambda model: InProcessExecutor(functools.partial(km.known_batch), batch_size=12)  # noqa: E731
     calibrated = {**_known_model().fixed, **km.TRUE}
@@ -167,6 +166,15 @@ def test_hidden_density_effect_is_named_and_gains_on_held_out_conditions(tmp_pat
         assert abs(g.after_error_pct) < 0.3 * abs(g.before_error_pct), g
 
 
+def test_no_candidates_measures_the_discrepancy_only(tmp_path):
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    result = _discover(tmp_path, lab, candidates=())
+    assert result.discrepancy.significant
+    assert result.cause is None and result.hypotheses == () and result.gain == ()
+    assert "only the discrepancy" in result.explanation
+    assert result.evaluations == {"discrepancy": 9, "total": 9}  # 3 conditions x 3 replicates, nothing else
+
+
 def test_no_hidden_effect_invents_no_cause(tmp_path):
     result = _discover(tmp_path, _lab({}))
     assert not result.discrepancy.significant
@@ -178,6 +186,15 @@ def test_no_hidden_effect_invents_no_cause(tmp_path):
 
 
 # -- config ----------------------------------------------------------------------------------
+
+def test_calibration_paper_is_the_papers_table_8_restricted_set_over_the_config():
+    fixed = {"mu_s_pp": 0.49, "mu_r_ss": 0.08, "e_ss": 0.35}
+    values, source = calibrated_from({"calibration": "paper"}, fixed)
+    # Table 8, restricted GA (the mode the paper selected); parameters it did not calibrate stay
+    assert values == {"mu_s_pp": 0.73, "mu_r_pp": 0.12, "e_pp": 0.76, "mu_s_ss": 0.9, "mu_s_pg": 0.9,
+                      "mu_r_pg": 0.16, "mu_s_sg": 0.83, "mu_r_ss": 0.08, "e_ss": 0.35}
+    assert "Table 8" in source and "restricted" in source
+
 
 @pytest.mark.parametrize("override, message", [
     ("discovery.candidates=[telepathy]", r"discovery: candidates = \['telepathy'\] is not allowed"),
