@@ -120,7 +120,8 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                      f"{c.dem_se:.2g} ({c.n}) | {c.relative_error_pct:+.1f} % | {c.z:+.2f}{' *' if abs(c.z) > 2 else ''} |")
     lines += ["", "![discrepancy](discrepancy.png)", "", "## 2. Candidate causes (leave-one-condition-out)", ""]
     if not result.hypotheses:
-        lines.append("None fitted (no significant discrepancy).")
+        lines.append("None fitted: " + ("no candidate was asked for (discovery.candidates = [])."
+                                        if d.significant else "no significant discrepancy."))
     else:
         conds = list(dict.fromkeys(c for h in result.hypotheses for c in h.held_out_chi2))
         lines += ["| hypothesis | added parameters | " + " | ".join(f"held-out chi^2 {c}" for c in conds)

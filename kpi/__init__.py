@@ -15,7 +15,7 @@ SI units inside, degrees only for the reported angles. Every bad input raises
 from kpi.angles import SurfaceAngle, SurfaceConfig, angle_of_repose, shear_angle
 from kpi.errors import KPIInputError
 from kpi.io import CropBox, read_image, read_loadcell_csv, write_loadcell_csv
-from kpi.loadcell import Discharge, DischargeConfig, LoadCellSignal, measure_discharge
+from kpi.loadcell import Discharge, DischargeConfig, LoadCellSignal, fit_mass_flow_rate, measure_discharge
 from kpi.segregation import Segregation, SegmentationConfig, measure_segregation
 
 __all__ = [
@@ -29,6 +29,7 @@ __all__ = [
     "SurfaceAngle",
     "SurfaceConfig",
     "angle_of_repose",
+    "fit_mass_flow_rate",
     "measure_discharge",
     "measure_segregation",
     "read_image",

@@ -8,6 +8,9 @@ the gate opens (0.5 s to 2.0 s by default, the paper's window); the **mass in th
 is the initial mass minus the final, steady upper-box mass (mean of the smoothed mass over the
 last ``final_window_s`` of the record); the **discharge end** is the first time after the fit
 window starts at which the smoothed mass comes within ``end_tolerance_kg`` of that final mass.
+:func:`measure_discharge` measures all three and refuses a record that ends before the
+discharge has; :func:`fit_mass_flow_rate` gives the flow rate alone, which needs only the fit
+window (a simulation stopped while the last grains trickle out still has a flow rate).
 
 Units: time in s, mass in kg, mass flow rate in kg/s (positive while the box empties).
 Time is the record's own axis; ``gate_open_s`` says where on it the gate opened (0 s by
@@ -178,6 +181,40 @@ def smooth_mass(signal: LoadCellSignal, filter_sigma_s: float) -> np.ndarray:
     return gaussian_filter1d(signal.mass_kg, sigma=filter_sigma_s / median_step, mode="nearest")
 
 
+def fit_mass_flow_rate(signal: LoadCellSignal, config: DischargeConfig = DischargeConfig()
+                       ) -> tuple[float, float, np.ndarray]:
+    """Mass flow rate of a draw-down record: minus the slope of the straight line fitted to the
+    Gaussian-filtered upper-box mass over the fit window (section 2.3.2), whether or not the
+    record goes on until the discharge has ended.
+
+    Returns:
+        (mass flow rate kg/s, intercept of the fitted line kg, smoothed mass ``[T]`` kg).
+    Raises:
+        KPIInputError: the record does not cover the fit window or has too few samples in it.
+    """
+    source = signal.source
+    time_s = signal.time_s
+    window_start = config.gate_open_s + config.fit_window_s[0]
+    window_end = config.gate_open_s + config.fit_window_s[1]
+    if time_s[0] > window_start or time_s[-1] < window_end:
+        raise bad_input(
+            source,
+            f"record covers t={time_s[0]:g}..{time_s[-1]:g} s but the mass-flow fit window is "
+            f"t={window_start:g}..{window_end:g} s (gate opens at {config.gate_open_s:g} s, "
+            f"window {config.fit_window_s[0]:g}-{config.fit_window_s[1]:g} s after)",
+        )
+    smoothed = smooth_mass(signal, config.filter_sigma_s)
+    in_window = (time_s >= window_start) & (time_s <= window_end)
+    if np.count_nonzero(in_window) < 3:
+        raise bad_input(
+            source,
+            f"only {np.count_nonzero(in_window)} samples in the fit window "
+            f"t={window_start:g}..{window_end:g} s; at least 3 needed",
+        )
+    slope, intercept = np.polyfit(time_s[in_window], smoothed[in_window], deg=1)
+    return -float(slope), float(intercept), smoothed
+
+
 def measure_discharge(
     signal: LoadCellSignal, initial_mass_kg: float, config: DischargeConfig = DischargeConfig()
 ) -> Discharge:
@@ -198,24 +235,7 @@ def measure_discharge(
     time_s = signal.time_s
     window_start = config.gate_open_s + config.fit_window_s[0]
     window_end = config.gate_open_s + config.fit_window_s[1]
-    if time_s[0] > window_start or time_s[-1] < window_end:
-        raise bad_input(
-            source,
-            f"record covers t={time_s[0]:g}..{time_s[-1]:g} s but the mass-flow fit window is "
-            f"t={window_start:g}..{window_end:g} s (gate opens at {config.gate_open_s:g} s, "
-            f"window {config.fit_window_s[0]:g}-{config.fit_window_s[1]:g} s after)",
-        )
-    smoothed = smooth_mass(signal, config.filter_sigma_s)
-
-    in_window = (time_s >= window_start) & (time_s <= window_end)
-    if np.count_nonzero(in_window) < 3:
-        raise bad_input(
-            source,
-            f"only {np.count_nonzero(in_window)} samples in the fit window "
-            f"t={window_start:g}..{window_end:g} s; at least 3 needed",
-        )
-    slope, intercept = np.polyfit(time_s[in_window], smoothed[in_window], deg=1)
-    mass_flow_rate = -float(slope)
+    mass_flow_rate, intercept, smoothed = fit_mass_flow_rate(signal, config)
 
     tail_start = time_s[-1] - config.final_window_s
     if tail_start < window_end:

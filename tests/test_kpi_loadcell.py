@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from kpi.errors import KPIInputError
-from kpi.loadcell import DischargeConfig, LoadCellSignal, measure_discharge, smooth_mass
+from kpi.loadcell import DischargeConfig, LoadCellSignal, fit_mass_flow_rate, measure_discharge, smooth_mass
 
 FLOW_RATE_KG_S = 10.29
 INITIAL_MASS_KG = 40.0
@@ -109,6 +109,17 @@ def test_record_ending_during_discharge():
     time_s, mass_kg, _ = discharge_record(2, t_end=3.2)
     with pytest.raises(KPIInputError, match=r"^cut\.csv: upper-box mass is still falling in the last 0\.5 s"):
         measure_discharge(LoadCellSignal(time_s, mass_kg, "cut.csv"), INITIAL_MASS_KG)
+
+
+def test_flow_rate_alone_needs_only_the_fit_window():
+    # cut while still discharging: no lower-box mass, but the same flow rate as the whole record
+    whole = measure_discharge(LoadCellSignal(*discharge_record(2)[:2], "whole.csv"), INITIAL_MASS_KG)
+    rate, intercept, smoothed = fit_mass_flow_rate(LoadCellSignal(*discharge_record(2, t_end=3.2)[:2], "cut.csv"))
+    assert rate == pytest.approx(whole.mass_flow_rate_kg_s, rel=1e-3)  # the filter sees the same window
+    assert intercept == pytest.approx(whole.fit_intercept_kg, rel=1e-4)
+    assert smoothed.shape == (int(round((3.2 + 0.5) / SAMPLE_S)) + 1,)
+    with pytest.raises(KPIInputError, match=r"^short\.csv: record covers t=-0\.5\.\.1\.8 s"):
+        fit_mass_flow_rate(LoadCellSignal(*discharge_record(1, t_end=1.8)[:2], "short.csv"))
 
 
 def test_initial_mass_below_final_mass():

@@ -63,15 +63,33 @@ def test_cell_list_matches_oracle_after_particles_move_and_list_is_rebuilt():
         assert touching <= listed
 
 
-def test_history_is_carried_for_persisting_pairs_and_zero_for_new_ones():
+@pytest.mark.parametrize("use_extension", [True, False])
+def test_history_is_carried_for_persisting_pairs_and_zero_for_new_ones(use_extension):
     old_key = torch.tensor([3, 8, 15, 40])
     old = torch.arange(12, dtype=F64).reshape(4, 3)
     new_key = torch.tensor([1, 8, 40, 41])
-    (new,) = carry_history(old_key, [old], new_key)
+    (new,) = carry_history(old_key, [old], new_key, use_extension=use_extension)
     assert torch.equal(new[0], torch.zeros(3, dtype=F64))
     assert torch.equal(new[1], old[1])
     assert torch.equal(new[2], old[3])
     assert torch.equal(new[3], torch.zeros(3, dtype=F64))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_history_kernel_equals_the_torch_path_on_sorted_unsorted_and_empty_lists(dtype):
+    g = torch.Generator().manual_seed(3)
+    old_key = torch.unique(torch.randint(0, 200_000, (30_000,), generator=g))
+    values = [torch.randn(old_key.shape[0], 3, generator=g, dtype=dtype),
+              torch.randn(old_key.shape[0], 3, generator=g, dtype=dtype)]
+    persisting = old_key[torch.randperm(old_key.shape[0], generator=g)[:20_000]]
+    sorted_new = torch.unique(torch.cat([persisting, torch.randint(0, 200_000, (15_000,), generator=g)]))
+    for new_key in (sorted_new, sorted_new[torch.randperm(sorted_new.shape[0], generator=g)],
+                    sorted_new[:0], sorted_new[-1:] + 10**9):
+        fast = carry_history(old_key, values, new_key)
+        slow = carry_history(old_key, values, new_key, use_extension=False)
+        assert all(torch.equal(a, b) and a.dtype == dtype for a, b in zip(fast, slow))
+    empty = carry_history(old_key[:0], [v[:0] for v in values], sorted_new)
+    assert all(e.shape == (sorted_new.shape[0], 3) and not e.any() for e in empty)
 
 
 def test_simulation_never_misses_a_touching_pair():

@@ -43,18 +43,6 @@ def sphere_active(system: System, bodies: Bodies) -> Tensor:
     return bodies.active.reshape(-1)[system.sphere_body_flat] & (system.sphere_radius.reshape(-1) > 0)
 
 
-def _pair_table_index(system: System, member: Tensor, mat_a: Tensor, mat_b: Tensor) -> Tensor:
-    M = system.tables.n_materials
-    return (member * M + mat_a) * M + mat_b
-
-
-def _rolling_inertia(system: System, body: Tensor, radius: Tensor) -> Tensor:
-    """I + m r^2 about the contact point of a sphere of radius r on its body (mean moment)."""
-    m = system.mass.reshape(-1)[body]
-    inertia = system.inertia.reshape(-1, 3).mean(-1)[body]  # mean per body, then gather (cheaper)
-    return inertia + m * radius * radius
-
-
 def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[State, Tensor]:
     """Rebuild both neighbour lists at the current positions and carry contact history.
 
@@ -72,24 +60,19 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[Stat
     radius = system.sphere_radius.reshape(-1)
     body = system.sphere_body_flat
     mat = system.sphere_material.reshape(-1)
-    mass = system.mass.reshape(-1)
+    mass, inertia_r, pair_row = system.sphere_mass, system.sphere_rolling_inertia, system.sphere_pair_row
     t = system.tables
-    flat = lambda x: x.reshape(-1)  # noqa: E731
 
     i, j = neighbors.find_pairs(xs, radius, body, active, Ns, system.grid, system.skin)
     key = i * S + j
     tang, roll = neighbors.carry_history(state.pairs.key, [state.pairs.tangential, state.pairs.rolling], key)
-    bi, bj = body[i], body[j]
-    idx = _pair_table_index(system, i // Ns, mat[i], mat[j])
     ri, rj = radius[i], radius[j]
-    ir_i, ir_j = _rolling_inertia(system, bi, ri), _rolling_inertia(system, bj, rj)
+    mi, mj = mass[i], mass[j]
+    ir_i, ir_j = inertia_r[i], inertia_r[j]
     pairs = PairContacts(
-        i=i, j=j, body_i=bi, body_j=bj, key=key, tangential=tang, rolling=roll,
-        radius_i=ri, radius_j=rj, radius_eff=ri * rj / (ri + rj),
-        mass_eff=mass[bi] * mass[bj] / (mass[bi] + mass[bj]),
-        young_eff=flat(t.young_eff)[idx], shear_eff=flat(t.shear_eff)[idx], beta=flat(t.beta)[idx],
-        mu_s=flat(t.mu_s)[idx], mu_r=flat(t.mu_r)[idx], rolling_damping=flat(t.rolling_damping)[idx],
-        rolling_inertia=ir_i * ir_j / (ir_i + ir_j), cohesion=flat(t.cohesion)[idx],
+        i=i, j=j, body_i=body[i], body_j=body[j], key=key, tangential=tang, rolling=roll,
+        radius_i=ri, radius_j=rj, radius_eff=ri * rj / (ri + rj), mass_eff=mi * mj / (mi + mj),
+        rolling_inertia=ir_i * ir_j / (ir_i + ir_j), **t.gather(pair_row[i] + mat[j]),
     )
 
     W = system.walls.n
@@ -98,14 +81,9 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[Stat
     s, w = neighbors.find_wall_pairs(xs, radius, active, system.walls, shift, wall_active, system.skin)
     wkey = s * max(W, 1) + w
     wt, wr = neighbors.carry_history(state.walls.key, [state.walls.tangential, state.walls.rolling], wkey)
-    bs = body[s]
-    widx = _pair_table_index(system, s // Ns, mat[s], system.walls.material[w])
-    rs = radius[s]
     wall_contacts = WallContacts(
-        sphere=s, body=bs, wall=w, key=wkey, tangential=wt, rolling=wr, radius=rs, mass_eff=mass[bs],
-        young_eff=flat(t.young_eff)[widx], shear_eff=flat(t.shear_eff)[widx], beta=flat(t.beta)[widx],
-        mu_s=flat(t.mu_s)[widx], mu_r=flat(t.mu_r)[widx], rolling_damping=flat(t.rolling_damping)[widx],
-        rolling_inertia=_rolling_inertia(system, bs, rs), cohesion=flat(t.cohesion)[widx],
+        sphere=s, body=body[s], wall=w, key=wkey, tangential=wt, rolling=wr, radius=radius[s], mass_eff=mass[s],
+        rolling_inertia=inertia_r[s], **t.gather(pair_row[s] + system.walls.material[w]),
     )
     state = state.set(pairs=pairs, walls=wall_contacts, reference=xs.clone(), wall_shift=shift,
                       wall_active=wall_active, rebuilds=state.rebuilds + 1)

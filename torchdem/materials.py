@@ -15,6 +15,7 @@ naming the value, the allowed range and the source (config key or argument).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -252,6 +253,20 @@ class MaterialTables:
     @property
     def n_materials(self) -> int:
         return self.young_eff.shape[-1]
+
+    CONTACT_FIELDS = ("young_eff", "shear_eff", "beta", "mu_s", "mu_r", "rolling_damping", "cohesion")
+
+    @functools.cached_property
+    def stacked(self) -> Tensor:
+        """``[7, B * M * M]``: the :attr:`CONTACT_FIELDS` tables flattened, one row each, so
+        that one ``index_select`` along the columns gathers all of them for a contact list,
+        each row contiguous."""
+        return torch.stack([getattr(self, f).reshape(-1) for f in self.CONTACT_FIELDS])
+
+    def gather(self, index: Tensor) -> dict[str, Tensor]:
+        """The :attr:`CONTACT_FIELDS` at flat pair-table indices ``index`` ``[P]``: ``[P]`` each."""
+        rows = torch.index_select(self.stacked, 1, index)
+        return dict(zip(self.CONTACT_FIELDS, rows.unbind(0)))
 
 
 def material_tables(materials: Sequence[Material], table: InteractionTable) -> MaterialTables:

@@ -208,15 +208,26 @@ def find_wall_pairs(position: Tensor, radius: Tensor, active: Tensor, walls: Wal
     return act[a], live[k]
 
 
-def carry_history(old_key: Tensor, old_values: list[Tensor], new_key: Tensor) -> list[Tensor]:
+def carry_history(old_key: Tensor, old_values: list[Tensor], new_key: Tensor,
+                  use_extension: bool = True) -> list[Tensor]:
     """History of the new list: old values where the key persists, zeros elsewhere.
 
+    On CPU the match runs in the C++ kernel of :mod:`torchdem._ext` (same result; a forward
+    walk for sorted new keys instead of a searchsorted and masked copies) unless
+    ``use_extension`` is False or it cannot be built.
+
     Args:
-        old_key: ``[P_old]`` sorted int64. old_values: tensors ``[P_old, ...]``.
+        old_key: ``[P_old]`` sorted unique int64. old_values: tensors ``[P_old, ...]``.
         new_key: ``[P_new]`` int64.
     Returns:
         tensors ``[P_new, ...]``.
     """
+    if new_key.device.type == "cpu" and use_extension and all(v.is_floating_point() for v in old_values):
+        from torchdem import _ext
+
+        ext = _ext.cpu_kernels()
+        if ext is not None:
+            return list(ext.carry_history(old_key, list(old_values), new_key))
     out = [torch.zeros((new_key.shape[0],) + v.shape[1:], dtype=v.dtype, device=v.device) for v in old_values]
     if old_key.numel() == 0 or new_key.numel() == 0:
         return out

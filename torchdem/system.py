@@ -13,6 +13,7 @@ Contract:
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -91,12 +92,38 @@ class System:
     def n_spheres(self) -> int:
         return self.sphere_radius.shape[1]
 
-    @property
+    # Per-sphere constants the neighbour rebuild gathers per pair, computed once per system
+    # (cached_property writes the instance __dict__, which a frozen dataclass allows): a rebuild
+    # then gathers one value per sphere instead of recomputing it per pair.
+    @functools.cached_property
     def sphere_body_flat(self) -> Tensor:
         """``[B * Ns]`` flat body index of every sphere."""
         B, Ns = self.sphere_body.shape
         base = torch.arange(B, device=self.sphere_body.device)[:, None] * self.n_bodies
         return (self.sphere_body + base).reshape(-1)
+
+    @functools.cached_property
+    def sphere_mass(self) -> Tensor:
+        """``[B * Ns]`` mass of the body of every sphere, kg."""
+        return self.mass.reshape(-1)[self.sphere_body_flat]
+
+    @functools.cached_property
+    def sphere_rolling_inertia(self) -> Tensor:
+        """``[B * Ns]`` I + m r^2 of every sphere about its contact point: the body's mean
+        principal moment plus its mass times the sphere radius squared, kg m^2."""
+        body = self.sphere_body_flat
+        radius = self.sphere_radius.reshape(-1)
+        inertia = self.inertia.reshape(-1, 3).mean(-1)[body]
+        return inertia + self.mass.reshape(-1)[body] * radius * radius
+
+    @functools.cached_property
+    def sphere_pair_row(self) -> Tensor:
+        """``[B * Ns]`` int64 ``(member * M + material) * M`` of every sphere: plus the other
+        side's material id, the flat index into the ``[B, M, M]`` tables."""
+        B, Ns = self.sphere_material.shape
+        M = self.tables.n_materials
+        member = torch.arange(B, device=self.sphere_material.device)[:, None]
+        return ((member * M + self.sphere_material) * M).reshape(-1)
 
 
 def _check_shape(t: Tensor, shape: tuple, name: str, source: str) -> None:
@@ -296,10 +323,19 @@ def build_system(
     if any(periodic):
         if domain is None:
             raise ConfigError(f"{source}: periodic = {periodic} needs an explicit domain (the period)")
+        # Minimum image is exact when every contact separation (<= 2 r_max) and every lever arm
+        # from a body's centre to its contact points (<= its reach, |offset| + r) is below half
+        # the period. The skin need not be: the pair search visits every cell of a periodic
+        # axis with fewer than 3 cells and keeps a pair by its minimum-image distance, which
+        # moves no more than the spheres do, so the skin criterion still holds.
+        live = sphere_valid & torch.gather(active, 1, sphere_body)
+        reach = float((sphere_offset.norm(dim=-1) + sphere_radius)[live].max())
+        need = 2 * max(2 * r_max, reach)
         for ax in range(3):
-            if periodic[ax] and float(hi[ax] - lo[ax]) < 2 * (2 * r_max + skin):
+            if periodic[ax] and float(hi[ax] - lo[ax]) <= need:
                 raise out_of_range(f"domain extent along periodic axis {'xyz'[ax]}", float(hi[ax] - lo[ax]),
-                                   f">= {2 * (2 * r_max + skin):.4g} m (two largest contact distances)", source)
+                                   f"> {need:.4g} m (twice the largest contact distance {2 * r_max:.4g} m or "
+                                   f"body reach {reach:.4g} m)", source)
     grid = cell_grid(lo, hi, 2 * r_max + skin, periodic=periodic, dtype=dtype, device=device)
 
     if orientation is None:

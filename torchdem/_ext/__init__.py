@@ -42,7 +42,8 @@ _state: dict[str, object] = {}
 
 
 def cpu_kernels() -> SimpleNamespace | None:
-    """The compiled CPU kernels (``pair_forces``, ``wall_forces``, ``cell_pairs``, ``wall_pairs``, ``drift``), or None if
+    """The compiled CPU kernels (``pair_forces``, ``wall_forces``, ``cell_pairs``, ``wall_pairs``,
+    ``carry_history``, ``drift``), or None if
     they cannot be built (warns once)."""
     if "module" in _state:
         return _state["module"]  # type: ignore[return-value]
@@ -84,7 +85,7 @@ def _build() -> SimpleNamespace | None:
         load(name=_module_name(), sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS, is_python_module=False, verbose=False)
         ops = torch.ops.torchdem
         return SimpleNamespace(pair_forces=ops.pair_forces, wall_forces=ops.wall_forces, cell_pairs=ops.cell_pairs,
-                               wall_pairs=ops.wall_pairs, drift=ops.drift)
+                               wall_pairs=ops.wall_pairs, carry_history=ops.carry_history, drift=ops.drift)
     except Exception as err:  # no compiler, no ninja, compile error: fall back to the torch kernels
         message = f"{type(err).__name__}: {err}".strip()
         _state["error"] = message

@@ -90,9 +90,12 @@ struct Search {
     const int64_t bi = body[i];
     for (int k = 0; k < n; ++k) {
       const int64_t h = base + cells[k];
-      for (int64_t p = start[h]; p < start[h + 1]; ++p) {
+      // A cell's slots hold its spheres in ascending index order (stable counting sort): the
+      // partners j > i are a suffix, found by bisection instead of a 50/50 branch per slot.
+      const int64_t first = std::upper_bound(order + start[h], order + start[h + 1], i) - order;
+      for (int64_t p = first; p < start[h + 1]; ++p) {
         const int64_t j = order[p];
-        if (j <= i || sorted_body[p] == bi) continue;
+        if (sorted_body[p] == bi) continue;
         double d[3] = {xi - sorted_pos[3 * p], yi - sorted_pos[3 * p + 1], zi - sorted_pos[3 * p + 2]};
         for (int a = 0; a < 3; ++a) {
           if (g.periodic[a]) {  // positions are wrapped into one period: one shift suffices
@@ -279,6 +282,70 @@ std::tuple<at::Tensor, at::Tensor> wall_pairs(const at::Tensor& position, const 
   return {out_s, out_w};
 }
 
+// History of a rebuilt contact list (neighbors.carry_history): for every new key, the row of
+// each old value tensor whose key matches (old keys sorted, unique), zeros when none does.
+// Rebuilt lists come out sorted by key, so each chunk of new keys walks the old keys forward
+// from where its previous key matched (a few steps) and binary-searches only when the new
+// keys go backwards or the walk gets long: O(P) for sorted lists, O(P log P) otherwise. It
+// replaces a searchsorted and two masked copies per tensor (three passes and two temporaries).
+std::vector<at::Tensor> carry_history(const at::Tensor& old_key, const std::vector<at::Tensor>& old_values,
+                                      const at::Tensor& new_key) {
+  TORCH_CHECK(old_key.device().is_cpu() && new_key.device().is_cpu(), "carry_history: CPU tensors only");
+  TORCH_CHECK(old_key.dim() == 1 && new_key.dim() == 1, "carry_history: keys must be 1-D, got ", old_key.sizes(),
+              " and ", new_key.sizes());
+  auto ok = old_key.contiguous().to(at::kLong);
+  auto nk = new_key.contiguous().to(at::kLong);
+  const int64_t n_old = ok.size(0), n_new = nk.size(0);
+  const int64_t* o = ok.data_ptr<int64_t>();
+  const int64_t* k = nk.data_ptr<int64_t>();
+  // match[e]: row of the old list for new key e, or -1.
+  std::vector<int64_t> match(n_new, -1);
+  constexpr int64_t kChunk = 4096;
+  at::parallel_for(0, (n_new + kChunk - 1) / kChunk, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      const int64_t e0 = c * kChunk, e1 = std::min(n_new, e0 + kChunk);
+      int64_t p = 0;
+      for (int64_t e = e0; e < e1; ++e) {
+        const int64_t key = k[e];
+        if (e == e0 || key < k[e - 1]) {
+          p = std::lower_bound(o, o + n_old, key) - o;
+        } else {
+          int steps = 0;
+          while (p < n_old && o[p] < key && steps < 16) ++p, ++steps;
+          if (p < n_old && o[p] < key) p = std::lower_bound(o + p, o + n_old, key) - o;
+        }
+        if (p < n_old && o[p] == key) match[e] = p;
+      }
+    }
+  });
+  std::vector<at::Tensor> out;
+  out.reserve(old_values.size());
+  for (const auto& value : old_values) {
+    TORCH_CHECK(value.device().is_cpu(), "carry_history: CPU tensors only");
+    TORCH_CHECK(value.dim() >= 1 && value.size(0) == n_old, "carry_history: a value has shape ", value.sizes(),
+                "; expected [", n_old, ", ...]");
+    auto v = value.contiguous();
+    auto shape = v.sizes().vec();
+    shape[0] = n_new;
+    at::Tensor result = at::empty(shape, v.options());
+    int64_t width = 1;
+    for (int64_t d = 1; d < v.dim(); ++d) width *= v.size(d);
+    AT_DISPATCH_FLOATING_TYPES(v.scalar_type(), "carry_history", [&] {
+      const scalar_t* src = v.data_ptr<scalar_t>();
+      scalar_t* dst = result.data_ptr<scalar_t>();
+      at::parallel_for(0, n_new, 4096, [&](int64_t e0, int64_t e1) {
+        for (int64_t e = e0; e < e1; ++e) {
+          scalar_t* row = dst + width * e;
+          if (match[e] < 0) std::fill(row, row + width, scalar_t(0));
+          else std::copy(src + width * match[e], src + width * (match[e] + 1), row);
+        }
+      });
+    });
+    out.push_back(result);
+  }
+  return out;
+}
+
 }  // namespace
 
 // torch.ops.torchdem.cell_pairs and wall_pairs (a fragment: contact_cpu.cpp, built into the same extension,
@@ -290,4 +357,6 @@ TORCH_LIBRARY_FRAGMENT(torchdem, m) {
   m.def("wall_pairs(Tensor position, Tensor radius, Tensor active, Tensor centre, Tensor axis_u, Tensor axis_v, "
         "Tensor half_u, Tensor half_v, Tensor wall_active, float skin) -> (Tensor, Tensor)");
   m.impl("wall_pairs", c10::DispatchKey::CPU, TORCH_FN(wall_pairs));
+  m.def("carry_history(Tensor old_key, Tensor[] old_values, Tensor new_key) -> Tensor[]");
+  m.impl("carry_history", c10::DispatchKey::CPU, TORCH_FN(carry_history));
 }

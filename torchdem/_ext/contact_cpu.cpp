@@ -382,48 +382,86 @@ struct PairData {
 
 constexpr int64_t kBlock = kBlockContacts;
 
-// Gathered operands of a block, one array per component (see pair_block).
-enum PairOperand { kXA, kXB = 3, kBA = 6, kBB = 9, kVA = 12, kVB = 15, kWA = 18, kWB = 21, kTG = 24, kRL = 27, kPairOperands = 30 };
+// Gathered operands of a block, one array per component (see pair_block): positions,
+// body centres, velocities, angular velocities, springs (3 each), then the per-pair scalars.
+enum PairOperand {
+  kXA, kXB = 3, kBA = 6, kBB = 9, kVA = 12, kVB = 15, kWA = 18, kWB = 21, kTG = 24, kRL = 27,
+  kRI = 30, kRJ, kREFF, kMEFF, kE, kG, kBETA, kMUS, kMUR, kETA, kIR, kPairOperands
+};
+
+// Stage 0 of pair_block: the pairs of [p0, p0 + n) that may touch, as offsets from p0 (their
+// count is returned). Typically three quarters of a Verlet list are within the skin but not
+// touching; their springs reset to zero and their force and torques are zero, so the contact
+// law runs on the others only. The test keeps a margin (1e-9 relative) so that rounding can
+// never drop a pair the law would find touching; the law itself decides the borderline ones.
+template <typename T>
+TORCHDEM_SCALAR_LOOP int64_t touching_pairs(const PairData<T>& data, int64_t p0, int64_t n, int64_t* sel) {
+  int64_t m = 0;
+  for (int64_t k = 0; k < n; ++k) {
+    const int64_t p = p0 + k;
+    const Vec3<T> d = minimum_image(load(data.x, data.j[p]) - load(data.x, data.i[p]), data.period,
+                                    data.inv_period);
+    const double reach = (static_cast<double>(data.radius_i[p]) + static_cast<double>(data.radius_j[p])) *
+                         (1.0 + 1e-9);
+    const double dist2 = static_cast<double>(d.x) * d.x + static_cast<double>(d.y) * d.y +
+                         static_cast<double>(d.z) * d.z;
+    sel[m] = k;
+    m += dist2 < reach * reach ? 1 : 0;
+  }
+  return m;
+}
 
 // Stage 1 of pair_block, kept scalar on purpose: vector gather instructions are slow on
 // many x86 CPUs (microcode mitigations of "gather data sampling"), scalar loads are not.
+// Gathers the operands of the m pairs p0 + sel[t] into column t.
 template <typename T>
-TORCHDEM_SCALAR_LOOP void gather_pairs(const PairData<T>& data, int64_t p0, int64_t n, T (*g)[kBlock]) {
-  for (int64_t k = 0; k < n; ++k) {
-    const int64_t p = p0 + k;
+TORCHDEM_SCALAR_LOOP void gather_pairs(const PairData<T>& data, int64_t p0, const int64_t* sel, int64_t m,
+                                       T (*g)[kBlock]) {
+  for (int64_t t = 0; t < m; ++t) {
+    const int64_t p = p0 + sel[t];
     const int64_t a = data.i[p], b = data.j[p], ba = data.body_i[p], bb = data.body_j[p];
     for (int c = 0; c < 3; ++c) {
-      g[kXA + c][k] = data.x[3 * a + c];
-      g[kXB + c][k] = data.x[3 * b + c];
-      g[kBA + c][k] = data.X[3 * ba + c];
-      g[kBB + c][k] = data.X[3 * bb + c];
-      g[kVA + c][k] = data.V[3 * ba + c];
-      g[kVB + c][k] = data.V[3 * bb + c];
-      g[kWA + c][k] = data.W[3 * ba + c];
-      g[kWB + c][k] = data.W[3 * bb + c];
-      g[kTG + c][k] = data.tangential[3 * p + c];
-      g[kRL + c][k] = data.rolling[3 * p + c];
+      g[kXA + c][t] = data.x[3 * a + c];
+      g[kXB + c][t] = data.x[3 * b + c];
+      g[kBA + c][t] = data.X[3 * ba + c];
+      g[kBB + c][t] = data.X[3 * bb + c];
+      g[kVA + c][t] = data.V[3 * ba + c];
+      g[kVB + c][t] = data.V[3 * bb + c];
+      g[kWA + c][t] = data.W[3 * ba + c];
+      g[kWB + c][t] = data.W[3 * bb + c];
+      g[kTG + c][t] = data.tangential[3 * p + c];
+      g[kRL + c][t] = data.rolling[3 * p + c];
     }
+    g[kRI][t] = data.radius_i[p];
+    g[kRJ][t] = data.radius_j[p];
+    g[kREFF][t] = data.radius_eff[p];
+    g[kMEFF][t] = data.mass_eff[p];
+    g[kE][t] = data.young_eff[p];
+    g[kG][t] = data.shear_eff[p];
+    g[kBETA][t] = data.beta[p];
+    g[kMUS][t] = data.mu_s[p];
+    g[kMUR][t] = data.mu_r[p];
+    g[kETA][t] = data.rolling_damping[p];
+    g[kIR][t] = data.rolling_inertia[p];
   }
 }
 
-// Pairs [p0, p0 + n), n <= kBlock, in three stages: (1) gather the operands of every pair
-// into local arrays, one per component; (2) the contact law on those arrays, a loop without
-// gathers or branches that the compiler vectorises across pairs; (3) write springs and rows.
+// Pairs [p0, p0 + n), n <= kBlock, in four stages: (0) pick the pairs that may touch; (1)
+// gather their operands into local arrays, one per component; (2) the contact law on those
+// arrays, a loop without gathers or branches that the compiler vectorises across pairs; (3)
+// write springs and rows (zeros for the pairs that do not touch, which is what the law gives
+// them up to the sign of zero).
 // rows: where the n rows of this block go (row k at rows + 9 k).
 template <typename T, bool kAi2011>
 void pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows) {
   enum { XA = kXA, XB = kXB, BA = kBA, BB = kBB, VA = kVA, VB = kVB, WA = kWA, WB = kWB, TG = kTG, RL = kRL };
+  int64_t sel[kBlock];
+  const int64_t m = touching_pairs(data, p0, n, sel);
   alignas(64) T g[kPairOperands][kBlock];
-  gather_pairs(data, p0, n, g);
-  // Stage 2: contact law. o[c][k]: outputs.
+  gather_pairs(data, p0, sel, m, g);
+  // Stage 2: contact law. o[c][t]: outputs.
   enum { F = 0, TI = 3, TJ = 6, TN = 9, RN = 12, NO = 15 };
   alignas(64) T o[NO][kBlock];
-  const T *__restrict__ ri = data.radius_i + p0, *__restrict__ rj = data.radius_j + p0,
-          *__restrict__ reff = data.radius_eff + p0, *__restrict__ meff = data.mass_eff + p0,
-          *__restrict__ E = data.young_eff + p0, *__restrict__ G = data.shear_eff + p0,
-          *__restrict__ bt = data.beta + p0, *__restrict__ mus = data.mu_s + p0, *__restrict__ mur = data.mu_r + p0,
-          *__restrict__ eta = data.rolling_damping + p0, *__restrict__ Ir = data.rolling_inertia + p0;
   const T per[3] = {data.period[0], data.period[1], data.period[2]};
   const T inv_per[3] = {data.inv_period[0], data.inv_period[1], data.inv_period[2]};
   const T dt = data.dt;
@@ -433,18 +471,20 @@ void pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows) {
     o[c + 1][k] = v.y;
     o[c + 2][k] = v.z;
   };
-  for (int64_t k = 0; k < n; ++k) {  // vectorised by the compiler (see contact_law)
+  for (int64_t k = 0; k < m; ++k) {  // vectorised by the compiler (see contact_law)
+    const T ri = g[kRI][k], rj = g[kRJ][k];
     const Vec3<T> xa = vec(XA, k);
     const Vec3<T> d = minimum_image(vec(XB, k) - xa, per, inv_per);
     const T dist = norm(d);
-    const T overlap = ri[k] + rj[k] - dist;
+    const T overlap = ri + rj - dist;
     const Vec3<T> nrm = (T(1) / std::max(dist, T(1e-30))) * d;
-    const Vec3<T> cp = xa + (ri[k] - T(0.5) * overlap) * nrm;
+    const Vec3<T> cp = xa + (ri - T(0.5) * overlap) * nrm;
     const Vec3<T> arm_i = minimum_image(cp - vec(BA, k), per, inv_per);
     const Vec3<T> arm_j = minimum_image(cp - vec(BB, k), per, inv_per);
     const Vec3<T> wi = vec(WA, k), wj = vec(WB, k);
     const Vec3<T> v_rel = vec(VA, k) + cross(wi, arm_i) - vec(VB, k) - cross(wj, arm_j);
-    const Coefficients<T> c{reff[k], meff[k], E[k], G[k], bt[k], mus[k], mur[k], eta[k], Ir[k]};
+    const Coefficients<T> c{g[kREFF][k], g[kMEFF][k], g[kE][k], g[kG][k], g[kBETA][k],
+                            g[kMUS][k],  g[kMUR][k],  g[kETA][k], g[kIR][k]};
     const LawResult<T> r = contact_law<T, kAi2011>(overlap, nrm, v_rel, wi - wj, vec(TG, k), vec(RL, k), c, dt);
     put(F, k, r.force);
     put(TI, k, cross(arm_i, r.force) + r.m_roll);
@@ -452,14 +492,17 @@ void pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows) {
     put(TN, k, r.tangential_new);
     put(RN, k, r.rolling_new);
   }
-  // Stage 3: springs [P, 3] and rows [P, 9].
-  for (int64_t k = 0; k < n; ++k) {
-    const int64_t p = p0 + k;
+  // Stage 3: springs [P, 3] and rows [P, 9]; zeros first, then the pairs the law ran on.
+  std::fill(rows, rows + 9 * n, T(0));
+  std::fill(data.tangential_new + 3 * p0, data.tangential_new + 3 * (p0 + n), T(0));
+  std::fill(data.rolling_new + 3 * p0, data.rolling_new + 3 * (p0 + n), T(0));
+  for (int64_t t = 0; t < m; ++t) {
+    const int64_t k = sel[t], p = p0 + k;
     T* row = rows + 9 * k;
-    for (int c = 0; c < 9; ++c) row[c] = o[F + c][k];
+    for (int c = 0; c < 9; ++c) row[c] = o[F + c][t];
     for (int c = 0; c < 3; ++c) {
-      data.tangential_new[3 * p + c] = o[TN + c][k];
-      data.rolling_new[3 * p + c] = o[RN + c][k];
+      data.tangential_new[3 * p + c] = o[TN + c][t];
+      data.rolling_new[3 * p + c] = o[RN + c][t];
     }
   }
 }
