@@ -162,6 +162,26 @@ def test_collision_across_periodic_boundary_matches_direct_collision():
     assert sim.state.rebuilds > 1
 
 
+def test_periodic_period_needs_twice_the_contact_distance_not_the_skin():
+    """A period between 2 x (2 r_max) and 2 x (2 r_max + skin) builds (the pair search keeps pairs
+    by minimum-image distance) and collides right; below 2 x (2 r_max) it is refused."""
+    from conftest import simulation, two_material_table
+    from torchdem.errors import ConfigError
+
+    R = 0.005
+    mats, table = two_material_table(1, dict(mu_s=0.5, mu_r=0.05, restitution=0.6))
+    # period 0.0265 m, skin 0.8 R: 2 (2 R + skin) = 0.028 m > period > 4 R = 0.02 m
+    pos = torch.tensor([[[0.05, 0.0053, 0.05], [0.05, 0.0213, 0.05]]], dtype=F64)  # 10.5 mm apart across y = 0
+    vel = torch.tensor([[[0.0, -0.4, 0.0], [0.0, 0.4, 0.0]]], dtype=F64)
+    kw = dict(velocity=vel, gravity=(0, 0, 0), time_step_fraction=0.05, periodic=(False, True, False), skin=0.8 * R)
+    sim = simulation(pos, torch.full((1, 2), R, dtype=F64), mats, table, domain=((0, 0, 0), (0.1, 0.0265, 0.1)), **kw)
+    sim.advance(int(0.004 / sim.system.dt))  # the contact across y = 0 and 3 ms of separation, not the next one
+    v = sim.state.bodies.velocity[0]
+    assert abs((v[0, 1] - v[1, 1]).item() / 0.8 - 0.6) < 0.006
+    with pytest.raises(ConfigError, match=r"domain extent along periodic axis y = 0\.019 is not allowed; expected > 0\.02 m"):
+        simulation(pos, torch.full((1, 2), R, dtype=F64), mats, table, domain=((0, 0, 0), (0.1, 0.019, 0.1)), **kw)
+
+
 @pytest.mark.parametrize("periodic", [(False, False, False), (False, True, False), (True, True, False)])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_cpp_cell_search_equals_torch_path(periodic, dtype):

@@ -6,9 +6,10 @@
 // history, periodic minimum image), in float32 or float64, and return new tensors
 // (force, torque, tangential, rolling); nothing passed in is modified.
 //
-// Per block of 64 contacts: gather the operands (scalar loads), apply the contact law in a
-// branch-free loop that the compiler vectorises across contacts, write the springs and a row
-// (force, torques) per contact. The rows reach the bodies in one of two ways:
+// Per block of 64 contacts: pick the pairs that can touch (about a quarter of a Verlet list;
+// the others get zero springs and rows), gather their operands (scalar loads), apply the
+// contact law in a branch-free loop that the compiler vectorises across contacts, write the
+// springs and a row (force, torques) per contact. The rows reach the bodies in one of two ways:
 //   - ensemble (`members` > 1 and the contacts grouped by member, as the neighbour search
 //     returns them): each thread owns whole members, i.e. their contacts and their bodies,
 //     and adds every block's rows to its bodies right away (one pass; the rows of a large
