@@ -35,7 +35,12 @@ SOURCES = [Path(__file__).with_name(name) for name in ("contact_cpu.cpp", "cells
 # -march=native: the loops vectorise across contacts with the widest vector unit of this CPU.
 # -fno-math-errno / -fno-trapping-math let sqrt and rounding vectorise; neither changes a result
 # (no -ffast-math: no reassociation, NaN and inf keep their IEEE meaning).
-CFLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fopenmp-simd"]
+# -fopenmp: at::parallel_for (ATen/ParallelOpenMP.h) is a `#pragma omp parallel` compiled into the
+# extension; without the flag the pragma is ignored and every kernel runs on one thread. The
+# extension links libgomp.so.1, the soname libtorch_cpu has already loaded (torch's own copy),
+# so kernels share torch's OpenMP thread pool and follow torch.set_num_threads.
+CFLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fopenmp"]
+LDFLAGS = ["-fopenmp"]
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -59,11 +64,12 @@ def build_error() -> str | None:
 
 
 def _module_name() -> str:
-    """Extension name tagged with this CPU's instruction sets and the sources' contents: a build
+    """Extension name tagged with this CPU's instruction sets, the build flags and the sources' contents: a build
     cache shared between machines (a network home directory) never loads code built for another
     CPU, and two checkouts with different sources (two branches, two versions) never overwrite
     each other's build and load the other's operators."""
-    signature = platform.machine() + "".join(hashlib.sha256(p.read_bytes()).hexdigest() for p in SOURCES)
+    signature = platform.machine() + " ".join(CFLAGS + LDFLAGS)
+    signature += "".join(hashlib.sha256(p.read_bytes()).hexdigest() for p in SOURCES)
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith(("flags", "Features")):
@@ -82,7 +88,8 @@ def _build() -> SimpleNamespace | None:
         import torch
         from torch.utils.cpp_extension import load
 
-        load(name=_module_name(), sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS, is_python_module=False, verbose=False)
+        load(name=_module_name(), sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS, extra_ldflags=LDFLAGS,
+             is_python_module=False, verbose=False)
         ops = torch.ops.torchdem
         return SimpleNamespace(pair_forces=ops.pair_forces, wall_forces=ops.wall_forces, cell_pairs=ops.cell_pairs,
                                wall_pairs=ops.wall_pairs, carry_history=ops.carry_history, drift=ops.drift)

@@ -62,12 +62,23 @@ template <typename T> inline V3<T> angular_velocity(Quat<T> q, V3<T> L, V3<T> I)
   return rotate(q, V3<T>{body.x / I.x, body.y / I.y, body.z / I.z});
 }
 
-// rigid.quat_from_rotation_vector.
+// rigid.quat_from_rotation_vector. A body turns by far less than 0.2 rad in one step, and
+// there the Taylor series of cos(h) and sin(h) / (2 h) (h = angle / 2, to h^8) are exact to
+// double rounding (the first omitted terms are below 3e-17): no libm call, which made the
+// drift of a few thousand clumps cost 0.4 ms per step (sin and cos twice per body).
 template <typename T> inline Quat<T> from_rotation_vector(V3<T> rv) {
-  const T angle = std::sqrt(rv.x * rv.x + rv.y * rv.y + rv.z * rv.z);
-  const T half = T(0.5) * angle;
-  const T s = angle < T(1e-8) ? T(0.5) - angle * angle / T(48) : std::sin(half) / angle;
-  return {std::cos(half), rv.x * s, rv.y * s, rv.z * s};
+  const T a2 = rv.x * rv.x + rv.y * rv.y + rv.z * rv.z;
+  T c, s;
+  if (a2 < T(0.04)) {
+    const T h2 = T(0.25) * a2;
+    c = T(1) + h2 * (T(-1.0 / 2) + h2 * (T(1.0 / 24) + h2 * (T(-1.0 / 720) + h2 * T(1.0 / 40320))));
+    s = T(0.5) * (T(1) + h2 * (T(-1.0 / 6) + h2 * (T(1.0 / 120) + h2 * (T(-1.0 / 5040) + h2 * T(1.0 / 362880)))));
+  } else {
+    const T angle = std::sqrt(a2);
+    c = std::cos(T(0.5) * angle);
+    s = std::sin(T(0.5) * angle) / angle;
+  }
+  return {c, rv.x * s, rv.y * s, rv.z * s};
 }
 
 // rigid.advance_orientation (midpoint rule at fixed world angular momentum), renormalised.
