@@ -304,3 +304,30 @@ def test_cpp_drift_equals_torch_drift(extension, dtype, rel):
     out_s = Kernels(backend="cpp").drift(*args, True)
     for name, a, e in zip(names, out_s, ref_s):
         assert float((a - e).abs().max()) <= rel * float(e.abs().max()), name
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_cpp_kick_equals_torch_kick(extension, dtype):
+    """The C++ kick (gravity, inactive bodies masked, second half kick) equals :func:`kick_kernel`
+    to rounding, with inactive bodies getting zero force and torque and keeping their velocity."""
+    from torchdem.integrate import kick_kernel
+
+    system, state = _system(dtype=dtype, B=3, N=60, seed=11)
+    b = state.bodies
+    g = torch.Generator().manual_seed(12)
+    B, Nb = system.batch, system.n_bodies
+    force = (torch.randn(B * Nb, 3, generator=g, dtype=F64) * 1e-2).to(dtype)
+    torque = (torch.randn(B * Nb, 3, generator=g, dtype=F64) * 1e-5).to(dtype)
+    velocity = torch.randn(b.velocity.shape, generator=g, dtype=F64).to(dtype)
+    active = b.active.clone()
+    active[2, 3:9] = False
+    args = (force, torque, velocity, b.angular_momentum, system.mass, system.gravity, active,
+            torch.tensor(system.dt, dtype=dtype))
+    ref = kick_kernel(*args)
+    out = Kernels(backend="cpp").kick(*args)
+    rel = 1e-12 if dtype == F64 else 1e-5
+    for name, a, e in zip(("f", "tau", "v", "L"), out, ref):
+        assert a.shape == e.shape and a.dtype == e.dtype, name
+        assert float((a - e).abs().max()) <= rel * float(e.abs().max()), name
+    assert torch.equal(out[0][2, 3:9], torch.zeros_like(out[0][2, 3:9]))
+    assert torch.equal(out[2][2, 3:9], velocity[2, 3:9])

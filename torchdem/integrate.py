@@ -369,8 +369,8 @@ class Kernels:
     the torch kernels with ``torch.compile`` (dynamic shapes): fusing the element-wise contact
     law into a few loops (one pass over the contacts instead of ~100 tensor operations); the
     first call of each kernel compiles (tens of seconds on a CPU), later calls and other
-    contact counts reuse it. The drift follows the contact kernels (C++ with them, else torch,
-    compiled if asked); the kick, a handful of operations, is always torch.
+    contact counts reuse it. The drift and the kick follow the contact kernels (C++ with them,
+    else torch, compiled if asked).
     """
 
     def __init__(self, compile: bool = False, backend: str = "auto"):
@@ -382,7 +382,7 @@ class Kernels:
         self.torch_pair = wrap(pair_kernel)
         self.torch_wall = wrap(wall_kernel)
         self.torch_drift = wrap(drift_kernel)
-        self.kick = wrap(kick_kernel)
+        self.torch_kick = wrap(kick_kernel)
 
     def extension(self, like: Tensor):
         """The C++ kernels for tensors like ``like``, or None when the torch kernels are used."""
@@ -405,6 +405,14 @@ class Kernels:
          sphere_offset, reference, dt, spheres_only) = args
         return tuple(ext.drift(position, velocity, angular_momentum, orientation, force, torque, mass, inertia,
                                active, sphere_body, sphere_offset, reference, float(dt), spheres_only))
+
+    def kick(self, force: Tensor, *args) -> tuple[Tensor, ...]:
+        """:func:`kick_kernel` (same arguments), by the C++ kernel when the contact kernels are."""
+        ext = self.extension(force)
+        if ext is None:
+            return self.torch_kick(force, *args)
+        torque, velocity, angular_momentum, mass, gravity, active, dt = args
+        return tuple(ext.kick(force, torque, velocity, angular_momentum, mass, gravity, active, float(dt)))
 
     def pair(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
              *contacts: Tensor, dt: Tensor, period: Tensor, stiffness_model: str, periodic: bool,

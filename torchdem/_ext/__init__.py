@@ -5,8 +5,8 @@ Contract:
   ``wall_forces``: the CPU twins of :func:`torchdem.integrate.pair_kernel` and
   :func:`torchdem.integrate.wall_kernel`) and of ``cells_cpu.cpp`` (``cell_pairs``: the
   candidate scan of :func:`torchdem.neighbors.find_pairs`; ``wall_pairs``: that of
-  :func:`torchdem.neighbors.find_wall_pairs`) and ``rigid_cpu.cpp`` (``drift``:
-  the twin of :func:`torchdem.integrate.drift_kernel`), registered as
+  :func:`torchdem.neighbors.find_wall_pairs`) and ``rigid_cpu.cpp`` (``drift`` and ``kick``:
+  the twins of :func:`torchdem.integrate.drift_kernel` and :func:`torchdem.integrate.kick_kernel`), registered as
   ``torch.ops.torchdem.*`` and built as one extension, or None
   when they cannot be built (no C++ compiler, no ninja, ...). The first call in a process
   builds or loads them with ``torch.utils.cpp_extension.load`` (about 30 s to build);
@@ -48,7 +48,7 @@ _state: dict[str, object] = {}
 
 def cpu_kernels() -> SimpleNamespace | None:
     """The compiled CPU kernels (``pair_forces``, ``wall_forces``, ``cell_pairs``, ``wall_pairs``,
-    ``carry_history``, ``drift``), or None if
+    ``carry_history``, ``drift``, ``kick``), or None if
     they cannot be built (warns once)."""
     if "module" in _state:
         return _state["module"]  # type: ignore[return-value]
@@ -92,7 +92,8 @@ def _build() -> SimpleNamespace | None:
              is_python_module=False, verbose=False)
         ops = torch.ops.torchdem
         return SimpleNamespace(pair_forces=ops.pair_forces, wall_forces=ops.wall_forces, cell_pairs=ops.cell_pairs,
-                               wall_pairs=ops.wall_pairs, carry_history=ops.carry_history, drift=ops.drift)
+                               wall_pairs=ops.wall_pairs, carry_history=ops.carry_history, drift=ops.drift,
+                               kick=ops.kick)
     except Exception as err:  # no compiler, no ninja, compile error: fall back to the torch kernels
         message = f"{type(err).__name__}: {err}".strip()
         _state["error"] = message
