@@ -331,3 +331,32 @@ def test_cpp_kick_equals_torch_kick(extension, dtype):
         assert float((a - e).abs().max()) <= rel * float(e.abs().max()), name
     assert torch.equal(out[0][2, 3:9], torch.zeros_like(out[0][2, 3:9]))
     assert torch.equal(out[2][2, 3:9], velocity[2, 3:9])
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_cpp_pair_constants_equal_torch(extension, dtype, monkeypatch):
+    """The per-pair constants of a rebuilt list (key, bodies, radii, R*, m*, I_r*, the material
+    tables of three members with different coefficients) from the C++ pass equal those of the
+    tensor operations bit for bit (same IEEE operations, same order); bad indices raise."""
+    from torchdem import integrate
+    from torchdem.neighbors import find_pairs
+
+    system, state = _system(dtype=dtype, B=3, N=60, seed=13)
+    xs = sphere_positions(system, state.bodies)
+    radius, body = system.sphere_radius.reshape(-1), system.sphere_body_flat
+    i, j = find_pairs(xs, radius, body, torch.ones_like(radius, dtype=torch.bool), system.n_spheres, system.grid,
+                      system.skin)
+    assert i.numel() > 100 and len({int(m) for m in i // system.n_spheres}) == 3
+    args = [i, j, radius, system.sphere_mass, system.sphere_rolling_inertia, body, system.sphere_pair_row,
+            system.sphere_material.reshape(-1), system.tables]
+    cpp = integrate.pair_constants(*args)
+    monkeypatch.setattr(integrate, "_cpu_extension", lambda like: None)
+    ref = integrate.pair_constants(*args)
+    assert set(cpp) == set(ref) and len(ref) == 8 + len(system.tables.CONTACT_FIELDS)
+    for name in ref:
+        assert cpp[name].dtype == ref[name].dtype and torch.equal(cpp[name], ref[name]), name
+    assert float(ref["mu_s"].std()) > 0   # the members' coefficients differ, so the table lookup is exercised
+    bad = i.clone()
+    bad[7] = radius.numel()
+    with pytest.raises(RuntimeError, match="outside"):
+        extension.pair_constants(bad, *args[1:-1], system.tables.stacked)

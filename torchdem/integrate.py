@@ -19,6 +19,7 @@ from __future__ import annotations
 import torch
 
 from torchdem import contact, neighbors
+from torchdem.materials import MaterialTables
 from torchdem.rigid import advance_orientation, angular_velocity, quat_rotate
 from torchdem.state import Bodies, PairContacts, State, WallContacts
 from torchdem.system import System
@@ -64,16 +65,10 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[Stat
     t = system.tables
 
     i, j = neighbors.find_pairs(xs, radius, body, active, Ns, system.grid, system.skin)
-    key = i * S + j
-    tang, roll = neighbors.carry_history(state.pairs.key, [state.pairs.tangential, state.pairs.rolling], key)
-    ri, rj = radius[i], radius[j]
-    mi, mj = mass[i], mass[j]
-    ir_i, ir_j = inertia_r[i], inertia_r[j]
-    pairs = PairContacts(
-        i=i, j=j, body_i=body[i], body_j=body[j], key=key, tangential=tang, rolling=roll,
-        radius_i=ri, radius_j=rj, radius_eff=ri * rj / (ri + rj), mass_eff=mi * mj / (mi + mj),
-        rolling_inertia=ir_i * ir_j / (ir_i + ir_j), **t.gather(pair_row[i] + mat[j]),
-    )
+    constants = pair_constants(i, j, radius, mass, inertia_r, body, pair_row, mat, t)
+    tang, roll = neighbors.carry_history(state.pairs.key, [state.pairs.tangential, state.pairs.rolling],
+                                         constants["key"])
+    pairs = PairContacts(i=i, j=j, tangential=tang, rolling=roll, **constants)
 
     W = system.walls.n
     shift = system.walls.shift(time)
@@ -88,6 +83,38 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[Stat
     state = state.set(pairs=pairs, walls=wall_contacts, reference=xs.clone(), wall_shift=shift,
                       wall_active=wall_active, rebuilds=state.rebuilds + 1)
     return state, xs
+
+
+def pair_constants(i: Tensor, j: Tensor, radius: Tensor, mass: Tensor, rolling_inertia: Tensor, body: Tensor,
+                   pair_row: Tensor, material: Tensor, tables: MaterialTables) -> dict[str, Tensor]:
+    """The per-pair constants of a new sphere-sphere list ``i, j`` ``[P]``: ``key``, ``body_i``,
+    ``body_j``, the radii, R*, m*, the EPSD I_r* and the :attr:`MaterialTables.CONTACT_FIELDS`
+    (``[P]`` each), from per-sphere ``[S]`` radius, mass, rolling inertia, body, pair-table row
+    and material. On CPU one pass of the C++ kernel (same values), else tensor operations."""
+    S = radius.shape[0]
+    ext = _cpu_extension(radius)
+    if ext is not None:
+        index, value = ext.pair_constants(i, j, radius, mass, rolling_inertia, body, pair_row, material,
+                                          tables.stacked)
+        key, body_i, body_j = index.unbind(0)
+        ri, rj, r_eff, m_eff, i_eff, *fields = value.unbind(0)
+        return dict(key=key, body_i=body_i, body_j=body_j, radius_i=ri, radius_j=rj, radius_eff=r_eff,
+                    mass_eff=m_eff, rolling_inertia=i_eff, **dict(zip(tables.CONTACT_FIELDS, fields)))
+    ri, rj = radius[i], radius[j]
+    mi, mj = mass[i], mass[j]
+    ir_i, ir_j = rolling_inertia[i], rolling_inertia[j]
+    return dict(key=i * S + j, body_i=body[i], body_j=body[j], radius_i=ri, radius_j=rj,
+                radius_eff=ri * rj / (ri + rj), mass_eff=mi * mj / (mi + mj),
+                rolling_inertia=ir_i * ir_j / (ir_i + ir_j), **tables.gather(pair_row[i] + material[j]))
+
+
+def _cpu_extension(like: Tensor):
+    """The C++ kernels for a CPU tensor (None on other devices or when they cannot be built)."""
+    if like.device.type != "cpu":
+        return None
+    from torchdem import _ext
+
+    return _ext.cpu_kernels()
 
 
 def pair_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,

@@ -22,6 +22,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <vector>
@@ -350,6 +351,72 @@ std::vector<at::Tensor> carry_history(const at::Tensor& old_key, const std::vect
 
 // torch.ops.torchdem.cell_pairs and wall_pairs (a fragment: contact_cpu.cpp, built into the same extension,
 // defines the library).
+// The per-pair constants of a rebuilt sphere-sphere list (integrate.rebuild), in one pass
+// instead of ~25 tensor operations over the list: index [3, P] int64 (key i S + j, body_i,
+// body_j) and value [5 + F, P] (radius_i, radius_j, R*, m*, I_r* of the EPSD damping, then the F
+// rows of `table` [F, R] at column pair_row[i] + material[j]). Each row is contiguous, so its
+// views are what the pair kernel reads. Per sphere [S]: radius, mass, rolling_inertia (the
+// body's), body, pair_row, material. Indices are checked; the values are what the torch path
+// computes, bit for bit (same operations in the same order).
+std::vector<at::Tensor> pair_constants(const at::Tensor& i, const at::Tensor& j, const at::Tensor& radius,
+                                       const at::Tensor& mass, const at::Tensor& rolling_inertia,
+                                       const at::Tensor& body, const at::Tensor& pair_row, const at::Tensor& material,
+                                       const at::Tensor& table) {
+  TORCH_CHECK(i.device().is_cpu() && table.device().is_cpu(), "pair_constants: CPU tensors only");
+  const int64_t P = i.numel(), S = radius.numel(), F = table.size(0), R = table.size(1);
+  TORCH_CHECK(j.numel() == P, "pair_constants: i has ", P, " entries and j ", j.numel());
+  for (const at::Tensor* t : {&mass, &rolling_inertia, &body, &pair_row, &material})
+    TORCH_CHECK(t->numel() == S, "pair_constants: a per-sphere tensor has ", t->numel(), " entries; expected ", S);
+  TORCH_CHECK(table.dim() == 2, "pair_constants: table must be [F, R], got ", table.sizes());
+  for (const at::Tensor* t : {&mass, &rolling_inertia, &table})
+    TORCH_CHECK(t->scalar_type() == radius.scalar_type(), "pair_constants: mixed dtypes ", t->scalar_type(), " and ",
+                radius.scalar_type());
+  auto ic = i.contiguous().to(at::kLong), jc = j.contiguous().to(at::kLong), bc = body.contiguous().to(at::kLong),
+       rc = pair_row.contiguous().to(at::kLong), mc = material.contiguous().to(at::kLong);
+  auto rad = radius.contiguous(), ms = mass.contiguous(), ir = rolling_inertia.contiguous(), tab = table.contiguous();
+  const int64_t *pi = ic.data_ptr<int64_t>(), *pj = jc.data_ptr<int64_t>(), *pb = bc.data_ptr<int64_t>(),
+                *prow = rc.data_ptr<int64_t>(), *pmat = mc.data_ptr<int64_t>();
+  at::Tensor index = at::empty({3, P}, ic.options());
+  at::Tensor value = at::empty({5 + F, P}, rad.options());
+  int64_t* key = index.data_ptr<int64_t>();
+  int64_t *body_i = key + P, *body_j = key + 2 * P;
+  std::atomic<int64_t> bad{0};
+  AT_DISPATCH_FLOATING_TYPES(rad.scalar_type(), "pair_constants", [&] {
+    const scalar_t *r = rad.data_ptr<scalar_t>(), *m = ms.data_ptr<scalar_t>(), *I = ir.data_ptr<scalar_t>(),
+                   *t = tab.data_ptr<scalar_t>();
+    scalar_t* v = value.data_ptr<scalar_t>();
+    at::parallel_for(0, P, 4096, [&](int64_t p0, int64_t p1) {
+      int64_t n_bad = 0;
+      for (int64_t p = p0; p < p1; ++p) {
+        const int64_t a = pi[p], b = pj[p];
+        if (static_cast<uint64_t>(a) >= static_cast<uint64_t>(S) || static_cast<uint64_t>(b) >= static_cast<uint64_t>(S)) {
+          ++n_bad;
+          continue;
+        }
+        const int64_t col = prow[a] + pmat[b];
+        if (static_cast<uint64_t>(col) >= static_cast<uint64_t>(R)) {
+          ++n_bad;
+          continue;
+        }
+        key[p] = a * S + b;
+        body_i[p] = pb[a];
+        body_j[p] = pb[b];
+        const scalar_t ri = r[a], rj = r[b], mi = m[a], mj = m[b], Ii = I[a], Ij = I[b];
+        v[p] = ri;
+        v[P + p] = rj;
+        v[2 * P + p] = ri * rj / (ri + rj);
+        v[3 * P + p] = mi * mj / (mi + mj);
+        v[4 * P + p] = Ii * Ij / (Ii + Ij);
+        for (int64_t f = 0; f < F; ++f) v[(5 + f) * P + p] = t[f * R + col];
+      }
+      bad += n_bad;
+    });
+  });
+  TORCH_CHECK(bad.load() == 0, "pair_constants: ", bad.load(), " pairs have a sphere index outside [0, ", S,
+              ") or a table column outside [0, ", R, ")");
+  return {index, value};
+}
+
 TORCH_LIBRARY_FRAGMENT(torchdem, m) {
   m.def("cell_pairs(Tensor position, Tensor radius, Tensor body, Tensor active, float[] lower, float[] cell_size, "
         "int[] dims, float[] period, int n_per_member, float skin) -> (Tensor, Tensor)");
@@ -359,4 +426,7 @@ TORCH_LIBRARY_FRAGMENT(torchdem, m) {
   m.impl("wall_pairs", c10::DispatchKey::CPU, TORCH_FN(wall_pairs));
   m.def("carry_history(Tensor old_key, Tensor[] old_values, Tensor new_key) -> Tensor[]");
   m.impl("carry_history", c10::DispatchKey::CPU, TORCH_FN(carry_history));
+  m.def("pair_constants(Tensor i, Tensor j, Tensor radius, Tensor mass, Tensor rolling_inertia, Tensor body, "
+        "Tensor pair_row, Tensor material, Tensor table) -> Tensor[]");
+  m.impl("pair_constants", c10::DispatchKey::CPU, TORCH_FN(pair_constants));
 }

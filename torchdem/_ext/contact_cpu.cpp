@@ -7,9 +7,10 @@
 // (force, torque, tangential, rolling); nothing passed in is modified.
 //
 // Per block of 64 contacts: pick the pairs that can touch (about a quarter of a Verlet list;
-// the others get zero springs and rows), gather their operands (scalar loads), apply the
+// the others get zero springs and no row), gather their operands (scalar loads), apply the
 // contact law in a branch-free loop that the compiler vectorises across contacts, write the
-// springs and a row (force, torques) per contact. The rows reach the bodies in one of two ways:
+// springs and a row (force, torques) per touching contact, packed at the front of the block's
+// row space. The rows reach the bodies in one of two ways:
 //   - ensemble (`members` > 1 and the contacts grouped by member, as the neighbour search
 //     returns them): each thread owns whole members, i.e. their contacts and their bodies,
 //     and adds every block's rows to its bodies right away (one pass; the rows of a large
@@ -186,74 +187,93 @@ TORCHDEM_INLINE LawResult<T> contact_law(T overlap, Vec3<T> n, Vec3<T> v_rel, Ve
   return out;
 }
 
-// Adds per-contact rows to their bodies: out = in + sum over contacts, in contact order.
-// rows [n, width]: force on the first body (3), torque on it (3) and, when body_b is given
-// (width 9), torque on the second body (3); the second body gets minus the force.
-// Each thread owns a contiguous range of bodies and scans every contact, adding only to its
-// own bodies: every body is written by one thread and sums in contact order, whatever the
-// number of threads. Body indices must be in [0, n_bodies).
+// Rows of a block of contacts: the contact law writes one row per contact it ran on, packed at
+// the front of the block's row space; sel[t] is the contact (offset from the block's first) of
+// row t. Contacts without a row (not touching) add nothing, so the rows of the three quarters of
+// a Verlet list that do not touch are neither written nor read back.
+
+// Adds one row to its bodies: force on the first body (3), torque on it (3) and, when body_b is
+// given (width 9), torque on the second body (3); the second body gets minus the force.
+template <typename T>
+TORCHDEM_INLINE void add_row(int64_t a, const int64_t* body_b, int64_t e, const T* r, T* force, T* torque) {
+  T* f = force + 3 * a;
+  T* t = torque + 3 * a;
+  f[0] += r[0];
+  f[1] += r[1];
+  f[2] += r[2];
+  t[0] += r[3];
+  t[1] += r[4];
+  t[2] += r[5];
+  if (body_b != nullptr) {
+    f = force + 3 * body_b[e];
+    t = torque + 3 * body_b[e];
+    f[0] -= r[0];
+    f[1] -= r[1];
+    f[2] -= r[2];
+    t[0] += r[6];
+    t[1] += r[7];
+    t[2] += r[8];
+  }
+}
+
+// Adds the packed rows of every block to their bodies: out = in + sum over rows, in contact
+// order. Block k covers contacts [k kBlockContacts, ...), has count[k] rows at
+// rows + width k kBlockContacts and their offsets at sel + k kBlockContacts.
+// Each thread owns a contiguous range of bodies and scans every row, adding only to its own
+// bodies: every body is written by one thread and sums in contact order, whatever the number of
+// threads. Body indices must be in [0, n_bodies).
 template <typename T>
 void scatter_to_bodies(const int64_t* __restrict__ body_a, const int64_t* __restrict__ body_b,
-                       const T* __restrict__ rows, int width, int64_t n, int64_t n_bodies, const T* force_in,
-                       const T* torque_in, T* force_out, T* torque_out) {
+                       const T* __restrict__ rows, const int32_t* __restrict__ sel, const int64_t* count,
+                       int width, int64_t n, int64_t n_bodies, const T* force_in, const T* torque_in, T* force_out,
+                       T* torque_out) {
+  const int64_t n_blocks = (n + kBlockContacts - 1) / kBlockContacts;
   at::parallel_for(0, n_bodies, 1024, [&](int64_t b0, int64_t b1) {
     const uint64_t span = static_cast<uint64_t>(b1 - b0);
     std::copy(force_in + 3 * b0, force_in + 3 * b1, force_out + 3 * b0);
     std::copy(torque_in + 3 * b0, torque_in + 3 * b1, torque_out + 3 * b0);
-    for (int64_t e = 0; e < n; ++e) {
-      const T* r = rows + width * e;
-      const int64_t a = body_a[e] - b0;
-      if (static_cast<uint64_t>(a) < span) {
-        T* f = force_out + 3 * (b0 + a);
-        T* t = torque_out + 3 * (b0 + a);
-        f[0] += r[0];
-        f[1] += r[1];
-        f[2] += r[2];
-        t[0] += r[3];
-        t[1] += r[4];
-        t[2] += r[5];
-      }
-      if (body_b != nullptr) {
-        const int64_t b = body_b[e] - b0;
-        if (static_cast<uint64_t>(b) < span) {
-          T* f = force_out + 3 * (b0 + b);
-          T* t = torque_out + 3 * (b0 + b);
-          f[0] -= r[0];
-          f[1] -= r[1];
-          f[2] -= r[2];
-          t[0] += r[6];
-          t[1] += r[7];
-          t[2] += r[8];
+    for (int64_t blk = 0; blk < n_blocks; ++blk) {
+      const int64_t c0 = blk * kBlockContacts;
+      for (int64_t t = 0; t < count[blk]; ++t) {
+        const int64_t e = c0 + sel[c0 + t];
+        const T* r = rows + width * (c0 + t);
+        const int64_t a = body_a[e] - b0;
+        if (static_cast<uint64_t>(a) < span) {
+          T* f = force_out + 3 * (b0 + a);
+          T* q = torque_out + 3 * (b0 + a);
+          f[0] += r[0];
+          f[1] += r[1];
+          f[2] += r[2];
+          q[0] += r[3];
+          q[1] += r[4];
+          q[2] += r[5];
+        }
+        if (body_b != nullptr) {
+          const int64_t b = body_b[e] - b0;
+          if (static_cast<uint64_t>(b) < span) {
+            T* f = force_out + 3 * (b0 + b);
+            T* q = torque_out + 3 * (b0 + b);
+            f[0] -= r[0];
+            f[1] -= r[1];
+            f[2] -= r[2];
+            q[0] += r[6];
+            q[1] += r[7];
+            q[2] += r[8];
+          }
         }
       }
     }
   });
 }
 
-// Adds n rows (layout of scatter_to_bodies) to their bodies, in order, single-threaded.
+// Adds the m packed rows of the block starting at contact c0 to their bodies, in order,
+// single-threaded.
 template <typename T>
-TORCHDEM_INLINE void add_rows(const int64_t* body_a, const int64_t* body_b, const T* rows, int width, int64_t n,
-                              T* force, T* torque) {
-  for (int64_t e = 0; e < n; ++e) {
-    const T* r = rows + width * e;
-    T* f = force + 3 * body_a[e];
-    T* t = torque + 3 * body_a[e];
-    f[0] += r[0];
-    f[1] += r[1];
-    f[2] += r[2];
-    t[0] += r[3];
-    t[1] += r[4];
-    t[2] += r[5];
-    if (body_b != nullptr) {
-      f = force + 3 * body_b[e];
-      t = torque + 3 * body_b[e];
-      f[0] -= r[0];
-      f[1] -= r[1];
-      f[2] -= r[2];
-      t[0] += r[6];
-      t[1] += r[7];
-      t[2] += r[8];
-    }
+TORCHDEM_INLINE void add_rows(const int64_t* body_a, const int64_t* body_b, int64_t c0, const int32_t* sel,
+                              const T* rows, int width, int64_t m, T* force, T* torque) {
+  for (int64_t t = 0; t < m; ++t) {
+    const int64_t e = c0 + sel[t];
+    add_row<T>(body_a[e], body_b, e, rows + width * t, force, torque);
   }
 }
 
@@ -309,12 +329,13 @@ bool per_member(const std::vector<int64_t>& start, const int64_t* body_a, const 
   return !foreign.load();
 }
 
-// Per-contact rows live in a buffer of the calling thread that is kept between calls
-// (allocating ~100 bytes per contact afresh each step costs page faults; the buffer is as
-// large as the largest contact list seen by that thread).
+// Per-contact rows live in buffers of the calling thread that are kept between calls
+// (allocating ~100 bytes per contact afresh each step costs page faults; a buffer is as large
+// as the largest contact list seen by that thread). Slot 0: rows; 1: row offsets; 2: counts.
 template <typename T>
-T* scratch_rows(int64_t count) {
-  thread_local std::vector<double> buffer;
+T* scratch(int slot, int64_t count) {
+  thread_local std::vector<double> buffers[3];
+  std::vector<double>& buffer = buffers[slot];
   const size_t doubles = (static_cast<size_t>(count) * sizeof(T) + sizeof(double) - 1) / sizeof(double);
   if (buffer.size() < doubles) buffer.resize(doubles);
   return reinterpret_cast<T*>(buffer.data());
@@ -323,7 +344,8 @@ T* scratch_rows(int64_t count) {
 // Runs the contact law over n contacts in blocks and adds their rows (kWidth 9 with body_b,
 // 6 without) to the bodies, per member when the contacts allow it, else in two passes (all
 // rows into a scratch buffer, then scatter_to_bodies). block_ok(c0, m) checks a block's
-// indices (counting bad ones in `bad`); run_block(c0, m, rows) writes its m rows to `rows`.
+// indices (counting bad ones in `bad`); run_block(c0, m, rows, sel) writes the packed rows of
+// its m contacts to `rows` and their offsets to `sel` and returns how many rows it wrote.
 template <typename T, int kWidth, typename Ok, typename Run>
 void contacts_to_bodies(int64_t n, const int64_t* body_a, const int64_t* body_b, int64_t n_bodies, int64_t members,
                         const T* force_in, const T* torque_in, T* force_out, T* torque_out, unsigned csr,
@@ -334,21 +356,26 @@ void contacts_to_bodies(int64_t n, const int64_t* body_a, const int64_t* body_b,
                     [&](int64_t c0, int64_t m, T* f, T* t) {
                       if (!block_ok(c0, m)) return;
                       alignas(64) T rows[kWidth * kBlockContacts];
-                      run_block(c0, m, rows);
-                      add_rows<T>(body_a + c0, body_b == nullptr ? nullptr : body_b + c0, rows, kWidth, m, f, t);
+                      int32_t sel[kBlockContacts];
+                      const int64_t r = run_block(c0, m, rows, sel);
+                      add_rows<T>(body_a, body_b, c0, sel, rows, kWidth, r, f, t);
                     });
   if (direct) return;
   bad = 0;
-  T* rows = scratch_rows<T>(kWidth * n);
-  at::parallel_for(0, (n + kBlockContacts - 1) / kBlockContacts, 4, [&](int64_t b0, int64_t b1) {
+  const int64_t n_blocks = (n + kBlockContacts - 1) / kBlockContacts;
+  T* rows = scratch<T>(0, kWidth * n);
+  int32_t* sel = scratch<int32_t>(1, n);
+  int64_t* count = scratch<int64_t>(2, n_blocks);
+  at::parallel_for(0, n_blocks, 4, [&](int64_t b0, int64_t b1) {
     DenormalMode mode(csr);
     for (int64_t blk = b0; blk < b1; ++blk) {
       const int64_t c0 = blk * kBlockContacts, m = std::min(kBlockContacts, n - c0);
-      if (block_ok(c0, m)) run_block(c0, m, rows + kWidth * c0);
+      count[blk] = block_ok(c0, m) ? run_block(c0, m, rows + kWidth * c0, sel + c0) : 0;
     }
   });
   if (bad.load() == 0)
-    scatter_to_bodies<T>(body_a, body_b, rows, kWidth, n, n_bodies, force_in, torque_in, force_out, torque_out);
+    scatter_to_bodies<T>(body_a, body_b, rows, sel, count, kWidth, n, n_bodies, force_in, torque_in, force_out,
+                         torque_out);
 }
 
 void check_cpu(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t rows, int64_t cols) {
@@ -450,11 +477,12 @@ TORCHDEM_SCALAR_LOOP void gather_pairs(const PairData<T>& data, int64_t p0, cons
 // Pairs [p0, p0 + n), n <= kBlock, in four stages: (0) pick the pairs that may touch; (1)
 // gather their operands into local arrays, one per component; (2) the contact law on those
 // arrays, a loop without gathers or branches that the compiler vectorises across pairs; (3)
-// write springs and rows (zeros for the pairs that do not touch, which is what the law gives
-// them up to the sign of zero).
-// rows: where the n rows of this block go (row k at rows + 9 k).
+// write springs (zeros for the pairs that do not touch, which is what the law gives them up
+// to the sign of zero) and rows for the pairs that may touch (the others' would be zero).
+// rows, rsel: where the packed rows of this block go (row t at rows + 9 t, for the pair
+// p0 + rsel[t]); returns their number.
 template <typename T, bool kAi2011>
-void pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows) {
+int64_t pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows, int32_t* rsel) {
   enum { XA = kXA, XB = kXB, BA = kBA, BB = kBB, VA = kVA, VB = kVB, WA = kWA, WB = kWB, TG = kTG, RL = kRL };
   int64_t sel[kBlock];
   const int64_t m = touching_pairs(data, p0, n, sel);
@@ -493,19 +521,20 @@ void pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows) {
     put(TN, k, r.tangential_new);
     put(RN, k, r.rolling_new);
   }
-  // Stage 3: springs [P, 3] and rows [P, 9]; zeros first, then the pairs the law ran on.
-  std::fill(rows, rows + 9 * n, T(0));
+  // Stage 3: springs [P, 3] (zeros first) and the packed rows of the pairs the law ran on.
   std::fill(data.tangential_new + 3 * p0, data.tangential_new + 3 * (p0 + n), T(0));
   std::fill(data.rolling_new + 3 * p0, data.rolling_new + 3 * (p0 + n), T(0));
   for (int64_t t = 0; t < m; ++t) {
     const int64_t k = sel[t], p = p0 + k;
-    T* row = rows + 9 * k;
+    T* row = rows + 9 * t;
     for (int c = 0; c < 9; ++c) row[c] = o[F + c][t];
+    rsel[t] = static_cast<int32_t>(k);
     for (int c = 0; c < 3; ++c) {
       data.tangential_new[3 * p + c] = o[TN + c][t];
       data.rolling_new[3 * p + c] = o[RN + c][t];
     }
   }
+  return m;
 }
 
 // Number of entries of idx [n] outside [0, limit) (vectorised; no early exit).
@@ -565,8 +594,8 @@ void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
     bad += n_bad;
     return n_bad == 0;
   };
-  auto run_block = [&](int64_t p0, int64_t n, T* rows) {
-    data.ai2011 ? pair_block<T, true>(data, p0, n, rows) : pair_block<T, false>(data, p0, n, rows);
+  auto run_block = [&](int64_t p0, int64_t n, T* rows, int32_t* sel) {
+    return data.ai2011 ? pair_block<T, true>(data, p0, n, rows, sel) : pair_block<T, false>(data, p0, n, rows, sel);
   };
   contacts_to_bodies<T, 9>(P, data.body_i, data.body_j, NB, members, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
                            force_out.data_ptr<T>(), torque_out.data_ptr<T>(), csr, bad, block_ok, run_block);
@@ -646,10 +675,11 @@ TORCHDEM_SCALAR_LOOP void gather_walls(const std::vector<at::Tensor>& in, int64_
   }
 }
 
-// Sphere-wall contacts [q0, q0 + n), n <= kBlock; same three stages as pair_block (row k of
-// this block at rows + 6 k).
+// Sphere-wall contacts [q0, q0 + n), n <= kBlock; stages 1-3 of pair_block, on every contact
+// (a wall list is short): row k at rows + 6 k, rsel[k] = k; returns n.
 template <typename T, bool kAi2011>
-void wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, T* rows, T dt, int64_t q0, int64_t n) {
+int64_t wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, T* rows, int32_t* rsel, T dt,
+                   int64_t q0, int64_t n) {
   enum { XW = kWXW, C = kWC, U = kWU, VV = kWVV, WV = kWWV, BX = kWBX, BV = kWBV, BW = kWBW, TG = kWTG, RL = kWRL,
          HU = kWHU, HV = kWHV, PR = kWPR };
   alignas(64) T g[kWallOperands][kBlock];
@@ -693,11 +723,13 @@ void wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, T* 
   for (int64_t k = 0; k < n; ++k) {
     const int64_t q = q0 + k;
     for (int c = 0; c < 6; ++c) rows[6 * k + c] = o[F + c][k];
+    rsel[k] = static_cast<int32_t>(k);
     for (int c = 0; c < 3; ++c) {
       tang_new[3 * q + c] = o[TN + c][k];
       roll_new[3 * q + c] = o[RN + c][k];
     }
   }
+  return n;
 }
 
 // wall_forces for one dtype (inputs validated and contiguous).
@@ -716,9 +748,9 @@ void wall_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
     bad += n_bad;
     return n_bad == 0;
   };
-  auto run_block = [&](int64_t q0, int64_t n, T* rows) {
-    ai2011 ? wall_block<T, true>(in, tang_new, roll_new, rows, T(dt), q0, n)
-           : wall_block<T, false>(in, tang_new, roll_new, rows, T(dt), q0, n);
+  auto run_block = [&](int64_t q0, int64_t n, T* rows, int32_t* sel) {
+    return ai2011 ? wall_block<T, true>(in, tang_new, roll_new, rows, sel, T(dt), q0, n)
+                  : wall_block<T, false>(in, tang_new, roll_new, rows, sel, T(dt), q0, n);
   };
   contacts_to_bodies<T, 6>(Q, pb, nullptr, NB, members, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
                            force_out.data_ptr<T>(), torque_out.data_ptr<T>(), csr, bad, block_ok, run_block);
