@@ -184,10 +184,9 @@ def _raw_call(extension, system, state, xs, omega, members, order=None):
     X = state.bodies.position.reshape(-1, 3)
     V = state.bodies.velocity.reshape(-1, 3)
     zero = torch.zeros_like(X)
-    pair = extension.pair_forces(xs, X, V, omega, zero, zero, p.i, p.j, p.body_i, p.body_j, p.radius_i, p.radius_j,
-                                 p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
-                                 p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, system.dt,
-                                 system.grid.period.tolist(), False, system.grid.is_periodic, members)
+    pair = extension.pair_forces(xs, X, V, omega, zero, zero, p.i, p.j, p.body_i, p.body_j, *system.pair_lookup,
+                                 p.tangential, p.rolling, system.dt, system.grid.period.tolist(), False,
+                                 system.grid.is_periodic, members)
     wall = extension.wall_forces(xs, X, V, omega, zero, zero, w.sphere, w.body, w.wall, walls.centre, walls.axis_u,
                                  walls.axis_v, walls.half_u, walls.half_v, walls.velocity_at(0.0),
                                  walls.active_at(0.0), w.radius, w.mass_eff, w.young_eff, w.shear_eff, w.beta,
@@ -231,6 +230,15 @@ def test_cpp_kernels_reject_bad_indices(extension):
     bad = state.set(pairs=p.set(body_j=p.body_j.clone().fill_(system.batch * system.n_bodies)))
     with pytest.raises(RuntimeError, match="outside"):
         contact_forces(system, bad, xs, omega, 0.0, Kernels(backend="cpp"))
+    # a pair-table row beyond the table (the constants are looked up per touching pair)
+    radius, mass, inertia, pair_row, material, table = system.pair_lookup
+    X = state.bodies.position.reshape(-1, 3)
+    zero = torch.zeros_like(X)
+    with pytest.raises(RuntimeError, match="columns of the material-pair table"):
+        extension.pair_forces(xs, X, state.bodies.velocity.reshape(-1, 3), omega, zero, zero, p.i, p.j, p.body_i,
+                              p.body_j, radius, mass, inertia, pair_row + table.shape[1], material, table,
+                              p.tangential, p.rolling, system.dt, system.grid.period.tolist(), False,
+                              system.grid.is_periodic, 1)
 
 
 def test_run_with_cpp_kernels_equals_run_with_torch_kernels(extension):

@@ -221,7 +221,8 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
             xs, X, V, omega, force, torque, p.i, p.j, p.body_i, p.body_j, p.radius_i, p.radius_j,
             p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
             p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt=dt, period=system.grid.period,
-            stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic, members=B)
+            stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic, members=B,
+            lookup=system.pair_lookup)
         p = p.set(tangential=tang, rolling=roll)
     wc = state.walls
     if wc.n:
@@ -443,16 +444,23 @@ class Kernels:
 
     def pair(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
              *contacts: Tensor, dt: Tensor, period: Tensor, stiffness_model: str, periodic: bool,
-             members: int = 1) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+             members: int = 1, lookup: tuple[Tensor, ...] | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """:func:`pair_kernel` (same arguments; ``contacts`` are i ... rolling in its order).
 
         ``members``: ensemble size B of the flat ``[B*Nb]`` bodies; the C++ kernel then gives
-        each thread whole members (same results, one pass less through memory)."""
+        each thread whole members (same results, one pass less through memory).
+        ``lookup``: :attr:`System.pair_lookup`; the C++ kernel reads the per-pair constants from
+        it instead of from ``contacts`` (same values, less memory traffic)."""
         ext = self.extension(xs)
         if ext is None:
             return self.torch_pair(xs, X, V, omega, force, torque, *contacts, dt, period, stiffness_model, periodic)
-        f, tau, tang, roll = ext.pair_forces(xs, X, V, omega, force, torque, *contacts, float(dt),
-                                             period.tolist(), _ai2011(stiffness_model), periodic, members)
+        if lookup is None:
+            raise ValueError("Kernels.pair: the C++ pair kernel needs lookup=system.pair_lookup")
+        i, j, body_i, body_j = contacts[:4]
+        tangential, rolling = contacts[-2:]
+        f, tau, tang, roll = ext.pair_forces(xs, X, V, omega, force, torque, i, j, body_i, body_j, *lookup,
+                                             tangential, rolling, float(dt), period.tolist(),
+                                             _ai2011(stiffness_model), periodic, members)
         return f, tau, tang, roll
 
     def wall(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,

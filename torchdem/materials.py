@@ -263,6 +263,14 @@ class MaterialTables:
         each row contiguous."""
         return torch.stack([getattr(self, f).reshape(-1) for f in self.CONTACT_FIELDS])
 
+    LAW_FIELDS = ("young_eff", "shear_eff", "beta", "mu_s", "mu_r", "rolling_damping")
+
+    @functools.cached_property
+    def law_table(self) -> Tensor:
+        """``[6, B * M * M]``: the :attr:`LAW_FIELDS` tables (the constants of the contact law), in
+        the row order the C++ pair kernel reads."""
+        return torch.stack([getattr(self, f).reshape(-1) for f in self.LAW_FIELDS])
+
     def gather(self, index: Tensor) -> dict[str, Tensor]:
         """The :attr:`CONTACT_FIELDS` at flat pair-table indices ``index`` ``[P]``: ``[P]`` each."""
         rows = torch.index_select(self.stacked, 1, index)

@@ -117,6 +117,14 @@ class System:
         return inertia + self.mass.reshape(-1)[body] * radius * radius
 
     @functools.cached_property
+    def pair_lookup(self) -> tuple[Tensor, ...]:
+        """Where the C++ pair kernel looks up the per-pair constants of a touching pair: per
+        sphere ``[B * Ns]`` radius, body mass, rolling inertia, pair-table row and material,
+        and the ``[6, B * M * M]`` :attr:`MaterialTables.law_table`."""
+        return (self.sphere_radius.reshape(-1).contiguous(), self.sphere_mass, self.sphere_rolling_inertia,
+                self.sphere_pair_row, self.sphere_material.reshape(-1).contiguous(), self.tables.law_table)
+
+    @functools.cached_property
     def sphere_pair_row(self) -> Tensor:
         """``[B * Ns]`` int64 ``(member * M + material) * M`` of every sphere: plus the other
         side's material id, the flat index into the ``[B, M, M]`` tables."""

@@ -4,7 +4,9 @@
 // `wall_kernel` in torchdem/integrate.py compute with the laws of torchdem/contact.py
 // (Hertz-Mindlin no-slip with tangential history, EPSD type-C rolling resistance with
 // history, periodic minimum image), in float32 or float64, and return new tensors
-// (force, torque, tangential, rolling); nothing passed in is modified.
+// (force, torque, tangential, rolling); nothing passed in is modified. `pair_forces` takes
+// the per-pair constants of pair_kernel as per-sphere arrays and the material-pair table
+// (see PairData), `wall_forces` as per-contact arrays like wall_kernel.
 //
 // Per block of 64 contacts: pick the pairs that can touch (about a quarter of a Verlet list;
 // the others get zero springs and no row), gather their operands (scalar loads), apply the
@@ -395,12 +397,20 @@ int64_t rows_of(const at::Tensor& t, const char* name) {
 }
 
 // Inputs and outputs of the pair loop (all arrays contiguous; see pair_kernel).
+// The per-pair constants of pair_kernel (radii, R*, m*, I_r*, E*, G*, beta, mu_s, mu_r, eta_r)
+// are not streamed per pair: they are looked up, for the pairs that touch only, in per-sphere
+// arrays (a few thousand entries per member, cache-resident) and in the [6, R] table of the
+// material pairs (rows young_eff, shear_eff, beta, mu_s, mu_r, rolling_damping; column
+// pair_row[i] + material[j]), and combined exactly as integrate.pair_constants combines them.
+// That takes 88 of the ~250 bytes a listed pair cost per step off the memory traffic.
 template <typename T>
 struct PairData {
   const T *x, *X, *V, *W;                 // [S, 3], [NB, 3] x3
   const int64_t *i, *j, *body_i, *body_j;  // [P]
-  const T *radius_i, *radius_j, *radius_eff, *mass_eff, *young_eff, *shear_eff, *beta, *mu_s, *mu_r,
-      *rolling_damping, *rolling_inertia;  // [P]
+  const T *radius, *mass, *rolling_inertia;  // [S]
+  const int64_t *pair_row, *material;      // [S]
+  const T* table;                          // [6, R]
+  int64_t table_columns;                   // R
   const T *tangential, *rolling;          // [P, 3]
   T *tangential_new, *rolling_new;        // [P, 3]
   T period[3], inv_period[3];
@@ -429,7 +439,7 @@ TORCHDEM_SCALAR_LOOP int64_t touching_pairs(const PairData<T>& data, int64_t p0,
     const int64_t p = p0 + k;
     const Vec3<T> d = minimum_image(load(data.x, data.j[p]) - load(data.x, data.i[p]), data.period,
                                     data.inv_period);
-    const double reach = (static_cast<double>(data.radius_i[p]) + static_cast<double>(data.radius_j[p])) *
+    const double reach = (static_cast<double>(data.radius[data.i[p]]) + static_cast<double>(data.radius[data.j[p]])) *
                          (1.0 + 1e-9);
     const double dist2 = static_cast<double>(d.x) * d.x + static_cast<double>(d.y) * d.y +
                          static_cast<double>(d.z) * d.z;
@@ -441,10 +451,13 @@ TORCHDEM_SCALAR_LOOP int64_t touching_pairs(const PairData<T>& data, int64_t p0,
 
 // Stage 1 of pair_block, kept scalar on purpose: vector gather instructions are slow on
 // many x86 CPUs (microcode mitigations of "gather data sampling"), scalar loads are not.
-// Gathers the operands of the m pairs p0 + sel[t] into column t.
+// Gathers the operands of the m pairs p0 + sel[t] into column t; returns how many of them have
+// a table column outside [0, R) (their operands are then those of column 0: the call fails).
 template <typename T>
-TORCHDEM_SCALAR_LOOP void gather_pairs(const PairData<T>& data, int64_t p0, const int64_t* sel, int64_t m,
-                                       T (*g)[kBlock]) {
+TORCHDEM_SCALAR_LOOP int64_t gather_pairs(const PairData<T>& data, int64_t p0, const int64_t* sel, int64_t m,
+                                          T (*g)[kBlock]) {
+  int64_t bad = 0;
+  const int64_t R = data.table_columns;
   for (int64_t t = 0; t < m; ++t) {
     const int64_t p = p0 + sel[t];
     const int64_t a = data.i[p], b = data.j[p], ba = data.body_i[p], bb = data.body_j[p];
@@ -460,18 +473,26 @@ TORCHDEM_SCALAR_LOOP void gather_pairs(const PairData<T>& data, int64_t p0, cons
       g[kTG + c][t] = data.tangential[3 * p + c];
       g[kRL + c][t] = data.rolling[3 * p + c];
     }
-    g[kRI][t] = data.radius_i[p];
-    g[kRJ][t] = data.radius_j[p];
-    g[kREFF][t] = data.radius_eff[p];
-    g[kMEFF][t] = data.mass_eff[p];
-    g[kE][t] = data.young_eff[p];
-    g[kG][t] = data.shear_eff[p];
-    g[kBETA][t] = data.beta[p];
-    g[kMUS][t] = data.mu_s[p];
-    g[kMUR][t] = data.mu_r[p];
-    g[kETA][t] = data.rolling_damping[p];
-    g[kIR][t] = data.rolling_inertia[p];
+    const T ri = data.radius[a], rj = data.radius[b], mi = data.mass[a], mj = data.mass[b];
+    const T Ii = data.rolling_inertia[a], Ij = data.rolling_inertia[b];
+    int64_t col = data.pair_row[a] + data.material[b];
+    if (static_cast<uint64_t>(col) >= static_cast<uint64_t>(R)) {
+      ++bad;
+      col = 0;
+    }
+    g[kRI][t] = ri;
+    g[kRJ][t] = rj;
+    g[kREFF][t] = ri * rj / (ri + rj);
+    g[kMEFF][t] = mi * mj / (mi + mj);
+    g[kIR][t] = Ii * Ij / (Ii + Ij);
+    g[kE][t] = data.table[col];
+    g[kG][t] = data.table[R + col];
+    g[kBETA][t] = data.table[2 * R + col];
+    g[kMUS][t] = data.table[3 * R + col];
+    g[kMUR][t] = data.table[4 * R + col];
+    g[kETA][t] = data.table[5 * R + col];
   }
+  return bad;
 }
 
 // Pairs [p0, p0 + n), n <= kBlock, in four stages: (0) pick the pairs that may touch; (1)
@@ -480,14 +501,16 @@ TORCHDEM_SCALAR_LOOP void gather_pairs(const PairData<T>& data, int64_t p0, cons
 // write springs (zeros for the pairs that do not touch, which is what the law gives them up
 // to the sign of zero) and rows for the pairs that may touch (the others' would be zero).
 // rows, rsel: where the packed rows of this block go (row t at rows + 9 t, for the pair
-// p0 + rsel[t]); returns their number.
+// p0 + rsel[t]); returns their number. Pairs with a table column out of range are counted in
+// `bad`.
 template <typename T, bool kAi2011>
-int64_t pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows, int32_t* rsel) {
+int64_t pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows, int32_t* rsel, std::atomic<int64_t>& bad) {
   enum { XA = kXA, XB = kXB, BA = kBA, BB = kBB, VA = kVA, VB = kVB, WA = kWA, WB = kWB, TG = kTG, RL = kRL };
   int64_t sel[kBlock];
   const int64_t m = touching_pairs(data, p0, n, sel);
   alignas(64) T g[kPairOperands][kBlock];
-  gather_pairs(data, p0, sel, m, g);
+  const int64_t bad_columns = gather_pairs(data, p0, sel, m, g);
+  if (bad_columns) bad += bad_columns;
   // Stage 2: contact law. o[c][t]: outputs.
   enum { F = 0, TI = 3, TJ = 6, TN = 9, RN = 12, NO = 15 };
   alignas(64) T o[NO][kBlock];
@@ -561,19 +584,15 @@ void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
   data.j = in[7].data_ptr<int64_t>();
   data.body_i = in[8].data_ptr<int64_t>();
   data.body_j = in[9].data_ptr<int64_t>();
-  data.radius_i = in[10].data_ptr<T>();
-  data.radius_j = in[11].data_ptr<T>();
-  data.radius_eff = in[12].data_ptr<T>();
-  data.mass_eff = in[13].data_ptr<T>();
-  data.young_eff = in[14].data_ptr<T>();
-  data.shear_eff = in[15].data_ptr<T>();
-  data.beta = in[16].data_ptr<T>();
-  data.mu_s = in[17].data_ptr<T>();
-  data.mu_r = in[18].data_ptr<T>();
-  data.rolling_damping = in[19].data_ptr<T>();
-  data.rolling_inertia = in[20].data_ptr<T>();
-  data.tangential = in[21].data_ptr<T>();
-  data.rolling = in[22].data_ptr<T>();
+  data.radius = in[10].data_ptr<T>();
+  data.mass = in[11].data_ptr<T>();
+  data.rolling_inertia = in[12].data_ptr<T>();
+  data.pair_row = in[13].data_ptr<int64_t>();
+  data.material = in[14].data_ptr<int64_t>();
+  data.table = in[15].data_ptr<T>();
+  data.table_columns = in[15].size(1);
+  data.tangential = in[16].data_ptr<T>();
+  data.rolling = in[17].data_ptr<T>();
   data.tangential_new = tang_out.data_ptr<T>();
   data.rolling_new = roll_out.data_ptr<T>();
   for (int d = 0; d < 3; ++d) {
@@ -595,21 +614,21 @@ void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
     return n_bad == 0;
   };
   auto run_block = [&](int64_t p0, int64_t n, T* rows, int32_t* sel) {
-    return data.ai2011 ? pair_block<T, true>(data, p0, n, rows, sel) : pair_block<T, false>(data, p0, n, rows, sel);
+    return data.ai2011 ? pair_block<T, true>(data, p0, n, rows, sel, bad)
+                       : pair_block<T, false>(data, p0, n, rows, sel, bad);
   };
   contacts_to_bodies<T, 9>(P, data.body_i, data.body_j, NB, members, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
                            force_out.data_ptr<T>(), torque_out.data_ptr<T>(), csr, bad, block_ok, run_block);
-  TORCH_CHECK(bad.load() == 0, "pair_forces: ", bad.load(), " sphere or body indices are outside [0, ", S,
-              ") (spheres) or [0, ", NB, ") (bodies)");
+  TORCH_CHECK(bad.load() == 0, "pair_forces: ", bad.load(), " sphere, body or table indices are outside [0, ", S,
+              ") (spheres), [0, ", NB, ") (bodies) or [0, ", data.table_columns, ") (columns of the material-pair table)");
 }
 
 std::vector<at::Tensor> pair_forces(
     at::Tensor xs, at::Tensor X, at::Tensor V, at::Tensor omega, at::Tensor force, at::Tensor torque,
-    at::Tensor i, at::Tensor j, at::Tensor body_i, at::Tensor body_j, at::Tensor radius_i, at::Tensor radius_j,
-    at::Tensor radius_eff, at::Tensor mass_eff, at::Tensor young_eff, at::Tensor shear_eff, at::Tensor beta,
-    at::Tensor mu_s, at::Tensor mu_r, at::Tensor rolling_damping, at::Tensor rolling_inertia,
-    at::Tensor tangential, at::Tensor rolling, double dt, at::ArrayRef<double> period, bool ai2011,
-    bool periodic, int64_t members) {
+    at::Tensor i, at::Tensor j, at::Tensor body_i, at::Tensor body_j, at::Tensor sphere_radius,
+    at::Tensor sphere_mass, at::Tensor sphere_rolling_inertia, at::Tensor sphere_pair_row,
+    at::Tensor sphere_material, at::Tensor table, at::Tensor tangential, at::Tensor rolling, double dt,
+    at::ArrayRef<double> period, bool ai2011, bool periodic, int64_t members) {
   const auto dtype = xs.scalar_type();
   TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
   TORCH_CHECK(period.size() == 3, "period has ", period.size(), " entries; expected 3");
@@ -617,17 +636,17 @@ std::vector<at::Tensor> pair_forces(
   check_cpu(xs, "xs", dtype, S, 3);
   for (auto* p : {&X, &V, &omega, &force, &torque}) check_cpu(*p, "body tensor", dtype, NB, 3);
   for (auto* p : {&i, &j, &body_i, &body_j}) check_cpu(*p, "index tensor", at::kLong, P, 0);
-  for (auto* p : {&radius_i, &radius_j, &radius_eff, &mass_eff, &young_eff, &shear_eff, &beta, &mu_s, &mu_r,
-                  &rolling_damping, &rolling_inertia})
-    check_cpu(*p, "per-pair tensor", dtype, P, 0);
+  for (auto* p : {&sphere_radius, &sphere_mass, &sphere_rolling_inertia}) check_cpu(*p, "per-sphere tensor", dtype, S, 0);
+  for (auto* p : {&sphere_pair_row, &sphere_material}) check_cpu(*p, "per-sphere index tensor", at::kLong, S, 0);
+  TORCH_CHECK(table.dim() == 2 && table.size(0) == 6, "table has shape ", table.sizes(), "; expected [6, R]");
+  check_cpu(table, "table", dtype, 6, table.size(1));
   check_cpu(tangential, "tangential", dtype, P, 3);
   check_cpu(rolling, "rolling", dtype, P, 3);
-  std::vector<at::Tensor> in = {xs, X, V, omega, force, torque, i, j, body_i, body_j, radius_i, radius_j,
-                                radius_eff, mass_eff, young_eff, shear_eff, beta, mu_s, mu_r, rolling_damping,
-                                rolling_inertia, tangential, rolling};
+  std::vector<at::Tensor> in = {xs, X, V, omega, force, torque, i, j, body_i, body_j, sphere_radius, sphere_mass,
+                                sphere_rolling_inertia, sphere_pair_row, sphere_material, table, tangential, rolling};
   for (auto& t : in) t = t.contiguous();
   at::Tensor force_out = at::empty_like(in[4]), torque_out = at::empty_like(in[5]);
-  at::Tensor tang_out = at::empty_like(in[21]), roll_out = at::empty_like(in[22]);
+  at::Tensor tang_out = at::empty_like(in[16]), roll_out = at::empty_like(in[17]);
   AT_DISPATCH_FLOATING_TYPES(dtype, "pair_forces", [&] {
     pair_forces_impl<scalar_t>(in, force_out, torque_out, tang_out, roll_out, S, NB, P, dt, period, ai2011,
                                periodic, members);
@@ -800,10 +819,10 @@ std::vector<at::Tensor> wall_forces(
 // the pybind11 headers of torch take ~4x longer to compile than the whole kernel).
 TORCH_LIBRARY_FRAGMENT(torchdem, m) {
   m.def("pair_forces(Tensor xs, Tensor X, Tensor V, Tensor omega, Tensor force, Tensor torque, Tensor i, "
-        "Tensor j, Tensor body_i, Tensor body_j, Tensor radius_i, Tensor radius_j, Tensor radius_eff, "
-        "Tensor mass_eff, Tensor young_eff, Tensor shear_eff, Tensor beta, Tensor mu_s, Tensor mu_r, "
-        "Tensor rolling_damping, Tensor rolling_inertia, Tensor tangential, Tensor rolling, float dt, "
-        "float[] period, bool ai2011, bool periodic, int members=1) -> Tensor[]",
+        "Tensor j, Tensor body_i, Tensor body_j, Tensor sphere_radius, Tensor sphere_mass, "
+        "Tensor sphere_rolling_inertia, Tensor sphere_pair_row, Tensor sphere_material, Tensor table, "
+        "Tensor tangential, Tensor rolling, float dt, float[] period, bool ai2011, bool periodic, "
+        "int members=1) -> Tensor[]",
         &pair_forces);
   m.def("wall_forces(Tensor xs, Tensor X, Tensor V, Tensor omega, Tensor force, Tensor torque, Tensor sphere, "
         "Tensor body, Tensor wall, Tensor wall_centre, Tensor wall_u, Tensor wall_v, Tensor half_u, "
