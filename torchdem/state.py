@@ -17,6 +17,7 @@ Units are SI throughout: metres, seconds, kilograms, newtons, radians.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -26,8 +27,23 @@ Tensor = torch.Tensor
 
 class _Replaceable:
     def set(self, **changes):
-        """Return a copy with the given fields replaced (``dataclasses.replace``)."""
-        return dataclasses.replace(self, **changes)
+        """Return a copy with the given fields replaced (what ``dataclasses.replace`` returns for
+        these plain frozen dataclasses: no ``__post_init__``, no cached properties), without
+        re-running ``__init__``: a step replaces fields ~8 times, and ``dataclasses.replace``
+        cost 3 % of a slice run."""
+        names = _field_names(type(self))
+        unknown = set(changes) - names
+        if unknown:
+            raise TypeError(f"{type(self).__name__}.set: unknown field(s) {sorted(unknown)}")
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
+
+
+@functools.lru_cache(maxsize=None)
+def _field_names(cls: type) -> frozenset[str]:
+    return frozenset(f.name for f in dataclasses.fields(cls))
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ Contract:
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -114,8 +115,20 @@ class Walls:
     def n(self) -> int:
         return self.centre.shape[0]
 
+    @functools.cached_property
+    def moves(self) -> bool:
+        """True if some wall has a velocity and a move window (else shift and velocity are zero
+        at all times: one cached zero tensor instead of half a dozen operations per step)."""
+        return bool(((self.velocity != 0).any(-1) & (self.move_until > self.move_from)).any())
+
+    @functools.cached_property
+    def _still(self) -> Tensor:
+        return torch.zeros_like(self.centre)
+
     def shift(self, time: float) -> Tensor:
         """``[W, 3]`` displacement of every wall at ``time`` (s) from its t = 0 position, m."""
+        if not self.moves:
+            return self._still
         span = (self.move_until - self.move_from).clamp_min(0.0)
         moved = (torch.as_tensor(time, dtype=self.centre.dtype) - self.move_from).clamp(min=0.0)
         moved = torch.minimum(moved, span)
@@ -123,6 +136,8 @@ class Walls:
 
     def velocity_at(self, time: float) -> Tensor:
         """``[W, 3]`` wall velocity at ``time``, m/s."""
+        if not self.moves:
+            return self._still
         moving = (self.move_from <= time) & (time < self.move_until)
         return self.velocity * moving[:, None].to(self.velocity.dtype)
 

@@ -57,10 +57,11 @@ template <typename T> inline Quat<T> mul(Quat<T> a, Quat<T> b) {
           a.w * b.y - a.x * b.z + a.y * b.w + a.z * b.x, a.w * b.z + a.x * b.y - a.y * b.x + a.z * b.w};
 }
 
-// rigid.angular_velocity: R diag(1/I) R^T L.
-template <typename T> inline V3<T> angular_velocity(Quat<T> q, V3<T> L, V3<T> I) {
+// rigid.angular_velocity: R diag(1/I) R^T L, with inv_I = 1 / I (computed once per body:
+// the drift needs omega three times per body, and divisions dominated its cost).
+template <typename T> inline V3<T> angular_velocity(Quat<T> q, V3<T> L, V3<T> inv_I) {
   const V3<T> body = rotate(conj(q), L);
-  return rotate(q, V3<T>{body.x / I.x, body.y / I.y, body.z / I.z});
+  return rotate(q, V3<T>{body.x * inv_I.x, body.y * inv_I.y, body.z * inv_I.z});
 }
 
 // rigid.quat_from_rotation_vector. A body turns by far less than 0.2 rad in one step, and
@@ -83,14 +84,14 @@ template <typename T> inline Quat<T> from_rotation_vector(V3<T> rv) {
 }
 
 // rigid.advance_orientation (midpoint rule at fixed world angular momentum), renormalised.
-template <typename T> inline Quat<T> advance(Quat<T> q, V3<T> L, V3<T> I, T dt) {
-  const V3<T> w0 = angular_velocity(q, L, I);
+template <typename T> inline Quat<T> advance(Quat<T> q, V3<T> L, V3<T> inv_I, T dt) {
+  const V3<T> w0 = angular_velocity(q, L, inv_I);
   const T h = T(0.5) * dt;
   const Quat<T> q_half = mul(from_rotation_vector(V3<T>{h * w0.x, h * w0.y, h * w0.z}), q);
-  const V3<T> wh = angular_velocity(q_half, L, I);
+  const V3<T> wh = angular_velocity(q_half, L, inv_I);
   const Quat<T> n = mul(from_rotation_vector(V3<T>{dt * wh.x, dt * wh.y, dt * wh.z}), q);
-  const T len = std::sqrt(n.w * n.w + n.x * n.x + n.y * n.y + n.z * n.z);
-  return {n.w / len, n.x / len, n.y / len, n.z / len};
+  const T inv_len = T(1) / std::sqrt(n.w * n.w + n.x * n.x + n.y * n.y + n.z * n.z);
+  return {n.w * inv_len, n.x * inv_len, n.y * inv_len, n.z * inv_len};
 }
 
 void check(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t rows, int64_t cols) {
@@ -127,8 +128,9 @@ void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out,
       if (spheres_only) {
         wb = {Lb.x / Ib.x, Lb.y / Ib.y, Lb.z / Ib.z};
       } else {
-        if (active[b]) qb = advance(qb, Lb, Ib, dt);
-        wb = angular_velocity(qb, Lb, Ib);
+        const V3<T> inv_I{T(1) / Ib.x, T(1) / Ib.y, T(1) / Ib.z};
+        if (active[b]) qb = advance(qb, Lb, inv_I, dt);
+        wb = angular_velocity(qb, Lb, inv_I);
       }
       q[4 * b] = qb.w;
       q[4 * b + 1] = qb.x;
