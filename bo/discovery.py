@@ -296,11 +296,17 @@ def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Ma
                         measured: MeasuredData, settings: DiscoverySettings) -> tuple[Discrepancy, np.ndarray]:
     """Step 1 (see the module docstring); also returns the replicates ``[C, r, K]``."""
     conditions = list(measured.names)
-    reps = _run(store, executor, "discrepancy", "calibrated/" + _key(sorted(calibrated.items())),
-                [dict(calibrated)], settings.seeds, conditions, settings.kpis)[0]
+    key = "calibrated/" + _key(sorted(calibrated.items()))
+    reps = _run(store, executor, "discrepancy", key, [dict(calibrated)], settings.seeds, conditions,
+                settings.kpis)[0]
     cells = _cells(reps, conditions, settings.kpis, _lab(measured, settings.kpis))
     finite = [c for c in cells if math.isfinite(c.z)]
     if not finite:
+        failed = store.records("discrepancy", batch_key=key, status="failed")
+        if failed:  # the runs failed: say so (and why), not that the KPIs do not match
+            raise RuntimeError(f"discrepancy: {len(failed)} DEM run(s) of the calibrated model failed and none gave "
+                               f"a KPI; the first ({failed[0].condition}, seed {failed[0].seed}): {failed[0].error} "
+                               f"(all errors in {store.path}, table evaluations)")
         raise ConfigError(f"discrepancy: no KPI of {list(settings.kpis)} was both simulated and measured; measured "
                           f"KPIs: {sorted({k for c in measured.names for k in measured.condition(c).kpis})}")
     chi2 = float(sum(c.z ** 2 for c in finite))

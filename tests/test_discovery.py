@@ -175,6 +175,20 @@ def test_no_candidates_measures_the_discrepancy_only(tmp_path):
     assert result.evaluations == {"discrepancy": 9, "total": 9}  # 3 conditions x 3 replicates, nothing else
 
 
+def test_failed_runs_are_reported_as_failures_not_as_missing_kpis(tmp_path):
+    """Every discrepancy run raising (a wrong build, a blow-up) names the runs and their error."""
+    def broken(*args, **kwargs):
+        raise RuntimeError("pair kernel exploded")
+
+    lab = _lab({})
+    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1), fit_seeds=(0, 1), candidates=())
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    calibrated = {**_known_model().fixed, **km.TRUE}
+    with pytest.raises(RuntimeError, match=r"6 DEM run\(s\) of the calibrated model failed .*pair kernel exploded"):
+        run_discovery(store, lambda model: InProcessExecutor(broken, batch_size=12), _known_model(), calibrated, lab,
+                      settings, echo=lambda s: None)
+
+
 def test_no_hidden_effect_invents_no_cause(tmp_path):
     result = _discover(tmp_path, _lab({}))
     assert not result.discrepancy.significant
