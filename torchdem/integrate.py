@@ -212,9 +212,8 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
     B, Nb = system.batch, system.n_bodies
     X = state.bodies.position.reshape(B * Nb, 3)
     V = state.bodies.velocity.reshape(B * Nb, 3)
-    force = torch.zeros_like(X)
-    torque = torch.zeros_like(X)
-    dt = torch.tensor(system.dt, dtype=X.dtype, device=X.device)
+    force = torque = system.zero_body_vectors
+    dt = system.dt_tensor
     p = state.pairs
     if p.n:
         force, torque, tang, roll = kernels.pair(
@@ -229,7 +228,7 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
         walls = system.walls
         force, torque, tang, roll = kernels.wall(
             xs, X, V, omega, force, torque, wc.sphere, wc.body, wc.wall,
-            walls.centre + walls.shift(time), walls.axis_u, walls.axis_v, walls.half_u, walls.half_v,
+            walls.centre + walls.shift(time) if walls.moves else walls.centre, walls.axis_u, walls.axis_v, walls.half_u, walls.half_v,
             walls.velocity_at(time), walls.active_at(time), wc.radius, wc.mass_eff, wc.young_eff,
             wc.shear_eff, wc.beta, wc.mu_s, wc.mu_r, wc.rolling_damping, wc.rolling_inertia,
             wc.tangential, wc.rolling, dt=dt, stiffness_model=system.rolling_stiffness, members=B)
@@ -355,7 +354,7 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
     kernels = kernels or EAGER
     dt = system.dt
     b = state.bodies
-    dt_t = torch.tensor(dt, dtype=b.position.dtype, device=b.position.device)
+    dt_t = system.dt_tensor
     x, v, L, q, xs, omega, disp2 = kernels.drift(
         b.position, b.velocity, b.angular_momentum, b.orientation, b.force, b.torque, system.mass,
         system.inertia, b.active, system.sphere_body_flat, system.sphere_offset.reshape(-1, 3),

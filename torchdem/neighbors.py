@@ -20,6 +20,7 @@ Contract:
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -50,7 +51,7 @@ class CellGrid:
     def n_cells(self) -> int:
         return self.dims[0] * self.dims[1] * self.dims[2]
 
-    @property
+    @functools.cached_property
     def is_periodic(self) -> bool:
         return bool((self.period > 0).any())
 

@@ -117,6 +117,17 @@ class System:
         return inertia + self.mass.reshape(-1)[body] * radius * radius
 
     @functools.cached_property
+    def dt_tensor(self) -> Tensor:
+        """:attr:`dt` as a 0-d tensor of the state's dtype and device (the kernels' argument)."""
+        return torch.tensor(self.dt, dtype=self.mass.dtype, device=self.mass.device)
+
+    @functools.cached_property
+    def zero_body_vectors(self) -> Tensor:
+        """``[B * Nb, 3]`` zeros: where the contact forces start. Kernels never write into their
+        inputs, so one tensor serves every step."""
+        return torch.zeros(self.batch * self.n_bodies, 3, dtype=self.mass.dtype, device=self.mass.device)
+
+    @functools.cached_property
     def pair_lookup(self) -> tuple[Tensor, ...]:
         """Where the C++ pair kernel looks up the per-pair constants of a touching pair: per
         sphere ``[B * Ns]`` radius, body mass, rolling inertia, pair-table row and material,
