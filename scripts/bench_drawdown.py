@@ -13,7 +13,7 @@ particle-steps per second, and the CPU other processes used meanwhile (figures t
 Issue target on the 2-core reference machine: one run within 2 minutes, a batch of 10 within
 10 minutes.
 
-Usage: ``python scripts/bench_drawdown.py [--batch 10] [--json] [--skip-single] [-- sim.compile=true ...]``
+Usage: ``python scripts/bench_drawdown.py [--batch 10] [--json] [--skip-single | --skip-batch] [-- sim.compile=true ...]``
 """
 from __future__ import annotations
 
@@ -57,6 +57,7 @@ def main(argv=None) -> None:
     parser.add_argument("--batch", type=int, default=10)
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--skip-single", action="store_true")
+    parser.add_argument("--skip-batch", action="store_true")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. sim.compile=true")
     args = parser.parse_args(argv)
     test = make_test(args.overrides)
@@ -65,7 +66,7 @@ def main(argv=None) -> None:
         f"slice {test.geometry.slice_depth} m, G {test.settings.shear_modulus}, fines cut {test.settings.fines_cut}")
     figures = {}
     for name, members in (("single", 1), ("batch", args.batch)):
-        if name == "single" and args.skip_single:
+        if (name == "single" and args.skip_single) or (name == "batch" and args.skip_batch):
             continue
         r = time_run(test, members)
         figures[name] = r
