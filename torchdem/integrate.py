@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from torchdem import contact, neighbors
+from torchdem import _ext, contact, neighbors
 from torchdem.materials import MaterialTables
 from torchdem.rigid import advance_orientation, angular_velocity, quat_rotate
 from torchdem.state import Bodies, PairContacts, State, WallContacts
@@ -92,7 +92,7 @@ def pair_constants(i: Tensor, j: Tensor, radius: Tensor, mass: Tensor, rolling_i
     (``[P]`` each), from per-sphere ``[S]`` radius, mass, rolling inertia, body, pair-table row
     and material. On CPU one pass of the C++ kernel (same values), else tensor operations."""
     S = radius.shape[0]
-    ext = _cpu_extension(radius)
+    ext = _ext.kernels_for(radius.device)
     if ext is not None:
         index, value = ext.pair_constants(i, j, radius, mass, rolling_inertia, body, pair_row, material,
                                           tables.stacked)
@@ -106,15 +106,6 @@ def pair_constants(i: Tensor, j: Tensor, radius: Tensor, mass: Tensor, rolling_i
     return dict(key=i * S + j, body_i=body[i], body_j=body[j], radius_i=ri, radius_j=rj,
                 radius_eff=ri * rj / (ri + rj), mass_eff=mi * mj / (mi + mj),
                 rolling_inertia=ir_i * ir_j / (ir_i + ir_j), **tables.gather(pair_row[i] + material[j]))
-
-
-def _cpu_extension(like: Tensor):
-    """The C++ kernels for a CPU tensor (None on other devices or when they cannot be built)."""
-    if like.device.type != "cpu":
-        return None
-    from torchdem import _ext
-
-    return _ext.cpu_kernels()
 
 
 def pair_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
@@ -413,12 +404,8 @@ class Kernels:
 
     def extension(self, like: Tensor):
         """The C++ kernels for tensors like ``like``, or None when the torch kernels are used."""
-        if self.backend == "torch" or like.device.type != "cpu":
-            return None
-        from torchdem import _ext
-
-        ext = _ext.cpu_kernels()
-        if ext is None and self.backend == "cpp":
+        ext = _ext.kernels_for(like.device, self.backend != "torch")
+        if ext is None and self.backend == "cpp" and like.device.type == "cpu":
             raise RuntimeError(f"kernel backend 'cpp': the C++ contact kernels could not be built "
                                f"({_ext.build_error()}); use backend 'auto' or 'torch'")
         return ext

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchdem import _ext
 from torchdem.walls import Walls
 
 Tensor = torch.Tensor
@@ -116,14 +117,11 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
     periodic_axis = grid.period > 0
     if grid.is_periodic:
         position = wrap(position, grid.lower, grid.period)
-    if device.type == "cpu" and use_extension:
-        from torchdem import _ext
-
-        ext = _ext.cpu_kernels()
-        if ext is not None:
-            return ext.cell_pairs(position, radius, body, active, grid.lower.tolist(), grid.cell_size.tolist(),
-                                  list(grid.dims), [float(p) for p in grid.period.tolist()], int(n_per_member),
-                                  float(skin))
+    ext = _ext.kernels_for(device, use_extension)
+    if ext is not None:
+        return ext.cell_pairs(position, radius, body, active, grid.lower.tolist(), grid.cell_size.tolist(),
+                              list(grid.dims), [float(p) for p in grid.period.tolist()], int(n_per_member),
+                              float(skin))
     cell = torch.floor((position - grid.lower) / grid.cell_size).long()
     cell = torch.minimum(cell.clamp_min(0), dims - 1)
     cell = torch.where(torch.isfinite(position).all(-1, keepdim=True), cell, torch.zeros_like(cell))
@@ -186,13 +184,10 @@ def find_wall_pairs(position: Tensor, radius: Tensor, active: Tensor, walls: Wal
     if W == 0 or position.shape[0] == 0:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return empty, empty
-    if device.type == "cpu" and use_extension:
-        from torchdem import _ext
-
-        ext = _ext.cpu_kernels()
-        if ext is not None:
-            return ext.wall_pairs(position, radius, active, walls.centre + shift, walls.axis_u, walls.axis_v,
-                                  walls.half_u, walls.half_v, wall_active, float(skin))
+    ext = _ext.kernels_for(device, use_extension)
+    if ext is not None:
+        return ext.wall_pairs(position, radius, active, walls.centre + shift, walls.axis_u, walls.axis_v,
+                              walls.half_u, walls.half_v, wall_active, float(skin))
     act = torch.nonzero(active).squeeze(1)
     live = torch.nonzero(wall_active).squeeze(1)
     # every active sphere against every live wall, broadcast [A, L] (the closest-point rule of
@@ -223,12 +218,9 @@ def carry_history(old_key: Tensor, old_values: list[Tensor], new_key: Tensor,
     Returns:
         tensors ``[P_new, ...]``.
     """
-    if new_key.device.type == "cpu" and use_extension and all(v.is_floating_point() for v in old_values):
-        from torchdem import _ext
-
-        ext = _ext.cpu_kernels()
-        if ext is not None:
-            return list(ext.carry_history(old_key, list(old_values), new_key))
+    ext = _ext.kernels_for(new_key.device, use_extension and all(v.is_floating_point() for v in old_values))
+    if ext is not None:
+        return list(ext.carry_history(old_key, list(old_values), new_key))
     out = [torch.zeros((new_key.shape[0],) + v.shape[1:], dtype=v.dtype, device=v.device) for v in old_values]
     if old_key.numel() == 0 or new_key.numel() == 0:
         return out

@@ -30,6 +30,8 @@ import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
+import torch
+
 # One extension, three sources: the contact laws, the cell-list pair search, the drift.
 SOURCES = [Path(__file__).with_name(name) for name in ("contact_cpu.cpp", "cells_cpu.cpp", "rigid_cpu.cpp")]
 # -march=native: the loops vectorise across contacts with the widest vector unit of this CPU.
@@ -56,6 +58,14 @@ def cpu_kernels() -> SimpleNamespace | None:
         if "module" not in _state:
             _state["module"] = _build()
     return _state["module"]  # type: ignore[return-value]
+
+
+def kernels_for(device: torch.device | str, enabled: bool = True) -> SimpleNamespace | None:
+    """The compiled kernels for tensors on ``device``: None off the CPU, when ``enabled`` is
+    False (the caller asked for the torch path) or when they cannot be built."""
+    if not enabled or torch.device(device).type != "cpu":
+        return None
+    return cpu_kernels()
 
 
 def build_error() -> str | None:
