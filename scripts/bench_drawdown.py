@@ -5,7 +5,11 @@ Prints figures; it is not a test and asserts nothing about speed.
 Contract: composes the same config as ``torchdem-simulate`` (``conf/simulate.yaml`` with the
 CPU profile: ``geometry=drawdown_slice``, ``mixture=pellet_sinter_50_50``, ``sim=cpu``) plus
 any Hydra overrides given after ``--``, then times ``DrawDownTest.run`` for B = 1 and for a
-batch of B = ``--batch`` replicates (one ensemble). For each it prints the bodies and spheres
+batch of B = ``--batch`` replicates (one ensemble). With ``--workers W`` (> 1) the batch is
+split into W worker processes (spawned, ``torch.set_num_threads(cores // W)`` each), each running
+its share of the replicates (its own seeds) as one ensemble: the same split as
+``executor=dask executor.n_workers=W``. Its wall time runs from the first submission to the
+last result, process start-up and extension loading included. For each it prints the bodies and spheres
 per member, steps, time step, wall time split into fill (particle placement) and simulation,
 particle-steps per second, and the CPU other processes used meanwhile (figures taken with
 ``other cores`` above ~0.1 are low). ``--json`` prints one JSON object.
@@ -13,13 +17,18 @@ particle-steps per second, and the CPU other processes used meanwhile (figures t
 Issue target on the 2-core reference machine: one run within 2 minutes, a batch of 10 within
 10 minutes.
 
-Usage: ``python scripts/bench_drawdown.py [--batch 10] [--json] [--skip-single | --skip-batch] [-- sim.compile=true ...]``
+Usage: ``python scripts/bench_drawdown.py [--batch 10] [--workers 2] [--json] [--skip-single | --skip-batch]
+[-- sim.compile=true ...]``
 """
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import json
+import multiprocessing
+import os
 import sys
+import time
 
 import torch
 from hydra import compose, initialize_config_dir
@@ -52,14 +61,53 @@ def time_run(test: DrawDownTest, members: int) -> dict:
     return out
 
 
+def _worker_run(overrides: list[str], seeds: list[int], threads: int) -> dict:
+    """One worker of ``--workers``: its replicates (``seeds``) as one ensemble on ``threads`` threads."""
+    torch.set_num_threads(threads)
+    result = make_test(overrides).run(replicates=len(seeds), seeds=seeds)
+    return {"members": len(seeds), "spheres_per_member": result.spheres, "steps": int(result.steps),
+            "dt_s": result.dt, "bodies_per_member": result.particles, "wall_s": result.wall_time_s,
+            "fill_s": result.build_time_s, "kpis_member0": result.kpis[0], "not_measured_member0": result.errors[0],
+            "mass_balance_member0": result.conservation[0]}
+
+
+def time_workers(overrides: list[str], members: int, workers: int) -> dict:
+    """The batch split over ``workers`` processes (see the module docstring)."""
+    cores = os.cpu_count() or 1
+    threads = max(1, cores // workers)
+    seeds = list(range(members))
+    shares = [seeds[w::workers] for w in range(workers) if seeds[w::workers]]
+    context = multiprocessing.get_context("spawn")
+    with CpuMonitor() as cpu:
+        started = time.perf_counter()
+        with concurrent.futures.ProcessPoolExecutor(len(shares), mp_context=context) as pool:
+            parts = list(pool.map(_worker_run, [overrides] * len(shares), shares, [threads] * len(shares)))
+        wall = time.perf_counter() - started
+    first = parts[0]
+    work = sum(p["members"] * p["spheres_per_member"] * p["steps"] for p in parts)
+    return {"members": members, "workers": len(shares), "threads_per_worker": threads,
+            "bodies_per_member": first["bodies_per_member"], "spheres_per_member": first["spheres_per_member"],
+            "steps": first["steps"], "dt_s": first["dt_s"], "wall_s": wall,
+            "fill_s": max(p["fill_s"] for p in parts), "simulation_s": max(p["wall_s"] - p["fill_s"] for p in parts),
+            "particle_steps_per_s": work / max(wall - max(p["fill_s"] for p in parts), 1e-9),
+            "other_cores": cpu.other_cores,
+            "worker_wall_s": [p["wall_s"] for p in parts], "kpis_member0": first["kpis_member0"],
+            "not_measured_member0": first["not_measured_member0"],
+            "mass_balance_member0": first["mass_balance_member0"]}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--batch", type=int, default=10)
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--skip-single", action="store_true")
     parser.add_argument("--skip-batch", action="store_true")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="split the batch over this many processes (threads: cores // workers each)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. sim.compile=true")
     args = parser.parse_args(argv)
+    if args.workers < 1 or args.workers > args.batch:
+        parser.error(f"--workers {args.workers}: expected 1 .. --batch ({args.batch})")
     test = make_test(args.overrides)
     log = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
     log(f"torch {torch.__version__}, threads {torch.get_num_threads()}, mixture {test.mixture.name}, "
@@ -68,9 +116,11 @@ def main(argv=None) -> None:
     for name, members in (("single", 1), ("batch", args.batch)):
         if (name == "single" and args.skip_single) or (name == "batch" and args.skip_batch):
             continue
-        r = time_run(test, members)
+        split = name == "batch" and args.workers > 1
+        r = time_workers(args.overrides, members, args.workers) if split else time_run(test, members)
         figures[name] = r
-        log(f"{name:6s} B={members:3d}: {r['spheres_per_member']} spheres/member, {r['steps']} steps of "
+        how = f" in {r['workers']} processes x {r['threads_per_worker']} threads" if split else ""
+        log(f"{name:6s} B={members:3d}{how}: {r['spheres_per_member']} spheres/member, {r['steps']} steps of "
             f"{r['dt_s']:.3g} s; wall {r['wall_s']:.1f} s (fill {r['fill_s']:.1f} s, simulation "
             f"{r['simulation_s']:.1f} s); {r['particle_steps_per_s']:.3g} particle-steps/s; other cores "
             f"{r['other_cores'] if r['other_cores'] is None else round(r['other_cores'], 2)}")
