@@ -180,6 +180,10 @@ class HypothesisScore:
         fitted_all: parameters fitted on every condition; in_sample_chi2: their surrogate chi^2.
         score: sum of held-out chi^2 + penalty x added. points: design points run.
         skipped: why the hypothesis was not fitted (unavailable for this model), else None.
+        held_out_failures: condition -> why its held-out runs gave no value for some measured KPI
+            (the fitted parameters could not be simulated there, e.g. a fill that does not fit the
+            box); that condition's held-out chi^2, hence the score, is then infinite: a hypothesis
+            that cannot predict a condition does not explain it.
     """
 
     name: str
@@ -196,6 +200,7 @@ class HypothesisScore:
     skipped: str | None = None
     held_out_cells: tuple[Cell, ...] = ()
     predicted_chi2: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    held_out_failures: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -408,20 +413,31 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
     # the held-out predictions checked with the DEM: each condition run with the parameters
     # fitted without it
     held_cells: list[Cell] = []
+    held: dict[str, float] = {}
+    failures: dict[str, str] = {}
     with executor_for(hyp_model) as executor:
         for c, x in without.items():
             params = {**calibrated, **x}
-            runs = _run(store, executor, f"discovery-{name}", f"held-out/{c}/" + _key(sorted(params.items())),
-                        [params], settings.seeds, [c], kpis)[0]
-            held_cells += _cells(runs, [c], kpis, lab)
-    held = {c: float(sum(x.z ** 2 for x in held_cells if x.condition == c and math.isfinite(x.z))) for c in without}
+            key = f"held-out/{c}/" + _key(sorted(params.items()))
+            runs = _run(store, executor, f"discovery-{name}", key, [params], settings.seeds, [c], kpis)[0]
+            cells = _cells(runs, [c], kpis, lab)
+            held_cells += cells
+            missing = [x.kpi for x in cells if x.n == 0]
+            if missing:  # the fitted parameters could not be simulated here: no prediction, no score
+                failed = store.records(f"discovery-{name}", batch_key=key, status="failed")
+                failures[c] = (f"{', '.join(missing)} not measured in any run"
+                               + (f"; first error: {failed[0].error}" if failed else ""))
+                held[c] = math.inf
+            else:
+                held[c] = float(sum(x.z ** 2 for x in cells if math.isfinite(x.z)))
     score = float(sum(held.values()) + settings.penalty * len(extra))
     echo(f"  {name}: {len(names)} parameters, {n_points} points; held-out chi^2 (DEM) "
          + ", ".join(f"{c} {v:.1f}" for c, v in held.items()) + " (surrogate "
-         + ", ".join(f"{v:.1f}" for v in predicted.values()) + f"); score {score:.1f}")
+         + ", ".join(f"{v:.1f}" for v in predicted.values()) + f"); score {score:.1f}"
+         + "".join(f"; held-out runs on {c} failed: {why}" for c, why in failures.items()))
     return HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names}, len(extra),
                            held, without, every, in_sample, score, n_points, held_out_cells=tuple(held_cells),
-                           predicted_chi2=predicted)
+                           predicted_chi2=predicted, held_out_failures=failures)
 
 
 def model_context(model: DrawDownModel, calibrated: Mapping[str, float]) -> ModelContext:

@@ -48,7 +48,8 @@ def discovery_payload(result: DiscoveryResult) -> dict:
                         "score": h.score, "in_sample_chi2": h.in_sample_chi2,
                         "fitted_all": dict(h.fitted_all), "fitted_without": {c: dict(v) for c, v in
                                                                              h.fitted_without.items()},
-                        "design_points": h.points, "skipped": h.skipped} for h in result.hypotheses],
+                        "design_points": h.points, "skipped": h.skipped,
+                        "held_out_failures": dict(h.held_out_failures)} for h in result.hypotheses],
         "errors": [g.to_dict() for g in result.gain],
         "extension": {"name": result.cause, "values": dict(result.extension)},
         "dem_evaluations": dict(result.evaluations),
@@ -133,6 +134,9 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
             lines.append(f"| {h.name}{' **cause**' if h.name == result.cause else ''} | {h.added} | "
                          + " | ".join(f"{h.held_out_chi2.get(c, float('nan')):.1f}" for c in conds)
                          + f" | {h.score:.1f} |")
+        failed = [f"- {h.name}: the held-out runs on {c} failed ({why})"
+                  for h in result.hypotheses for c, why in h.held_out_failures.items()]
+        lines += [""] + failed if failed else []
     if result.gain:
         lines += ["", "## 3. Extension", "", "Values fitted on every condition: "
                   + ", ".join(f"{k} = {v:.4g}" for k, v in result.extension.items()) + "."]

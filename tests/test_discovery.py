@@ -189,6 +189,33 @@ def test_failed_runs_are_reported_as_failures_not_as_missing_kpis(tmp_path):
                       settings, echo=lambda s: None)
 
 
+def _fails_off_the_design(calibrated: dict, tasks):
+    """known_batch, except that a batch of one parameter set other than the calibrated one (a
+    held-out run of step 2) fails as a fill that does not fit the box would."""
+    sets = {tuple(sorted(t.params.items())) for t in tasks}
+    if len(sets) == 1 and dict(next(iter(sets))) != calibrated:
+        raise RuntimeError("fill: the loose stack reaches z = 2.3 m, above the allowed z = 1.85 m")
+    return km.known_batch(tasks)
+
+
+def test_a_hypothesis_whose_held_out_runs_fail_cannot_be_the_cause(tmp_path):
+    """Held-out runs that give no KPI are no prediction: infinite held-out chi^2, never a perfect
+    score (the failed cells used to be skipped, so the sum over the rest was 0)."""
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    calibrated = {**_known_model().fixed, **km.TRUE}
+    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1), candidates=("density_per_material",))
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    batch = functools.partial(_fails_off_the_design, {k: float(v) for k, v in calibrated.items()})
+    result = run_discovery(store, lambda model: InProcessExecutor(batch, batch_size=12), _known_model(), calibrated,
+                           lab, settings, echo=lambda s: None)
+    density = next(h for h in result.hypotheses if h.name == "density_per_material")
+    assert set(density.held_out_failures) == {"50-50", "75-25", "25-75"}
+    assert all("loose stack" in why for why in density.held_out_failures.values())
+    assert all(v == math.inf for v in density.held_out_chi2.values()) and density.score == math.inf
+    assert result.cause is None and "No candidate" in result.explanation
+    # with the same design runs and working held-out runs the same data name density (the test above)
+
+
 def test_no_hidden_effect_invents_no_cause(tmp_path):
     result = _discover(tmp_path, _lab({}))
     assert not result.discrepancy.significant
