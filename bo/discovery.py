@@ -366,9 +366,9 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
     X = latin_hypercube(b, n_points, seed=settings.seed)
     points = [{**calibrated, **dict(zip(names, map(float, x)))} for x in X]
     hyp_model = model if mechanism is None else mechanism.apply(model)
+    design_key = f"lhs/{_key(names, b.tolist(), n_points, settings.seed)}"
     with executor_for(hyp_model) as executor:
-        reps = _run(store, executor, f"discovery-{name}", f"lhs/{_key(names, b.tolist(), n_points, settings.seed)}",
-                    points, settings.fit_seeds, conditions, kpis)
+        reps = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, kpis)
     # outputs: measured (condition, KPI) cells; y = replicate means, y_var = variance of the mean
     cells = [(i, c, j, k) for i, c in enumerate(conditions) for j, k in enumerate(kpis) if (c, k) in lab]
     Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i, _, j, _ in cells], axis=1)
@@ -376,8 +376,12 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
     V = np.stack([np.nanvar(reps[:, i, :, j], axis=1, ddof=1) for i, _, j, _ in cells], axis=1) / np.maximum(counts, 1)
     usable = (counts >= min(2, len(settings.fit_seeds))).all(axis=1) & np.isfinite(Y).all(axis=1)
     if usable.sum() < max(4, len(names) + 2):
+        failed = store.records(f"discovery-{name}", batch_key=design_key, status="failed")
+        first = (f"; {len(failed)} run(s) failed, the first ({failed[0].condition}, seed {failed[0].seed}, "
+                 + ", ".join(f"{n} = {failed[0].params[n]:.4g}" for n in names if n in failed[0].params)
+                 + f"): {failed[0].error}") if failed else ""
         raise ConfigError(f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points have "
-                          f"every KPI measured on every condition; check the runs in {store.path}")
+                          f"every KPI measured on every condition{first} (all runs in {store.path})")
     V = np.where(np.isfinite(V), V, 0.0) if len(settings.fit_seeds) > 1 else None
     lab_mean = np.array([lab[(c, k)][0] for _, c, _, k in cells])
     lab_var = np.array([lab[(c, k)][1] ** 2 for _, c, _, k in cells])

@@ -216,6 +216,24 @@ def test_a_hypothesis_whose_held_out_runs_fail_cannot_be_the_cause(tmp_path):
     # with the same design runs and working held-out runs the same data name density (the test above)
 
 
+def _fails_on_the_design(tasks):
+    """known_batch, except that a batch of several parameter sets (the design of step 2) fails."""
+    if len({tuple(sorted(t.params.items())) for t in tasks}) > 1:
+        raise RuntimeError("drawdown: domain extent along periodic axis y = 0.04 is not allowed")
+    return km.known_batch(tasks)
+
+
+def test_a_design_that_cannot_be_run_names_the_first_failure(tmp_path):
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    calibrated = {**_known_model().fixed, **km.TRUE}
+    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1), fit_seeds=(0, 1), candidates=("density_per_material",))
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    with pytest.raises(ConfigError, match=r"only 0 of 10 design points .* run\(s\) failed, the first \(50-50, seed 0, "
+                                          r"density_pellet = .*\): .*periodic axis y = 0.04"):
+        run_discovery(store, lambda model: InProcessExecutor(_fails_on_the_design, batch_size=12), _known_model(),
+                      calibrated, lab, settings, echo=lambda s: None)
+
+
 def test_no_hidden_effect_invents_no_cause(tmp_path):
     result = _discover(tmp_path, _lab({}))
     assert not result.discrepancy.significant
