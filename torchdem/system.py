@@ -291,7 +291,7 @@ def build_system(
     r_min = float(sphere_radius[sphere_valid & torch.gather(active, 1, sphere_body)].min())
     particle_mats = sorted(set(int(m) for m in material[active].unique()))
     rayleigh = min(
-        rayleigh_time_step(r_min, float(interactions.density[:, m].max()), materials[m].shear_modulus,
+        rayleigh_time_step(r_min, float(interactions.density[:, m].min()), materials[m].shear_modulus,
                            materials[m].poisson_ratio)
         for m in particle_mats
     )
