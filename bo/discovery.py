@@ -424,16 +424,16 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
             params = {**calibrated, **x}
             key = f"held-out/{c}/" + _key(sorted(params.items()))
             runs = _run(store, executor, f"discovery-{name}", key, [params], settings.seeds, [c], kpis)[0]
-            cells = _cells(runs, [c], kpis, lab)
-            held_cells += cells
-            missing = [x.kpi for x in cells if x.n == 0]
+            c_cells = _cells(runs, [c], kpis, lab)
+            held_cells += c_cells
+            missing = [x.kpi for x in c_cells if x.n == 0]
             if missing:  # the fitted parameters could not be simulated here: no prediction, no score
                 failed = store.records(f"discovery-{name}", batch_key=key, status="failed")
                 failures[c] = (f"{', '.join(missing)} not measured in any run"
                                + (f"; first error: {failed[0].error}" if failed else ""))
                 held[c] = math.inf
             else:
-                held[c] = float(sum(x.z ** 2 for x in cells if math.isfinite(x.z)))
+                held[c] = float(sum(x.z ** 2 for x in c_cells if math.isfinite(x.z)))
     score = float(sum(held.values()) + settings.penalty * len(extra))
     echo(f"  {name}: {len(names)} parameters, {n_points} points; held-out chi^2 (DEM) "
          + ", ".join(f"{c} {v:.1f}" for c, v in held.items()) + " (surrogate "

@@ -47,28 +47,27 @@ def make_test(overrides: list[str]) -> DrawDownTest:
                         config.contact_from(c["contact"]), config.run_settings_from(c["sim"], c["run"]))
 
 
+def _figures(result, members: int) -> dict:
+    """What one ensemble run reports (both modes)."""
+    spheres, steps, fill_s = result.spheres, int(result.steps), result.build_time_s
+    sim_s = result.wall_time_s - fill_s
+    return {"members": members, "bodies_per_member": result.particles, "spheres_per_member": spheres, "steps": steps,
+            "dt_s": result.dt, "wall_s": result.wall_time_s, "fill_s": fill_s, "simulation_s": sim_s,
+            "particle_steps_per_s": members * spheres * steps / max(sim_s, 1e-9),
+            "kpis_member0": result.kpis[0], "not_measured_member0": result.errors[0],
+            "mass_balance_member0": result.conservation[0]}
+
+
 def time_run(test: DrawDownTest, members: int) -> dict:
     with CpuMonitor() as cpu:
         result = test.run(replicates=members)
-    spheres, steps, fill_s = result.spheres, int(result.steps), result.build_time_s
-    sim_s = result.wall_time_s - fill_s
-    out = {"members": members, "bodies_per_member": result.particles, "spheres_per_member": spheres, "steps": steps,
-           "dt_s": result.dt, "wall_s": result.wall_time_s, "fill_s": fill_s, "simulation_s": sim_s,
-           "particle_steps_per_s": members * spheres * steps / max(sim_s, 1e-9),
-           "other_cores": cpu.other_cores,
-           "kpis_member0": result.kpis[0], "not_measured_member0": result.errors[0],
-           "mass_balance_member0": result.conservation[0]}
-    return out
+    return {**_figures(result, members), "other_cores": cpu.other_cores}
 
 
 def _worker_run(overrides: list[str], seeds: list[int], threads: int) -> dict:
     """One worker of ``--workers``: its replicates (``seeds``) as one ensemble on ``threads`` threads."""
     torch.set_num_threads(threads)
-    result = make_test(overrides).run(replicates=len(seeds), seeds=seeds)
-    return {"members": len(seeds), "spheres_per_member": result.spheres, "steps": int(result.steps),
-            "dt_s": result.dt, "bodies_per_member": result.particles, "wall_s": result.wall_time_s,
-            "fill_s": result.build_time_s, "kpis_member0": result.kpis[0], "not_measured_member0": result.errors[0],
-            "mass_balance_member0": result.conservation[0]}
+    return _figures(make_test(overrides).run(replicates=len(seeds), seeds=seeds), len(seeds))
 
 
 def time_workers(overrides: list[str], members: int, workers: int) -> dict:
