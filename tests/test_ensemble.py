@@ -3,6 +3,8 @@ runs (float64, agreement to 1e-12 relative), with per-member friction, rolling f
 restitution and density. A blow-up in one member is reported by member and step, and in
 "isolate" mode the other members carry on unchanged.
 """
+import gc
+
 import pytest
 import torch
 
@@ -79,3 +81,23 @@ def test_isolated_blowup_leaves_other_members_untouched():
     assert not bool(sim.state.bodies.active[1].any())
     solo = _build([PARAMS[0]], [1]).advance(600)
     assert torch.allclose(sim.state.bodies.position[0], solo.state.bodies.position[0], rtol=1e-12, atol=1e-14)
+
+
+def test_stepping_creates_no_reference_cycles_and_restores_the_collector():
+    """advance() pauses Python's cyclic collector; that is only sound if a step leaves no cycles
+    behind (they would pile up until advance returns). Stepping with rebuilds and wall contacts
+    leaves none, and the collector's state is restored either way."""
+    sim = _build(PARAMS[:2], [1, 2]).advance(5)
+    rebuilds = sim.state.rebuilds
+    assert gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        sim.advance(300)
+        assert not gc.isenabled()
+        assert sim.state.rebuilds > rebuilds and sim.state.walls.n > 0
+        assert gc.collect() == 0
+    finally:
+        gc.enable()
+    sim.advance(1)
+    assert gc.isenabled()

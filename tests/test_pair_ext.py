@@ -47,14 +47,16 @@ def extension():
     return ext
 
 
-def _system(dtype=F64, rolling_stiffness="tangential", B=3, N=60, seed=0, spacing=0.0095, size=1.0):
-    """Mixed packing: spheres (r 3-5.5 mm x size) and clumps (8-11 mm long x size) on a jittered
-    lattice (6 x 5 per layer, so spacing 0.01 m fills the periodic x period), random spins."""
+def _system(dtype=F64, rolling_stiffness="tangential", B=3, N=60, seed=0, spacing=0.0095, size=1.0,
+            clumps=0.3):
+    """Mixed packing: spheres (r 3-5.5 mm x size) and, a fraction ``clumps`` of the bodies, clumps
+    (8-11 mm long x size) on a jittered lattice (6 x 5 per layer, so spacing 0.01 m fills the
+    periodic x period), random spins."""
     g = torch.Generator().manual_seed(seed)
     k = torch.arange(N)
     lattice = torch.stack([k % 6, (k // 6) % 5, k // 30], -1).to(F64) * spacing + torch.tensor([0.004, 0.004, 0.006])
     pos = lattice.expand(B, N, 3) + 0.002 * torch.rand(B, N, 3, generator=g, dtype=F64)
-    template_index = (torch.rand(B, N, generator=g) < 0.3).long()
+    template_index = (torch.rand(B, N, generator=g) < clumps).long()
     scale = size * torch.where(template_index == 0, 0.003 + 0.0025 * torch.rand(B, N, generator=g, dtype=F64),
                                0.8 + 0.3 * torch.rand(B, N, generator=g, dtype=F64))
     q = torch.randn(B, N, 4, generator=g, dtype=F64)
@@ -68,7 +70,7 @@ def _system(dtype=F64, rolling_stiffness="tangential", B=3, N=60, seed=0, spacin
     walls = [WallSpec("floor", (0.03, 0.025, 0.0), (0, 0, 1), (1, 0, 0), 0.02, 0.015, "steel"),
              WallSpec("post", (0.02, 0.02, 0.01), (1, 0, 0), (0, 0, 1), 0.008, 0.006, "steel")]
     system, state = build_system(
-        pos.to(dtype), torch.zeros(B, N, dtype=torch.long), mats, table, templates=[SPHERE, TRI],
+        pos.to(dtype), torch.zeros(B, N, dtype=torch.long), mats, table, templates=[SPHERE, TRI] if clumps > 0 else [SPHERE],
         template_index=template_index, scale=scale.to(dtype), orientation=q.to(dtype),
         velocity=(0.3 * torch.randn(B, N, 3, generator=g, dtype=F64)).to(dtype),
         angular_velocity=(30 * torch.randn(B, N, 3, generator=g, dtype=F64)).to(dtype), walls=walls,
@@ -145,6 +147,22 @@ def test_cpp_contact_kernels_equal_torch_eager_float64(extension, rolling_stiffn
     assert bool((torch_out[2].walls.tangential.norm(dim=-1) > 0).any())    # touching walls
     member = state.pairs.i // system.n_spheres
     assert bool((member != 0).any()) and system.grid.is_periodic
+
+
+@pytest.mark.parametrize("rolling_stiffness", ["tangential", "ai2011"])
+def test_cpp_contact_kernels_equal_torch_eager_for_single_spheres(extension, rolling_stiffness):
+    """Single spheres take the C++ kernel's centred path (lever arms from the sphere centres,
+    the partner at the touching periodic image): same forces, torques and springs."""
+    system, state = _system(rolling_stiffness=rolling_stiffness, clumps=0.0, size=1.3)
+    assert system.spheres_only
+    state, xs, omega = _with_history(system, state)
+    torch_out, cpp_out = _both(system, state, xs, omega)
+    _assert_close(_outputs(cpp_out), _outputs(torch_out), 1e-12)
+    touching = _touching(system, state, xs)
+    p = state.pairs
+    across = (xs[p.j] - xs[p.i]).abs().max(dim=-1).values > 0.5 * float(system.grid.period.max())
+    assert int(touching.sum()) > 100 and int((touching & across).sum()) > 5   # contacts through the period
+    assert float(torch_out[1].abs().max()) > 0                                 # torques, i.e. lever arms
 
 
 def test_cpp_contact_kernels_equal_torch_eager_float32(extension):

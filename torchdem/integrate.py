@@ -212,7 +212,7 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
             p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
             p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt=dt, period=system.grid.period,
             stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic, members=B,
-            lookup=system.pair_lookup)
+            lookup=system.pair_lookup, centred=system.spheres_only)
         p = p.set(tangential=tang, rolling=roll)
     wc = state.walls
     if wc.n:
@@ -430,13 +430,17 @@ class Kernels:
 
     def pair(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
              *contacts: Tensor, dt: Tensor, period: Tensor, stiffness_model: str, periodic: bool,
-             members: int = 1, lookup: tuple[Tensor, ...] | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+             members: int = 1, lookup: tuple[Tensor, ...] | None = None,
+             centred: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """:func:`pair_kernel` (same arguments; ``contacts`` are i ... rolling in its order).
 
         ``members``: ensemble size B of the flat ``[B*Nb]`` bodies; the C++ kernel then gives
         each thread whole members (same results, one pass less through memory).
         ``lookup``: :attr:`System.pair_lookup`; the C++ kernel reads the per-pair constants from
-        it instead of from ``contacts`` (same values, less memory traffic)."""
+        it instead of from ``contacts`` (same values, less memory traffic).
+        ``centred``: every body is one sphere at its centre (:attr:`System.spheres_only`); the C++
+        kernel then takes the lever arms from the sphere centres and skips the body centres
+        (same values up to rounding)."""
         ext = self.extension(xs)
         if ext is None:
             return self.torch_pair(xs, X, V, omega, force, torque, *contacts, dt, period, stiffness_model, periodic)
@@ -446,7 +450,7 @@ class Kernels:
         tangential, rolling = contacts[-2:]
         f, tau, tang, roll = ext.pair_forces(xs, X, V, omega, force, torque, i, j, body_i, body_j, *lookup,
                                              tangential, rolling, float(dt), period.tolist(),
-                                             _ai2011(stiffness_model), periodic, members)
+                                             _ai2011(stiffness_model), periodic, members, centred)
         return f, tau, tang, roll
 
     def wall(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,

@@ -416,15 +416,59 @@ struct PairData {
   T period[3], inv_period[3];
   T dt;
   bool ai2011;
+  int64_t n_pairs;                         // P
 };
+
+// Prefetches the cache lines of rows (lo, hi] of an array of `width` values per row.
+template <typename V>
+TORCHDEM_INLINE void prefetch_rows(const V* a, int64_t width, int64_t lo, int64_t hi) {
+  const char* first = reinterpret_cast<const char*>(a + width * (lo + 1));
+  const char* last = reinterpret_cast<const char*>(a + width * (hi + 1));
+  for (const char* c = first; c < last; c += 64) __builtin_prefetch(c, 0, 3);
+}
+
+// Pairs are sorted by (i, j) and j > i, so the partners j (and their bodies) of a block lie
+// ahead of the first spheres i, at the front of what the block before touched; the hardware
+// prefetcher follows the sequential i side, not that front, and the loads of the partners'
+// velocities missed the cache (the gather's slowest loads). So each block prefetches the
+// partners of the next block beyond its own: the sphere rows (x, radius, mass, rolling
+// inertia, material) and the body rows (centre unless centred, velocity, angular velocity)
+// between this block's largest partner index and the next block's, at most kPrefetchRows.
+constexpr int64_t kPrefetchRows = 512;
+template <typename T, bool kCentred>
+TORCHDEM_INLINE void prefetch_partners(const PairData<T>& data, int64_t p0, int64_t n) {
+  const int64_t q0 = p0 + n, q1 = std::min(p0 + 2 * n, data.n_pairs);
+  if (q0 >= q1) return;
+  int64_t s0 = -1, s1 = -1, b0 = -1, b1 = -1;
+  for (int64_t p = p0; p < q0; ++p) {
+    s0 = std::max(s0, data.j[p]);
+    b0 = std::max(b0, data.body_j[p]);
+  }
+  for (int64_t p = q0; p < q1; ++p) {
+    s1 = std::max(s1, data.j[p]);
+    b1 = std::max(b1, data.body_j[p]);
+  }
+  s0 = std::max(s0, s1 - kPrefetchRows);
+  b0 = std::max(b0, b1 - kPrefetchRows);
+  prefetch_rows(data.x, 3, s0, s1);
+  prefetch_rows(data.radius, 1, s0, s1);
+  prefetch_rows(data.mass, 1, s0, s1);
+  prefetch_rows(data.rolling_inertia, 1, s0, s1);
+  prefetch_rows(data.material, 1, s0, s1);
+  if (!kCentred) prefetch_rows(data.X, 3, b0, b1);
+  prefetch_rows(data.V, 3, b0, b1);
+  prefetch_rows(data.W, 3, b0, b1);
+}
 
 constexpr int64_t kBlock = kBlockContacts;
 
 // Gathered operands of a block, one array per component (see pair_block): positions,
-// body centres, velocities, angular velocities, springs (3 each), then the per-pair scalars.
+// body centres, velocities, angular velocities, springs (3 each), then the per-sphere scalars
+// of both spheres (radius, mass, rolling inertia) and the material-pair coefficients. The
+// effective R*, m* and I_r* are formed in the vectorised law loop (this loop is scalar).
 enum PairOperand {
   kXA, kXB = 3, kBA = 6, kBB = 9, kVA = 12, kVB = 15, kWA = 18, kWB = 21, kTG = 24, kRL = 27,
-  kRI = 30, kRJ, kREFF, kMEFF, kE, kG, kBETA, kMUS, kMUR, kETA, kIR, kPairOperands
+  kRI = 30, kRJ, kMI, kMJ, kII, kIJ, kE, kG, kBETA, kMUS, kMUR, kETA, kPairOperands
 };
 
 // Stage 0 of pair_block: the pairs of [p0, p0 + n) that may touch, as offsets from p0 (their
@@ -453,7 +497,9 @@ TORCHDEM_SCALAR_LOOP int64_t touching_pairs(const PairData<T>& data, int64_t p0,
 // many x86 CPUs (microcode mitigations of "gather data sampling"), scalar loads are not.
 // Gathers the operands of the m pairs p0 + sel[t] into column t; returns how many of them have
 // a table column outside [0, R) (their operands are then those of column 0: the call fails).
-template <typename T>
+// kCentred: every sphere is its own body's centre (a system of single spheres); the body
+// centres are then not gathered (the law takes the lever arms from the sphere centres).
+template <typename T, bool kCentred>
 TORCHDEM_SCALAR_LOOP int64_t gather_pairs(const PairData<T>& data, int64_t p0, const int64_t* sel, int64_t m,
                                           T (*g)[kBlock]) {
   int64_t bad = 0;
@@ -464,8 +510,10 @@ TORCHDEM_SCALAR_LOOP int64_t gather_pairs(const PairData<T>& data, int64_t p0, c
     for (int c = 0; c < 3; ++c) {
       g[kXA + c][t] = data.x[3 * a + c];
       g[kXB + c][t] = data.x[3 * b + c];
-      g[kBA + c][t] = data.X[3 * ba + c];
-      g[kBB + c][t] = data.X[3 * bb + c];
+      if (!kCentred) {
+        g[kBA + c][t] = data.X[3 * ba + c];
+        g[kBB + c][t] = data.X[3 * bb + c];
+      }
       g[kVA + c][t] = data.V[3 * ba + c];
       g[kVB + c][t] = data.V[3 * bb + c];
       g[kWA + c][t] = data.W[3 * ba + c];
@@ -473,18 +521,17 @@ TORCHDEM_SCALAR_LOOP int64_t gather_pairs(const PairData<T>& data, int64_t p0, c
       g[kTG + c][t] = data.tangential[3 * p + c];
       g[kRL + c][t] = data.rolling[3 * p + c];
     }
-    const T ri = data.radius[a], rj = data.radius[b], mi = data.mass[a], mj = data.mass[b];
-    const T Ii = data.rolling_inertia[a], Ij = data.rolling_inertia[b];
     int64_t col = data.pair_row[a] + data.material[b];
     if (static_cast<uint64_t>(col) >= static_cast<uint64_t>(R)) {
       ++bad;
       col = 0;
     }
-    g[kRI][t] = ri;
-    g[kRJ][t] = rj;
-    g[kREFF][t] = ri * rj / (ri + rj);
-    g[kMEFF][t] = mi * mj / (mi + mj);
-    g[kIR][t] = Ii * Ij / (Ii + Ij);
+    g[kRI][t] = data.radius[a];
+    g[kRJ][t] = data.radius[b];
+    g[kMI][t] = data.mass[a];
+    g[kMJ][t] = data.mass[b];
+    g[kII][t] = data.rolling_inertia[a];
+    g[kIJ][t] = data.rolling_inertia[b];
     g[kE][t] = data.table[col];
     g[kG][t] = data.table[R + col];
     g[kBETA][t] = data.table[2 * R + col];
@@ -502,14 +549,15 @@ TORCHDEM_SCALAR_LOOP int64_t gather_pairs(const PairData<T>& data, int64_t p0, c
 // to the sign of zero) and rows for the pairs that may touch (the others' would be zero).
 // rows, rsel: where the packed rows of this block go (row t at rows + 9 t, for the pair
 // p0 + rsel[t]); returns their number. Pairs with a table column out of range are counted in
-// `bad`.
-template <typename T, bool kAi2011>
+// `bad`. kCentred: see gather_pairs.
+template <typename T, bool kAi2011, bool kCentred>
 int64_t pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows, int32_t* rsel, std::atomic<int64_t>& bad) {
   enum { XA = kXA, XB = kXB, BA = kBA, BB = kBB, VA = kVA, VB = kVB, WA = kWA, WB = kWB, TG = kTG, RL = kRL };
   int64_t sel[kBlock];
+  prefetch_partners<T, kCentred>(data, p0, n);
   const int64_t m = touching_pairs(data, p0, n, sel);
   alignas(64) T g[kPairOperands][kBlock];
-  const int64_t bad_columns = gather_pairs(data, p0, sel, m, g);
+  const int64_t bad_columns = gather_pairs<T, kCentred>(data, p0, sel, m, g);
   if (bad_columns) bad += bad_columns;
   // Stage 2: contact law. o[c][t]: outputs.
   enum { F = 0, TI = 3, TJ = 6, TN = 9, RN = 12, NO = 15 };
@@ -530,13 +578,17 @@ int64_t pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows, int3
     const T dist = norm(d);
     const T overlap = ri + rj - dist;
     const Vec3<T> nrm = (T(1) / std::max(dist, T(1e-30))) * d;
-    const Vec3<T> cp = xa + (ri - T(0.5) * overlap) * nrm;
-    const Vec3<T> arm_i = minimum_image(cp - vec(BA, k), per, inv_per);
-    const Vec3<T> arm_j = minimum_image(cp - vec(BB, k), per, inv_per);
+    // Lever arms from the body centres to the contact point; a centred sphere's body centre is
+    // its own centre, and the other centre is at xa + d (the image that touches).
+    const Vec3<T> to_cp = (ri - T(0.5) * overlap) * nrm;
+    const Vec3<T> cp = xa + to_cp;
+    const Vec3<T> arm_i = kCentred ? to_cp : minimum_image(cp - vec(BA, k), per, inv_per);
+    const Vec3<T> arm_j = kCentred ? to_cp - d : minimum_image(cp - vec(BB, k), per, inv_per);
     const Vec3<T> wi = vec(WA, k), wj = vec(WB, k);
     const Vec3<T> v_rel = vec(VA, k) + cross(wi, arm_i) - vec(VB, k) - cross(wj, arm_j);
-    const Coefficients<T> c{g[kREFF][k], g[kMEFF][k], g[kE][k], g[kG][k], g[kBETA][k],
-                            g[kMUS][k],  g[kMUR][k],  g[kETA][k], g[kIR][k]};
+    const T mi = g[kMI][k], mj = g[kMJ][k], Ii = g[kII][k], Ij = g[kIJ][k];
+    const Coefficients<T> c{ri * rj / (ri + rj), mi * mj / (mi + mj), g[kE][k], g[kG][k], g[kBETA][k],
+                            g[kMUS][k],  g[kMUR][k],  g[kETA][k], Ii * Ij / (Ii + Ij)};
     const LawResult<T> r = contact_law<T, kAi2011>(overlap, nrm, v_rel, wi - wj, vec(TG, k), vec(RL, k), c, dt);
     put(F, k, r.force);
     put(TI, k, cross(arm_i, r.force) + r.m_roll);
@@ -544,17 +596,22 @@ int64_t pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows, int3
     put(TN, k, r.tangential_new);
     put(RN, k, r.rolling_new);
   }
-  // Stage 3: springs [P, 3] (zeros first) and the packed rows of the pairs the law ran on.
-  std::fill(data.tangential_new + 3 * p0, data.tangential_new + 3 * (p0 + n), T(0));
-  std::fill(data.rolling_new + 3 * p0, data.rolling_new + 3 * (p0 + n), T(0));
-  for (int64_t t = 0; t < m; ++t) {
-    const int64_t k = sel[t], p = p0 + k;
-    T* row = rows + 9 * t;
-    for (int c = 0; c < 9; ++c) row[c] = o[F + c][t];
-    rsel[t] = static_cast<int32_t>(k);
-    for (int c = 0; c < 3; ++c) {
-      data.tangential_new[3 * p + c] = o[TN + c][t];
-      data.rolling_new[3 * p + c] = o[RN + c][t];
+  // Stage 3: springs [P, 3] (each written once: the law's for the pairs it ran on, zeros for
+  // the others) and the packed rows of the pairs the law ran on (sel is ascending).
+  for (int64_t k = 0, t = 0; k < n; ++k) {
+    T* tang = data.tangential_new + 3 * (p0 + k);
+    T* roll = data.rolling_new + 3 * (p0 + k);
+    if (t < m && sel[t] == k) {
+      T* row = rows + 9 * t;
+      for (int c = 0; c < 9; ++c) row[c] = o[F + c][t];
+      rsel[t] = static_cast<int32_t>(k);
+      for (int c = 0; c < 3; ++c) {
+        tang[c] = o[TN + c][t];
+        roll[c] = o[RN + c][t];
+      }
+      ++t;
+    } else {
+      for (int c = 0; c < 3; ++c) tang[c] = roll[c] = T(0);
     }
   }
   return m;
@@ -574,7 +631,7 @@ inline int64_t count_out_of_range(const int64_t* __restrict__ idx, int64_t n, in
 template <typename T>
 void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, at::Tensor& torque_out,
                       at::Tensor& tang_out, at::Tensor& roll_out, int64_t S, int64_t NB, int64_t P, double dt,
-                      at::ArrayRef<double> period, bool ai2011, bool periodic, int64_t members) {
+                      at::ArrayRef<double> period, bool ai2011, bool periodic, int64_t members, bool centred) {
   PairData<T> data;
   data.x = in[0].data_ptr<T>();
   data.X = in[1].data_ptr<T>();
@@ -601,6 +658,7 @@ void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
   }
   data.dt = T(dt);
   data.ai2011 = ai2011;
+  data.n_pairs = P;
   // One parallel region per pass: every block checks its own indices before it reads
   // through them (a block with a bad index is skipped and the call fails after the pass).
   std::atomic<int64_t> bad{0};
@@ -614,8 +672,12 @@ void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, 
     return n_bad == 0;
   };
   auto run_block = [&](int64_t p0, int64_t n, T* rows, int32_t* sel) {
-    return data.ai2011 ? pair_block<T, true>(data, p0, n, rows, sel, bad)
-                       : pair_block<T, false>(data, p0, n, rows, sel, bad);
+    if (centred) {
+      return data.ai2011 ? pair_block<T, true, true>(data, p0, n, rows, sel, bad)
+                         : pair_block<T, false, true>(data, p0, n, rows, sel, bad);
+    }
+    return data.ai2011 ? pair_block<T, true, false>(data, p0, n, rows, sel, bad)
+                       : pair_block<T, false, false>(data, p0, n, rows, sel, bad);
   };
   contacts_to_bodies<T, 9>(P, data.body_i, data.body_j, NB, members, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
                            force_out.data_ptr<T>(), torque_out.data_ptr<T>(), csr, bad, block_ok, run_block);
@@ -628,7 +690,7 @@ std::vector<at::Tensor> pair_forces(
     at::Tensor i, at::Tensor j, at::Tensor body_i, at::Tensor body_j, at::Tensor sphere_radius,
     at::Tensor sphere_mass, at::Tensor sphere_rolling_inertia, at::Tensor sphere_pair_row,
     at::Tensor sphere_material, at::Tensor table, at::Tensor tangential, at::Tensor rolling, double dt,
-    at::ArrayRef<double> period, bool ai2011, bool periodic, int64_t members) {
+    at::ArrayRef<double> period, bool ai2011, bool periodic, int64_t members, bool centred) {
   const auto dtype = xs.scalar_type();
   TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
   TORCH_CHECK(period.size() == 3, "period has ", period.size(), " entries; expected 3");
@@ -649,7 +711,7 @@ std::vector<at::Tensor> pair_forces(
   at::Tensor tang_out = at::empty_like(in[16]), roll_out = at::empty_like(in[17]);
   AT_DISPATCH_FLOATING_TYPES(dtype, "pair_forces", [&] {
     pair_forces_impl<scalar_t>(in, force_out, torque_out, tang_out, roll_out, S, NB, P, dt, period, ai2011,
-                               periodic, members);
+                               periodic, members, centred);
   });
   return {force_out, torque_out, tang_out, roll_out};
 }
@@ -694,6 +756,20 @@ TORCHDEM_SCALAR_LOOP void gather_walls(const std::vector<at::Tensor>& in, int64_
   }
 }
 
+// Prefetches the sphere and body rows of the sphere-wall contacts [q0, q1): the spheres that
+// touch a wall are a sparse subset, so the hardware prefetcher does not see their rows coming.
+template <typename T>
+TORCHDEM_INLINE void prefetch_wall_rows(const std::vector<at::Tensor>& in, int64_t q0, int64_t q1) {
+  const T *x = in[0].data_ptr<T>(), *Xb = in[1].data_ptr<T>(), *Vb = in[2].data_ptr<T>(), *Wb = in[3].data_ptr<T>();
+  const int64_t *ps = in[6].data_ptr<int64_t>(), *pb = in[7].data_ptr<int64_t>();
+  for (int64_t q = q0; q < q1; ++q) {
+    __builtin_prefetch(x + 3 * ps[q], 0, 3);
+    __builtin_prefetch(Xb + 3 * pb[q], 0, 3);
+    __builtin_prefetch(Vb + 3 * pb[q], 0, 3);
+    __builtin_prefetch(Wb + 3 * pb[q], 0, 3);
+  }
+}
+
 // Sphere-wall contacts [q0, q0 + n), n <= kBlock; stages 1-3 of pair_block, on every contact
 // (a wall list is short): row k at rows + 6 k, rsel[k] = k; returns n.
 template <typename T, bool kAi2011>
@@ -702,6 +778,7 @@ int64_t wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, 
   enum { XW = kWXW, C = kWC, U = kWU, VV = kWVV, WV = kWWV, BX = kWBX, BV = kWBV, BW = kWBW, TG = kWTG, RL = kWRL,
          HU = kWHU, HV = kWHV, PR = kWPR };
   alignas(64) T g[kWallOperands][kBlock];
+  prefetch_wall_rows<T>(in, q0 + n, std::min(q0 + 2 * n, in[6].size(0)));  // the next block's
   gather_walls(in, q0, n, g);
   // Stage 2: contact law.
   enum { F = 0, TQ = 3, TN = 6, RN = 9, NO = 12 };
@@ -822,7 +899,7 @@ TORCH_LIBRARY_FRAGMENT(torchdem, m) {
         "Tensor j, Tensor body_i, Tensor body_j, Tensor sphere_radius, Tensor sphere_mass, "
         "Tensor sphere_rolling_inertia, Tensor sphere_pair_row, Tensor sphere_material, Tensor table, "
         "Tensor tangential, Tensor rolling, float dt, float[] period, bool ai2011, bool periodic, "
-        "int members=1) -> Tensor[]",
+        "int members=1, bool centred=False) -> Tensor[]",
         &pair_forces);
   m.def("wall_forces(Tensor xs, Tensor X, Tensor V, Tensor omega, Tensor force, Tensor torque, Tensor sphere, "
         "Tensor body, Tensor wall, Tensor wall_centre, Tensor wall_u, Tensor wall_v, Tensor half_u, "
