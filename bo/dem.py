@@ -11,8 +11,11 @@ Contract:
   returns one :class:`~bo.executor.EvalOutcome` per task with every KPI of
   :data:`torchdem.drawdown.KPI_UNITS` (NaN where the lab method could not measure it, e.g. no
   heap edge) and the wall time of the batch. The blow-up guard runs in isolate mode: a member
-  that blows up is frozen and fails alone, with the guard's message; bad input fails the whole
-  batch with the message.
+  that blows up is frozen and fails alone, with the guard's message. A member whose ensemble
+  cannot be built (its fill overflows the column, its clump is too large for a periodic slice)
+  fails alone too: when the ensemble's build fails, every member is built by itself, those
+  that fail get their own error, and the others run as one ensemble. Bad input common to the
+  batch fails the whole batch with the message.
 - A condition name may carry run-setting variants after ``|``:
   ``"50-50|time_step_fraction=0.2|shear_modulus=1e7"`` runs the 50-50 mixture with those
   :class:`~torchdem.drawdown.RunSettings` fields replaced (the time-step and stiffness
@@ -189,6 +192,11 @@ def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask]) -> list[EvalOutc
         test = model.test_for(tasks[0].condition, sets)
         result = test.run_members(members, device=model.device)
     except (BlowUpError, ConfigError) as exc:
+        own = _members_that_fail_alone(model, tasks) if isinstance(exc, ConfigError) and len(sets) > 1 else {}
+        if own:  # each failed member keeps its own error; the others run without them
+            rest = iter(evaluate_batch(model, [t for r, t in enumerate(tasks) if r not in own]))
+            wall = time.perf_counter() - started
+            return [EvalOutcome.failure(own[r], wall) if r in own else next(rest) for r in range(len(tasks))]
         wall = time.perf_counter() - started
         return [EvalOutcome.failure(f"{type(exc).__name__}: {exc}", wall) for _ in tasks]
     wall = time.perf_counter() - started
@@ -200,6 +208,18 @@ def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask]) -> list[EvalOutc
         kpis = {name: float(k.get(name, math.nan)) for name in KPI_UNITS}
         out.append(EvalOutcome.success(kpis, wall))
     return out
+
+
+def _members_that_fail_alone(model: DrawDownModel, tasks: list[EvalTask]) -> dict[int, str]:
+    """Task index -> error, for the tasks whose one-member ensemble cannot be built (fill and
+    system, no stepping)."""
+    failed = {}
+    for r, t in enumerate(tasks):
+        try:
+            model.test_for(t.condition, [dict(t.params)]).build([t.seed], [0], device=model.device)
+        except ConfigError as exc:
+            failed[r] = f"ConfigError: {exc}"
+    return failed
 
 
 def mixtures_from_measured(data: MeasuredData, materials: Mapping[str, ParticleMaterial],

@@ -352,3 +352,20 @@ def test_dem_without_hidden_effect_names_no_cause(tmp_path):
     lab = _dem_lab(model, {}, seeds=range(600, 608))
     result = _dem_discover(tmp_path, model, lab)
     assert result.cause is None, result.explanation
+
+
+def test_a_member_that_cannot_be_built_fails_alone():
+    """A batch whose ensemble cannot be built (one member's fill overflows the fill column) runs
+    its other members as an ensemble of their own; the failed member carries its own error."""
+    from bo.dem import evaluate_batch
+    from bo.executor import EvalTask
+
+    model, _ = _dem_model()
+    light = {"density_sinter": 0.1 * model.conditions["50-50"].materials[1].density}
+    good = [EvalTask({"mu_s_pp": 0.5}, 0, "50-50"), EvalTask({"mu_s_pp": 0.3}, 1, "50-50")]
+    out = evaluate_batch(model, [good[0], EvalTask(light, 2, "50-50"), good[1]])
+    assert [o.ok for o in out] == [True, False, True]
+    assert "loose stack reaches" in out[1].error and "upper_height" in out[1].error
+    alone = evaluate_batch(model, good)
+    assert [o.kpis for o in (out[0], out[2])] == [o.kpis for o in alone]
+    assert out[0].kpis != out[2].kpis
