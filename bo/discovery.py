@@ -458,9 +458,11 @@ def model_context(model: DrawDownModel, calibrated: Mapping[str, float]) -> Mode
     E = 2 * G * (1 + m0.poisson_ratio)
     e_eff = float(effective_young_modulus(torch.tensor(E), torch.tensor(m0.poisson_ratio), torch.tensor(E),
                                           torch.tensor(m0.poisson_ratio)))
+    periodic = bool(model.geometry.is_slice and not model.geometry.slice_walls)
     return ModelContext(materials=names, letters=letters, densities={m.name: m.density for m in mixture.materials},
                         shapes={m.name: m.shape for m in mixture.materials}, calibrated=dict(calibrated),
-                        young_eff=e_eff, periodic_slice=bool(model.geometry.is_slice and not model.geometry.slice_walls))
+                        young_eff=e_eff, periodic_slice=periodic, period=model.geometry.slice_depth if periodic else None,
+                        largest_size={m.name: max(c.d_max for c in m.sieve) for m in mixture.materials})
 
 
 def _letters_of(names: Sequence[str]) -> dict[str, str]:

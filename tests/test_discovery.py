@@ -369,3 +369,22 @@ def test_a_member_that_cannot_be_built_fails_alone():
     alone = evaluate_batch(model, good)
     assert [o.kpis for o in (out[0], out[2])] == [o.kpis for o in alone]
     assert out[0].kpis != out[2].kpis
+
+
+def test_clump_shape_prior_fits_the_periodic_slice():
+    """On the paper's 4 cm periodic slice the lobe spacing prior starts where the largest sinter
+    (25 mm) still fits the minimum image (s > 0.5 - 0.95 x 0.04 / (4 x 0.025) = 0.12), and the
+    ensemble builds there; a slice too thin for any spacing makes the mechanism unavailable."""
+    plain = _plain(["profile=paper", "calibration=paper"])
+    model, _ = calibration_model_from({**plain, "measured": "hadi2025_pellet_sinter.json"},
+                                      load_measured("hadi2025_pellet_sinter.json"))
+    context = model_context(model, model.fixed)
+    assert context.period == pytest.approx(0.04) and context.largest_size["sinter"] == pytest.approx(0.025)
+    shape = registry()["clump_shape"]
+    low, high = shape.parameters(context)["lobe_spacing_sinter"]
+    assert low == pytest.approx(0.5 - 0.95 * 0.04 / (4 * 0.025)) and high == 0.3
+    extended = apply_extension(model, "clump_shape", {"lobe_spacing_sinter": low}, context)
+    system, _, _ = extended.test_for("50-50", [{}]).build([0, 1], [0, 0])
+    assert system.batch == 2
+    thin = dataclasses.replace(context, period=0.02)
+    assert "too thin" in shape.available(thin)

@@ -43,6 +43,8 @@ class ModelContext:
         calibrated: the calibrated contact parameters (``mu_s_pp``, ...).
         young_eff: effective Young's modulus E* of a particle-particle contact, Pa.
         periodic_slice: the model is a periodic slice (no front and back walls).
+        period: the slice's period (its depth) when ``periodic_slice``, else None, m.
+        largest_size: largest sieve size per material, m.
     """
 
     materials: tuple[str, ...]
@@ -52,6 +54,8 @@ class ModelContext:
     calibrated: Mapping[str, float]
     young_eff: float
     periodic_slice: bool
+    period: float | None = None
+    largest_size: Mapping[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
