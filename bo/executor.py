@@ -450,8 +450,8 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
                 wait: bool = True, poll_seconds: float = 2.0) -> RunSummary:
     """Run every pending task of ``stage`` (all stages if None) and store each outcome.
 
-    Claims up to ``executor.batch_size * executor.parallelism`` tasks of one condition at a
-    time, writes each batch's outcomes in one transaction as soon as the batch finishes, and
+    Claims up to ``executor.batch_size * executor.parallelism`` tasks at a time (whole batches of
+    one condition each, several conditions when one has too few; :meth:`CampaignStore.claim`), writes each batch's outcomes in one transaction as soon as the batch finishes, and
     repeats until nothing is claimable. On an exception (including KeyboardInterrupt) the unfinished claims are
     released back to pending; after a SIGKILL they go stale and are claimed again by the next
     run. With ``wait=True`` it then waits (polling every ``poll_seconds``) for tasks other
@@ -466,7 +466,7 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
     n_done = n_failed = n_batches = 0
     with _LeaseKeeper(store, store.renew_period) as keeper:
         while True:
-            tasks = store.claim(chunk, stage=stage)
+            tasks = store.claim(chunk, stage=stage, batch_size=executor.batch_size)
             if not tasks:
                 if not wait or store.counts(stage).get("running", 0) == 0:
                     break

@@ -484,11 +484,18 @@ class CampaignStore:
 
     # -- claiming and recording --------------------------------------------------------------
 
-    def claim(self, limit: int, stage: str | None = None) -> list[EvalTask]:
-        """Lease up to ``limit`` claimable tasks to this process: the oldest claimable task and
-        the next oldest of the same condition (one claim feeds whole single-condition batches)."""
+    def claim(self, limit: int, stage: str | None = None, batch_size: int = 1) -> list[EvalTask]:
+        """Lease up to ``limit`` claimable tasks to this process, grouped by condition: the
+        claimable tasks of the condition of the oldest one first, then those of the condition of
+        the oldest remaining one, and so on (task order kept within a condition). A later
+        condition contributes whole batches of ``batch_size`` (or all its tasks, if they fit), so
+        every claim splits into single-condition batches no smaller than a condition's last one,
+        and when one condition has fewer tasks than the executor's workers can take, the other
+        conditions' tasks keep them busy."""
         if isinstance(limit, bool) or not isinstance(limit, Integral) or limit < 1:
             raise out_of_range("limit", limit, "an int >= 1", "CampaignStore.claim")
+        if isinstance(batch_size, bool) or not isinstance(batch_size, Integral) or batch_size < 1:
+            raise out_of_range("batch_size", batch_size, "an int >= 1", "CampaignStore.claim")
         where_stage, args = ("", []) if stage is None else (" AND stage = ?", [self.check_stage(stage)])
         owner, now = _owner(), time.time()
         with self._write() as conn:
@@ -501,12 +508,17 @@ class CampaignStore:
             claimable = ("FROM evaluations WHERE (status = 'pending' OR (status = 'running' AND "
                          f"(claimed_at < ?{stale})))" + where_stage)
             claimable_args = [now - self.lease_seconds, *gone, *args]
-            oldest = conn.execute("SELECT condition " + claimable + " ORDER BY task_id LIMIT 1",
-                                  claimable_args).fetchone()
-            rows = [] if oldest is None else conn.execute(
-                "SELECT task_id, params, seed, condition " + claimable +
-                " AND condition = ? ORDER BY task_id LIMIT ?",
-                [*claimable_args, oldest[0], int(limit)]).fetchall()
+            by_condition: dict[str, list] = {}
+            for row in conn.execute("SELECT task_id, params, seed, condition " + claimable + " ORDER BY task_id",
+                                    claimable_args):
+                by_condition.setdefault(row[3], []).append(row)
+            rows: list = []
+            for group in by_condition.values():
+                room = int(limit) - len(rows)
+                if room <= 0:
+                    break
+                take = len(group) if len(group) <= room else (room if not rows else room - room % batch_size)
+                rows += group[:take]
             conn.executemany(
                 "UPDATE evaluations SET status = 'running', claimed_by = ?, claimed_at = ?, "
                 "attempts = attempts + 1 WHERE task_id = ?", [(owner, now, r[0]) for r in rows])

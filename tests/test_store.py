@@ -155,6 +155,19 @@ def test_file_is_wal_and_code_version_defaults_to_git_or_package(tmp_path):
 
 # -- claiming and recording -------------------------------------------------------------------
 
+def test_a_claim_adds_other_conditions_in_whole_batches(tmp_path):
+    store = new_store(tmp_path)
+    fill(store, points=POINTS[:1], conditions=("50-50", "70-30"))  # 2 tasks each: one batch of 3 each
+    assert [t.condition for t in store.claim(6, batch_size=3)] == ["50-50"] * 2 + ["70-30"] * 2
+    (tmp_path / "b").mkdir()
+    store = new_store(tmp_path / "b")
+    fill(store, conditions=("50-50", "70-30"))  # 6 tasks each
+    assert [t.condition for t in store.claim(8, batch_size=3)] == ["50-50"] * 6   # no batch of 2 of 70-30
+    assert [t.condition for t in store.claim(4, batch_size=3)] == ["70-30"] * 4   # the oldest condition fills the claim
+    with pytest.raises(ConfigError, match="batch_size = 0 is not allowed"):
+        store.claim(4, batch_size=0)
+
+
 def test_claims_do_not_overlap_and_record_finishes_tasks(tmp_path):
     store = new_store(tmp_path)
     fill(store)
@@ -263,9 +276,10 @@ def test_run_pending_releases_claims_on_interrupt(tmp_path):
 def test_records_and_arrays(tmp_path):
     store = new_store(tmp_path)
     fill(store, conditions=("50-50", "70-30"))
-    tasks = store.claim(100)
-    assert {t.condition for t in tasks} == {"50-50"}  # one claim, one condition
-    tasks += store.claim(100)
+    first = store.claim(7)  # the oldest condition's tasks, then the next condition's
+    assert [t.condition for t in first] == ["50-50"] * 6 + ["70-30"]
+    tasks = first + store.claim(100)
+    assert [t.condition for t in tasks] == ["50-50"] * 6 + ["70-30"] * 6
     kpis = {t.task_id: {"angle_of_repose": 30.0 + t.task_id, "discharge_rate": 2.0 * t.seed}
             for t in tasks}
     kpis[tasks[-1].task_id]["discharge_rate"] = math.nan  # stored as null, read back as NaN
