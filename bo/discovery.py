@@ -9,11 +9,14 @@ returns an executor (``bo.executor``) that evaluates a ``bo.dem.DrawDownModel``.
 
 1. Discrepancy (stage ``discrepancy``): the calibrated model on every measured condition with
    ``settings.seeds``. For every condition c and KPI k: DEM mean and its standard error
-   ``se = s / sqrt(r)``, the measured mean and its standard uncertainty ``u = ci95 / 1.96``, and
+   ``se = s_k / sqrt(r)``, the measured mean and its standard uncertainty ``u = ci95 / 1.96``, and
    ``z = (DEM - lab) / sqrt(se^2 + u^2)``. ``chi2 = sum z^2`` over the cells, compared with a
    chi^2 distribution of as many degrees of freedom, is the probability that measurement
    uncertainty and DEM stochasticity alone explain the disagreement; the discrepancy is
-   ``significant`` when that probability is below ``settings.alpha``.
+   ``significant`` when that probability is below ``settings.alpha``. ``s_k`` is the DEM
+   replicate scatter of KPI k pooled over groups of replicates (``bo.replicate_noise``; a cell's
+   own 2 or 3 runs give a standard error too noisy to divide by): for this test, over the
+   discrepancy runs of every condition.
 2. Hypotheses (stage ``discovery-<name>``): ``parameters`` (the calibrated parameters named in
    ``settings.refit`` free within ``+- refit_fraction`` of their value; no new physics) and every
    candidate of the registry (``bo.mechanisms``; ``settings.candidates`` or all available), each
@@ -27,7 +30,10 @@ returns an executor (``bo.executor``) that evaluates a ``bo.dem.DrawDownModel``.
    its prediction is reported as ``predicted_chi2``). A hypothesis with no free parameter
    (``parameters`` with ``refit`` empty) is the calibrated model itself, scored on the
    discrepancy runs. Score = sum of held-out chi^2 + ``penalty`` x (parameters it adds beyond the
-   ``parameters`` hypothesis) (an AIC-like penalty).
+   ``parameters`` hypothesis) (an AIC-like penalty). Every held-out chi^2, and the discrepancy
+   reported, use one noise estimate ``s_k`` pooled over every run of the discovery (discrepancy,
+   design points, held-out runs of every hypothesis), so no hypothesis is scored with a luckier
+   noise estimate than another. The GP's noise is the design's pooled ``s_k^2 / fit replicates``.
 3. Cause: the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
    than ``margin``; else none: no candidate explains the discrepancy better than the parameters
    and noise. If the discrepancy is not significant, no hypothesis is fitted (unless
@@ -44,6 +50,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Mapping, Sequence
 
@@ -56,6 +63,7 @@ from bo.executor import Executor, run_pending
 from bo.ga import GASettings, minimise_surrogate
 from bo.mechanisms import Mechanism, ModelContext, registry
 from bo.objective import ObjectiveSpec
+from bo.replicate_noise import ReplicateNoise
 from bo.screen import measured_for
 from bo.store import CampaignStore
 from bo.surrogate import SurrogateConfig, fit_surrogate
@@ -152,13 +160,15 @@ class Cell:
 
 @dataclass(frozen=True)
 class Discrepancy:
-    """Step 1: every cell, chi^2 over them, its degrees of freedom and p-value."""
+    """Step 1: every cell, chi^2 over them, its degrees of freedom and p-value; ``noise``: the
+    pooled DEM replicate noise the cells' standard errors come from."""
 
     cells: tuple[Cell, ...]
     chi2: float
     dof: int
     p_value: float
     significant: bool
+    noise: ReplicateNoise
 
     def chi2_of(self, condition: str) -> float:
         return float(sum(c.z ** 2 for c in self.cells if c.condition == condition and math.isfinite(c.z)))
@@ -270,27 +280,40 @@ def _run(store: CampaignStore, executor: Executor, stage: str, key: str, points:
     return out
 
 
-def _mean_se(values: np.ndarray) -> tuple[float, float, int]:
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return math.nan, math.nan, 0
-    return float(v.mean()), (float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else math.nan), int(v.size)
-
-
 def _cells(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str],
-           lab: Mapping[tuple[str, str], tuple[float, float]]) -> list[Cell]:
-    """Cells of ``reps [C, r, K]`` against the lab (only measured cells)."""
+           lab: Mapping[tuple[str, str], tuple[float, float]], noise: ReplicateNoise) -> list[Cell]:
+    """Cells of ``reps [C, r, K]`` against the lab (only measured cells); the DEM mean's standard
+    error from the pooled replicate noise (``bo.replicate_noise``), not from the cell's own runs."""
     cells = []
     for i, c in enumerate(conditions):
         for j, k in enumerate(kpis):
             if (c, k) not in lab:
                 continue
-            mean, se, n = _mean_se(reps[i, :, j])
+            v = reps[i, :, j][np.isfinite(reps[i, :, j])]
+            n = int(v.size)
+            mean = float(v.mean()) if n else math.nan
+            se = noise.se(k, n)
             m, u = lab[(c, k)]
             var = (se if math.isfinite(se) else 0.0) ** 2 + u ** 2
             z = (mean - m) / math.sqrt(var) if n and var > 0 else math.nan
             cells.append(Cell(c, k, mean, se, n, m, u, z, (mean - m) / m * 100 if m else math.nan))
     return cells
+
+
+def _unmeasured(reps: np.ndarray, condition: str, kpis: Sequence[str],
+                lab: Mapping[tuple[str, str], tuple[float, float]]) -> list[str]:
+    """Measured KPIs of ``condition`` that no run of ``reps [r, K]`` gave."""
+    return [k for j, k in enumerate(kpis) if (condition, k) in lab and not np.isfinite(reps[:, j]).any()]
+
+
+def _discrepancy(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str],
+                 lab: Mapping[tuple[str, str], tuple[float, float]], noise: ReplicateNoise,
+                 alpha: float) -> Discrepancy:
+    cells = _cells(reps, conditions, kpis, lab, noise)
+    finite = [c for c in cells if math.isfinite(c.z)]
+    chi2 = float(sum(c.z ** 2 for c in finite))
+    p = float(stats.chi2.sf(chi2, len(finite))) if finite else math.nan
+    return Discrepancy(tuple(cells), chi2, len(finite), p, bool(finite) and p < alpha, noise)
 
 
 # --------------------------------------------------------------------------------------------
@@ -299,14 +322,15 @@ def _cells(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str],
 
 def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Mapping[str, float],
                         measured: MeasuredData, settings: DiscoverySettings) -> tuple[Discrepancy, np.ndarray]:
-    """Step 1 (see the module docstring); also returns the replicates ``[C, r, K]``."""
+    """Step 1 (see the module docstring), with the replicate noise pooled over these runs; also
+    returns the replicates ``[C, r, K]``."""
     conditions = list(measured.names)
     key = "calibrated/" + _key(sorted(calibrated.items()))
     reps = _run(store, executor, "discrepancy", key, [dict(calibrated)], settings.seeds, conditions,
                 settings.kpis)[0]
-    cells = _cells(reps, conditions, settings.kpis, _lab(measured, settings.kpis))
-    finite = [c for c in cells if math.isfinite(c.z)]
-    if not finite:
+    discrepancy = _discrepancy(reps, conditions, settings.kpis, _lab(measured, settings.kpis),
+                               ReplicateNoise.of(settings.kpis, [reps]), settings.alpha)
+    if not discrepancy.dof:
         failed = store.records("discrepancy", batch_key=key, status="failed")
         if failed:  # the runs failed: say so (and why), not that the KPIs do not match
             raise RuntimeError(f"discrepancy: {len(failed)} DEM run(s) of the calibrated model failed and none gave "
@@ -314,9 +338,7 @@ def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Ma
                                f"(all errors in {store.path}, table evaluations)")
         raise ConfigError(f"discrepancy: no KPI of {list(settings.kpis)} was both simulated and measured; measured "
                           f"KPIs: {sorted({k for c in measured.names for k in measured.condition(c).kpis})}")
-    chi2 = float(sum(c.z ** 2 for c in finite))
-    p = float(stats.chi2.sf(chi2, len(finite)))
-    return Discrepancy(tuple(cells), chi2, len(finite), p, p < settings.alpha), reps
+    return discrepancy, reps
 
 
 # --------------------------------------------------------------------------------------------
@@ -344,10 +366,33 @@ def _expected_chi2_terms(mean: np.ndarray, gp_var: np.ndarray, dem_var: np.ndarr
     return ((mean - lab_mean) ** 2 + gp_var) / (dem_var + lab_var)
 
 
-def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel, context: ModelContext,
-                      store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor],
-                      calibrated: Mapping[str, float], measured: MeasuredData, settings: DiscoverySettings,
-                      baseline: Discrepancy, echo: Callable[[str], None]) -> HypothesisScore:
+@dataclass(frozen=True)
+class _Fitted:
+    """Step 2 for one hypothesis before it is scored: what was fitted and the DEM runs made.
+
+    ``held_reps``: condition -> ``[r, K]`` held-out replicates (the discrepancy runs for a
+    hypothesis without free parameters); ``groups``: replicate groups ``[..., r, K]`` of its
+    runs for the pooled noise; ``failures``: condition -> why its held-out runs gave no value."""
+
+    name: str
+    description: str
+    parameters: tuple[str, ...]
+    bounds: Mapping[str, tuple[float, float]]
+    added: int
+    fitted_without: Mapping[str, Mapping[str, float]]
+    fitted_all: Mapping[str, float]
+    in_sample_chi2: float
+    predicted_chi2: Mapping[str, float]
+    points: int
+    held_reps: Mapping[str, np.ndarray]
+    failures: Mapping[str, str]
+    groups: tuple[np.ndarray, ...]
+
+
+def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel, context: ModelContext,
+                    store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor],
+                    calibrated: Mapping[str, float], measured: MeasuredData, settings: DiscoverySettings,
+                    baseline_reps: np.ndarray, echo: Callable[[str], None]) -> _Fitted:
     conditions = list(measured.names)
     kpis = list(settings.kpis)
     lab = _lab(measured, kpis)
@@ -356,11 +401,9 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
     bounds.update(extra)
     names = tuple(bounds)
     description = "the calibrated parameters refitted, no new physics" if mechanism is None else mechanism.description
-    if not names:  # the calibrated model as is: held-out chi^2 = the discrepancy's
-        held = {c: baseline.chi2_of(c) for c in conditions}
-        return HypothesisScore(name, description, (), {}, 0, held, {c: {} for c in conditions}, {},
-                               float(sum(held.values())), float(sum(held.values())), 0,
-                               held_out_cells=baseline.cells, predicted_chi2=dict(held))
+    if not names:  # the calibrated model as is: its held-out runs are the discrepancy runs
+        return _Fitted(name, description, (), {}, 0, {c: {} for c in conditions}, {}, math.nan, {}, 0,
+                       {c: baseline_reps[i] for i, c in enumerate(conditions)}, {}, ())
     b = np.array([[bounds[n][0] for n in names], [bounds[n][1] for n in names]], dtype=np.float64)
     n_points = max(settings.min_points, settings.points_per_parameter * len(names))
     X = latin_hypercube(b, n_points, seed=settings.seed)
@@ -371,9 +414,10 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
         reps = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, kpis)
     # outputs: measured (condition, KPI) cells; y = replicate means, y_var = variance of the mean
     cells = [(i, c, j, k) for i, c in enumerate(conditions) for j, k in enumerate(kpis) if (c, k) in lab]
-    Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i, _, j, _ in cells], axis=1)
     counts = np.stack([np.isfinite(reps[:, i, :, j]).sum(axis=1) for i, _, j, _ in cells], axis=1)
-    V = np.stack([np.nanvar(reps[:, i, :, j], axis=1, ddof=1) for i, _, j, _ in cells], axis=1) / np.maximum(counts, 1)
+    with warnings.catch_warnings():  # a point with no finite replicate: NaN, not usable
+        warnings.simplefilter("ignore", RuntimeWarning)
+        Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i, _, j, _ in cells], axis=1)
     usable = (counts >= min(2, len(settings.fit_seeds))).all(axis=1) & np.isfinite(Y).all(axis=1)
     if usable.sum() < max(4, len(names) + 2):
         failed = store.records(f"discovery-{name}", batch_key=design_key, status="failed")
@@ -382,14 +426,18 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
                  + f"): {failed[0].error}") if failed else ""
         raise ConfigError(f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points have "
                           f"every KPI measured on every condition{first} (all runs in {store.path})")
-    V = np.where(np.isfinite(V), V, 0.0) if len(settings.fit_seeds) > 1 else None
+    V = None
+    if len(settings.fit_seeds) > 1:  # variance of each design point's mean, from the design's pooled noise
+        design_noise = ReplicateNoise.of(kpis, [reps[usable]])
+        V = np.array([[design_noise.variance(k) for _, _, _, k in cells]]) / np.maximum(counts, 1)
+        V = np.where(np.isfinite(V), V, 0.0)
     lab_mean = np.array([lab[(c, k)][0] for _, c, _, k in cells])
     lab_var = np.array([lab[(c, k)][1] ** 2 for _, c, _, k in cells])
     output_names = tuple(f"{c}|{k}" for _, c, _, k in cells)
     spec = ObjectiveSpec(output_names, tuple(np.where(lab_mean == 0, 1.0, lab_mean)), source=f"hypothesis {name}")
     surrogate = fit_surrogate(X[usable], Y[usable], b, SurrogateConfig(kernel=settings.kernel, strategy="per_kpi"),
                               y_var=None if V is None else V[usable], objective=spec)
-    dem_var = np.nanmean(V[usable], axis=0) if V is not None else np.zeros(len(cells))
+    dem_var = V[usable].mean(axis=0) if V is not None else np.zeros(len(cells))
     cond_of = np.array([c for _, c, _, _ in cells])
 
     def fit(mask: np.ndarray) -> dict[str, float]:
@@ -416,32 +464,39 @@ def _score_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownMod
     in_sample = float(_expected_chi2_terms(mean[0], var[0], dem_var, lab_mean, lab_var).sum())
     # the held-out predictions checked with the DEM: each condition run with the parameters
     # fitted without it
-    held_cells: list[Cell] = []
-    held: dict[str, float] = {}
+    held: dict[str, np.ndarray] = {}
     failures: dict[str, str] = {}
     with executor_for(hyp_model) as executor:
         for c, x in without.items():
             params = {**calibrated, **x}
             key = f"held-out/{c}/" + _key(sorted(params.items()))
-            runs = _run(store, executor, f"discovery-{name}", key, [params], settings.seeds, [c], kpis)[0]
-            c_cells = _cells(runs, [c], kpis, lab)
-            held_cells += c_cells
-            missing = [x.kpi for x in c_cells if x.n == 0]
+            held[c] = _run(store, executor, f"discovery-{name}", key, [params], settings.seeds, [c], kpis)[0, 0]
+            missing = _unmeasured(held[c], c, kpis, lab)
             if missing:  # the fitted parameters could not be simulated here: no prediction, no score
                 failed = store.records(f"discovery-{name}", batch_key=key, status="failed")
                 failures[c] = (f"{', '.join(missing)} not measured in any run"
                                + (f"; first error: {failed[0].error}" if failed else ""))
-                held[c] = math.inf
-            else:
-                held[c] = float(sum(x.z ** 2 for x in c_cells if math.isfinite(x.z)))
-    score = float(sum(held.values()) + settings.penalty * len(extra))
-    echo(f"  {name}: {len(names)} parameters, {n_points} points; held-out chi^2 (DEM) "
-         + ", ".join(f"{c} {v:.1f}" for c, v in held.items()) + " (surrogate "
-         + ", ".join(f"{v:.1f}" for v in predicted.values()) + f"); score {score:.1f}"
-         + "".join(f"; held-out runs on {c} failed: {why}" for c, why in failures.items()))
-    return HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names}, len(extra),
-                           held, without, every, in_sample, score, n_points, held_out_cells=tuple(held_cells),
-                           predicted_chi2=predicted, held_out_failures=failures)
+    echo(f"  {name}: {len(names)} parameters, {n_points} points fitted; surrogate held-out chi^2 "
+         + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items()))
+    return _Fitted(name, description, names, {n: tuple(map(float, bounds[n])) for n in names}, len(extra), without,
+                   every, in_sample, predicted, n_points, held, failures, (reps, *(r[None] for r in held.values())))
+
+
+def _score(f: _Fitted, kpis: Sequence[str], lab: Mapping[tuple[str, str], tuple[float, float]],
+           noise: ReplicateNoise, penalty: float) -> HypothesisScore:
+    """Held-out chi^2 of ``f``'s DEM runs against the measurements with the pooled ``noise``."""
+    cells: list[Cell] = []
+    held: dict[str, float] = {}
+    for c, reps in f.held_reps.items():
+        c_cells = _cells(reps[None], [c], kpis, lab, noise)
+        cells += c_cells
+        held[c] = math.inf if c in f.failures else float(sum(x.z ** 2 for x in c_cells if math.isfinite(x.z)))
+    score = float(sum(held.values()) + penalty * f.added)
+    predicted = f.predicted_chi2 if f.parameters else dict(held)
+    in_sample = f.in_sample_chi2 if f.parameters else score
+    return HypothesisScore(f.name, f.description, f.parameters, f.bounds, f.added, held, f.fitted_without,
+                           f.fitted_all, in_sample, score, f.points, held_out_cells=tuple(cells),
+                           predicted_chi2=predicted, held_out_failures=f.failures)
 
 
 def model_context(model: DrawDownModel, calibrated: Mapping[str, float]) -> ModelContext:
@@ -495,10 +550,13 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         raise ConfigError(f"discovery.candidates: {unknown} are not in the registry (bo/mechanisms/); known: "
                           f"{sorted(mechanisms)}")
     conditions = list(measured.names)
+    kpis = list(settings.kpis)
+    lab = _lab(measured, kpis)
     with executor_for(model) as executor:
-        discrepancy, _ = measure_discrepancy(store, executor, calibrated, measured, settings)
+        discrepancy, reps = measure_discrepancy(store, executor, calibrated, measured, settings)
     echo(f"discrepancy: chi^2 {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} "
-         f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise)")
+         f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise; noise pooled "
+         f"over these runs)")
     hypotheses: list[HypothesisScore] = []
     cause, explanation = None, ""
     if not names:
@@ -509,18 +567,35 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
                        f"(chi^2 = {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} >= "
                        f"{settings.alpha}): there is nothing to explain, so no candidate was fitted.")
     else:
-        echo(f"scoring hypotheses: {PARAMETERS}, " + ", ".join(names))
-        hypotheses.append(_score_hypothesis(PARAMETERS, None, model, context, store, executor_for, calibrated,
-                                            measured, settings, discrepancy, echo))
+        echo(f"fitting hypotheses: {PARAMETERS}, " + ", ".join(names))
+        fitted = [_fit_hypothesis(PARAMETERS, None, model, context, store, executor_for, calibrated, measured,
+                                  settings, reps, echo)]
+        skipped: list[HypothesisScore] = []
         for n in names:
             why = mechanisms[n].available(context)
             if why is not None:
-                hypotheses.append(HypothesisScore(n, mechanisms[n].description, (), {}, 0, {}, {}, {}, math.nan,
-                                                  math.inf, 0, skipped=why))
+                skipped.append(HypothesisScore(n, mechanisms[n].description, (), {}, 0, {}, {}, {}, math.nan,
+                                               math.inf, 0, skipped=why))
                 echo(f"  {n}: skipped ({why})")
                 continue
-            hypotheses.append(_score_hypothesis(n, mechanisms[n], model, context, store, executor_for, calibrated,
-                                                measured, settings, discrepancy, echo))
+            fitted.append(_fit_hypothesis(n, mechanisms[n], model, context, store, executor_for, calibrated,
+                                          measured, settings, reps, echo))
+        # every chi^2 with one noise estimate: pooled over all runs of the discovery
+        noise = discrepancy.noise
+        for f in fitted:
+            noise = noise.pooled(ReplicateNoise.of(kpis, f.groups))
+        discrepancy = _discrepancy(reps, conditions, kpis, lab, noise, settings.alpha)
+        echo("DEM replicate noise pooled over every run (sd, dof): "
+             + ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in noise.to_dict().items())
+             + f"; discrepancy chi^2 {discrepancy.chi2:.1f}, p = {discrepancy.p_value:.3g}")
+        scored = {f.name: _score(f, kpis, lab, noise, settings.penalty) for f in fitted}
+        scored.update({h.name: h for h in skipped})
+        hypotheses = [scored[PARAMETERS]] + [scored[n] for n in names]
+        for h in hypotheses:
+            if h.skipped is None:
+                echo(f"  {h.name}: held-out chi^2 (DEM) " + ", ".join(f"{c} {v:.1f}" for c, v in h.held_out_chi2.items())
+                     + f"; score {h.score:.1f}"
+                     + "".join(f"; held-out runs on {c} failed: {why}" for c, why in h.held_out_failures.items()))
         reference = hypotheses[0]
         candidates = [h for h in hypotheses[1:] if h.skipped is None]
         best = min(candidates, key=lambda h: h.score) if candidates else None

@@ -5,8 +5,9 @@ Contract
 ``write_discovery_report(result, out_dir, extension_command=None)`` writes into ``out_dir``:
 
 * ``discovery.json`` (strict JSON, NaN as null): ``cause`` (a registry name or null),
-  ``explanation``, ``discrepancy`` (chi^2, degrees of freedom, p-value, significant, and every
-  cell: condition, KPI, DEM mean and standard error, measured mean and standard uncertainty, z,
+  ``explanation``, ``discrepancy`` (chi^2, degrees of freedom, p-value, significant,
+  ``dem_noise``: the pooled DEM replicate standard deviation per KPI and its degrees of freedom,
+  and every cell: condition, KPI, DEM mean and standard error, measured mean and standard uncertainty, z,
   relative error), ``candidates`` (every hypothesis: name, description, parameters, bounds,
   parameters added, held-out chi^2 per condition of the DEM runs and as the surrogate predicted it, score, in-sample chi^2, fitted values, or
   why it was skipped), ``errors`` (per held-out condition and KPI: measured, before and after
@@ -41,7 +42,7 @@ def discovery_payload(result: DiscoveryResult) -> dict:
         "cause": result.cause,
         "explanation": result.explanation,
         "discrepancy": {"chi2": d.chi2, "dof": d.dof, "p_value": d.p_value, "significant": d.significant,
-                        "cells": [c.to_dict() for c in d.cells]},
+                        "dem_noise": d.noise.to_dict(), "cells": [c.to_dict() for c in d.cells]},
         "candidates": [{"name": h.name, "description": h.description, "parameters": list(h.parameters),
                         "bounds": {k: list(v) for k, v in h.bounds.items()}, "added_parameters": h.added,
                         "held_out_chi2": dict(h.held_out_chi2), "predicted_held_out_chi2": dict(h.predicted_chi2),
@@ -115,6 +116,9 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
              "## 1. Discrepancy of the calibrated model", "",
              f"chi^2 = {d.chi2:.2f} on {d.dof} cells, p = {d.p_value:.3g}: "
              f"{'beyond' if d.significant else 'within'} measurement uncertainty and DEM stochasticity.", "",
+             "DEM replicate scatter per KPI, pooled over every run of the discovery (sd, degrees of freedom): "
+             + ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in d.noise.to_dict().items())
+             + "; a cell's se = sd / sqrt(n).", "",
              "| condition | KPI | measured +- u | DEM +- se (n) | error | z |", "| --- | --- | --- | --- | ---: | ---: |"]
     for c in d.cells:
         lines.append(f"| {c.condition} | {c.kpi} | {c.measured_mean:.4g} +- {c.measured_u:.2g} | {c.dem_mean:.4g} +- "

@@ -132,23 +132,53 @@ def _discover(tmp_path, lab, **changes):
 
 
 def test_discrepancy_z_chi2_and_p_value(tmp_path):
+    """Cells, chi^2 and p recomputed by hand; the DEM standard error from the replicate scatter
+    pooled over the three conditions' runs (3 x (3 - 1) = 6 degrees of freedom per KPI)."""
     lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
-    result = _discover(tmp_path, lab)
+    result = _discover(tmp_path, lab, candidates=())
     d = result.discrepancy
     assert d.dof == 12 and d.significant
     calibrated = {**_known_model().fixed, **km.TRUE}
+    reps = {(c, k): [km.known_kpis(calibrated, s, c)[k] for s in (0, 1, 2)] for c in ("50-50", "75-25", "25-75")
+            for k in KPIS}
     for cell in d.cells:  # recompute every cell from the model's replicates
-        reps = [km.known_kpis(calibrated, s, cell.condition)[cell.kpi] for s in (0, 1, 2)]
-        se = np.std(reps, ddof=1) / math.sqrt(3)
+        same_kpi = [v for (c, k), v in reps.items() if k == cell.kpi]
+        pooled = sum(((np.array(v) - np.mean(v)) ** 2).sum() for v in same_kpi) / (len(same_kpi) * 2)
+        se = math.sqrt(pooled / 3)
         m = lab.condition(cell.condition).kpis[cell.kpi.replace("_full_", "_")]
-        assert cell.dem_mean == pytest.approx(np.mean(reps))
-        assert cell.z == pytest.approx((np.mean(reps) - m.mean) / math.sqrt(se ** 2 + (m.ci95 / 1.96) ** 2))
+        assert d.noise.dof[KPIS.index(cell.kpi)] == 6
+        assert cell.dem_mean == pytest.approx(np.mean(reps[(cell.condition, cell.kpi)]))
+        assert cell.dem_se == pytest.approx(se)
+        assert cell.z == pytest.approx((cell.dem_mean - m.mean) / math.sqrt(se ** 2 + (m.ci95 / 1.96) ** 2))
     assert d.chi2 == pytest.approx(sum(c.z ** 2 for c in d.cells))
     assert d.p_value == pytest.approx(stats.chi2.sf(d.chi2, 12))
     # the mass-like KPIs of sinter-rich conditions carry the discrepancy, the angles do not
     z = {(c.condition, c.kpi): c.z for c in d.cells}
     assert abs(z[("25-75", "mass_flow_rate_full_kg_s")]) > abs(z[("75-25", "mass_flow_rate_full_kg_s")]) > 2
     assert abs(z[("25-75", "angle_of_repose_deg")]) < 2
+
+
+def test_every_score_uses_the_noise_pooled_over_every_run_of_the_discovery(tmp_path):
+    """The reported discrepancy and every held-out chi^2 divide by one noise estimate: the
+    within-group scatter of every run in the store (discrepancy, design points, held-out runs)."""
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    result = _discover(tmp_path, lab, candidates=("density_per_material",))
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    groups: dict[tuple, list] = {}
+    for stage in discovery_stages(["density_per_material"]):
+        for r in store.records(stage, status="done"):
+            groups.setdefault((stage, r.batch_key, r.point_index, r.condition), []).append(r.kpis)
+    noise = result.discrepancy.noise
+    for i, k in enumerate(KPIS):
+        runs = [[x[k] for x in g] for g in groups.values()]
+        dof = sum(len(v) - 1 for v in runs)
+        var = sum(((np.array(v) - np.mean(v)) ** 2).sum() for v in runs) / dof
+        assert noise.dof[i] == dof and dof > 6
+        assert noise.variance(k) == pytest.approx(var)
+    for h in result.hypotheses:
+        for cell in h.held_out_cells:
+            assert cell.dem_se == pytest.approx(math.sqrt(noise.variance(cell.kpi) / cell.n))
+        assert h.score == pytest.approx(sum(c.z ** 2 for c in h.held_out_cells) + 2.0 * h.added)
 
 
 def test_hidden_density_effect_is_named_and_gains_on_held_out_conditions(tmp_path):
