@@ -35,8 +35,14 @@ returns an executor (``bo.executor``) that evaluates a ``bo.dem.DrawDownModel``.
    design points, held-out runs of every hypothesis), so no hypothesis is scored with a luckier
    noise estimate than another. The GP's noise is the design's pooled ``s_k^2 / fit replicates``.
 3. Cause: the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
-   than ``margin``; else none: no candidate explains the discrepancy better than the parameters
-   and noise. If the discrepancy is not significant, no hypothesis is fitted (unless
+   than ``max(margin, 2 x gain_noise_sd)``; else none: no candidate explains the discrepancy
+   better than the parameters and noise. ``gain_noise_sd`` is the standard deviation the score
+   difference would have from DEM noise alone if both hypotheses predicted the same means: per
+   cell, z = (m + e) / s with e ~ N(0, se^2) has Var(z^2) = 4 (m/s)^2 (se/s)^2 + 2 (se/s)^4; the
+   two hypotheses' held-out runs are independent, so their variances add, with m the mean of the
+   two offsets (the measurement is common to both and cancels). Where the model misses a cell by
+   many standard errors, noise alone moves that cell's z^2 by tens, and a fixed margin would
+   name whichever candidate's runs happened to land closer. If the discrepancy is not significant, no hypothesis is fitted (unless
    ``always_score``) and the cause is none.
 4. Gain: the chosen mechanism's held-out runs of step 2 next to the calibrated model's runs of
    step 1: error per KPI and condition before and after, each with its uncertainty. The
@@ -71,7 +77,7 @@ from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
 
 __all__ = ["PARAMETERS", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore", "GainRow",
-           "DiscoveryResult", "discovery_stages", "measure_discrepancy", "run_discovery"]
+           "DiscoveryResult", "discovery_stages", "gain_noise_sd", "measure_discrepancy", "run_discovery"]
 
 #: Name of the no-new-physics hypothesis (the calibrated parameters refitted).
 PARAMETERS = "parameters"
@@ -190,6 +196,8 @@ class HypothesisScore:
         fitted_all: parameters fitted on every condition; in_sample_chi2: their surrogate chi^2.
         score: sum of held-out chi^2 + penalty x added. points: design points run.
         skipped: why the hypothesis was not fitted (unavailable for this model), else None.
+        gain_noise_sd: standard deviation of (score of ``parameters`` - this score) from DEM noise
+            alone (step 3); NaN for ``parameters`` itself.
         held_out_failures: condition -> why its held-out runs gave no value for some measured KPI
             (the fitted parameters could not be simulated there, e.g. a fill that does not fit the
             box); that condition's held-out chi^2, hence the score, is then infinite: a hypothesis
@@ -211,6 +219,7 @@ class HypothesisScore:
     held_out_cells: tuple[Cell, ...] = ()
     predicted_chi2: Mapping[str, float] = dataclasses.field(default_factory=dict)
     held_out_failures: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    gain_noise_sd: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -597,19 +606,22 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
                      + f"; score {h.score:.1f}"
                      + "".join(f"; held-out runs on {c} failed: {why}" for c, why in h.held_out_failures.items()))
         reference = hypotheses[0]
+        hypotheses = [reference] + [h if h.skipped else dataclasses.replace(
+            h, gain_noise_sd=gain_noise_sd(reference.held_out_cells, h.held_out_cells)) for h in hypotheses[1:]]
         candidates = [h for h in hypotheses[1:] if h.skipped is None]
         best = min(candidates, key=lambda h: h.score) if candidates else None
-        if best is not None and best.score < reference.score - settings.margin:
+        need = max(settings.margin, 2 * best.gain_noise_sd) if best is not None else math.nan
+        rule = (f"held-out chi^2 + {settings.penalty:g} per added parameter; a cause must gain more than "
+                f"max(margin {settings.margin:g}, 2 x the gain's DEM-noise sd) = {need:.1f}")
+        if best is not None and best.score < reference.score - need:
             cause = best.name
             explanation = (f"{best.name} ({best.description}) predicts the held-out conditions best: score "
                            f"{best.score:.1f} against {reference.score:.1f} for refitting the calibrated parameters "
-                           f"alone (held-out chi^2 + {settings.penalty:g} per added parameter; a cause must gain more "
-                           f"than {settings.margin:g}).")
+                           f"alone ({rule}).")
         else:
             explanation = ("No candidate explains the discrepancy better than the calibrated parameters and noise: "
                            + (f"the best, {best.name}, scores {best.score:.1f} against {reference.score:.1f} "
-                              f"(it must gain more than {settings.margin:g})." if best is not None
-                              else "no candidate could be fitted."))
+                              f"({rule})." if best is not None else "no candidate could be fitted."))
     echo(f"cause: {cause}. {explanation}")
     gain: list[GainRow] = []
     extension: dict[str, float] = {}
@@ -624,6 +636,25 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
             evaluations[stage] = c["done"] + c["failed"]
     evaluations["total"] = sum(evaluations.values())
     return DiscoveryResult(discrepancy, tuple(hypotheses), cause, explanation, tuple(gain), extension, evaluations)
+
+
+def gain_noise_sd(reference: Sequence[Cell], candidate: Sequence[Cell]) -> float:
+    """Standard deviation of ``sum z_ref^2 - sum z_cand^2`` over the cells both have, from DEM
+    noise alone when both predict the same means (module docstring, step 3); inf when a cell's
+    DEM standard error is unknown while the cells differ."""
+    ref = {(c.condition, c.kpi): c for c in reference}
+    var = 0.0
+    for b in candidate:
+        a = ref.get((b.condition, b.kpi))
+        if a is None or not (math.isfinite(a.z) and math.isfinite(b.z)):
+            continue
+        m = 0.5 * ((a.dem_mean - a.measured_mean) + (b.dem_mean - b.measured_mean))
+        for c in (a, b):
+            se = c.dem_se if math.isfinite(c.dem_se) else 0.0
+            s2 = se ** 2 + c.measured_u ** 2
+            if s2 > 0:
+                var += 4 * m ** 2 * se ** 2 / s2 ** 2 + 2 * se ** 4 / s2 ** 2
+    return math.sqrt(var)
 
 
 def _gain(chosen: HypothesisScore, baseline: Discrepancy) -> list[GainRow]:

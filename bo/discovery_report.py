@@ -6,13 +6,15 @@ Contract
 
 * ``discovery.json`` (strict JSON, NaN as null): ``cause`` (a registry name or null),
   ``explanation``, ``discrepancy`` (chi^2, degrees of freedom, p-value, significant,
-  ``dem_noise``: the pooled DEM replicate standard deviation per KPI and its degrees of freedom,
-  and every cell: condition, KPI, DEM mean and standard error, measured mean and standard uncertainty, z,
-  relative error), ``candidates`` (every hypothesis: name, description, parameters, bounds,
-  parameters added, held-out chi^2 per condition of the DEM runs and as the surrogate predicted it, score, in-sample chi^2, fitted values, or
-  why it was skipped), ``errors`` (per held-out condition and KPI: measured, before and after
-  with standard errors, relative errors and z), ``extension`` (the chosen mechanism's values
-  fitted on every condition) and ``dem_evaluations`` (per stage and total);
+  ``dem_noise``: the pooled DEM replicate standard deviation per KPI and its degrees of
+  freedom, and every cell: condition, KPI, DEM mean and standard error, measured mean and
+  standard uncertainty, z, relative error), ``candidates`` (every hypothesis: name,
+  description, parameters, bounds, parameters added, held-out chi^2 per condition of the DEM
+  runs and as the surrogate predicted it, score, ``gain_noise_sd`` (the sd of its gain over
+  ``parameters`` from DEM noise alone), in-sample chi^2, fitted values, or why it was skipped),
+  ``errors`` (per held-out condition and KPI: measured, before and after with standard errors,
+  relative errors and z), ``extension`` (the chosen mechanism's values fitted on every
+  condition) and ``dem_evaluations`` (per stage and total);
 * ``discovery.md``: the same as tables, with the command that uses the extension;
 * ``discrepancy.png``: z per KPI and condition (|z| > 2 marked), and, when a cause was named,
   ``gain.png``: relative error per KPI and held-out condition before and after.
@@ -46,7 +48,7 @@ def discovery_payload(result: DiscoveryResult) -> dict:
         "candidates": [{"name": h.name, "description": h.description, "parameters": list(h.parameters),
                         "bounds": {k: list(v) for k, v in h.bounds.items()}, "added_parameters": h.added,
                         "held_out_chi2": dict(h.held_out_chi2), "predicted_held_out_chi2": dict(h.predicted_chi2),
-                        "score": h.score, "in_sample_chi2": h.in_sample_chi2,
+                        "score": h.score, "gain_noise_sd": h.gain_noise_sd, "in_sample_chi2": h.in_sample_chi2,
                         "fitted_all": dict(h.fitted_all), "fitted_without": {c: dict(v) for c, v in
                                                                              h.fitted_without.items()},
                         "design_points": h.points, "skipped": h.skipped,
@@ -130,14 +132,15 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
     else:
         conds = list(dict.fromkeys(c for h in result.hypotheses for c in h.held_out_chi2))
         lines += ["| hypothesis | added parameters | " + " | ".join(f"held-out chi^2 {c}" for c in conds)
-                  + " | score |", "| --- | ---: | " + " | ".join("---:" for _ in conds) + " | ---: |"]
+                  + " | score | gain's noise sd |", "| --- | ---: | " + " | ".join("---:" for _ in conds)
+                  + " | ---: | ---: |"]
         for h in result.hypotheses:
             if h.skipped:
-                lines.append(f"| {h.name} | - | " + " | ".join("-" for _ in conds) + f" | skipped: {h.skipped} |")
+                lines.append(f"| {h.name} | - | " + " | ".join("-" for _ in conds) + f" | skipped: {h.skipped} | - |")
                 continue
             lines.append(f"| {h.name}{' **cause**' if h.name == result.cause else ''} | {h.added} | "
                          + " | ".join(f"{h.held_out_chi2.get(c, float('nan')):.1f}" for c in conds)
-                         + f" | {h.score:.1f} |")
+                         + f" | {h.score:.1f} | {'-' if math.isnan(h.gain_noise_sd) else f'{h.gain_noise_sd:.1f}'} |")
         failed = [f"- {h.name}: the held-out runs on {c} failed ({why})"
                   for h in result.hypotheses for c, why in h.held_out_failures.items()]
         lines += [""] + failed if failed else []

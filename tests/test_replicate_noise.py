@@ -55,3 +55,24 @@ def test_pooled_noise_keeps_the_discrepancy_test_at_its_level():
         own_alarms += chi2 > 15.507  # chi^2_8 at 0.95
     assert 0.03 < pooled_alarms / trials < 0.08, pooled_alarms / trials
     assert own_alarms / trials > 0.3, own_alarms / trials
+
+
+def test_gain_noise_sd_is_the_sd_of_the_chi2_difference_of_two_equal_models():
+    """Two hypotheses with the same means (one 9 measurement-uncertainties off, as the paper's
+    shear angle): the sd of the difference of their held-out chi^2 over 20000 simulated pairs
+    of runs matches ``gain_noise_sd`` within 5 %; it is ~20 chi^2 units, far above the
+    fixed margin of 4."""
+    from bo.discovery import Cell, gain_noise_sd
+
+    rng = np.random.default_rng(3)
+    offsets, u, sd, n = np.array([-12.0, 1.0, 0.3]), np.array([0.8, 0.2, 0.25]), np.array([1.9, 0.6, 0.3]), 2
+    se = sd / math.sqrt(n)
+    s = np.sqrt(se ** 2 + u ** 2)
+    means = 10.0 + offsets + se * rng.standard_normal((2, 20000, 3))     # [hypothesis, trial, cell]
+    chi2 = (((means - 10.0) / s) ** 2).sum(-1)
+    empirical = float(np.std(chi2[0] - chi2[1]))
+    cells = lambda k: [Cell("c", f"k{j}", float(10.0 + offsets[j] + (0.1 if k else -0.1)), float(se[j]), n, 10.0,  # noqa: E731
+                            float(u[j]), float((offsets[j] + (0.1 if k else -0.1)) / s[j]), math.nan) for j in range(3)]
+    predicted = gain_noise_sd(cells(0), cells(1))
+    assert predicted == pytest.approx(empirical, rel=0.05)
+    assert predicted > 15  # ~19.6 here
