@@ -147,6 +147,7 @@ def test_cpp_contact_kernels_equal_torch_eager_float64(extension, rolling_stiffn
     assert bool((torch_out[2].walls.tangential.norm(dim=-1) > 0).any())    # touching walls
     member = state.pairs.i // system.n_spheres
     assert bool((member != 0).any()) and system.grid.is_periodic
+    assert not system.spheres_are_bodies
 
 
 @pytest.mark.parametrize("rolling_stiffness", ["tangential", "ai2011"])
@@ -163,6 +164,13 @@ def test_cpp_contact_kernels_equal_torch_eager_for_single_spheres(extension, rol
     across = (xs[p.j] - xs[p.i]).abs().max(dim=-1).values > 0.5 * float(system.grid.period.max())
     assert int(touching.sum()) > 100 and int((touching & across).sum()) > 5   # contacts through the period
     assert float(torch_out[1].abs().max()) > 0                                 # torques, i.e. lever arms
+    # sphere k is body k here, so the kernels read the sphere indices as body indices; through the
+    # pairs' own body arrays they give the same bits
+    assert system.spheres_are_bodies and torch.equal(state.pairs.body_i, state.pairs.i)
+    system.__dict__["spheres_are_bodies"] = False          # the cached property, overridden
+    own = contact_forces(system, state, xs, omega, 0.0, Kernels(backend="cpp"))
+    for name, value in _outputs(own).items():
+        assert torch.equal(value, _outputs(cpp_out)[name]), name
 
 
 def test_cpp_contact_kernels_equal_torch_eager_float32(extension):

@@ -206,9 +206,11 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
     force = torque = system.zero_body_vectors
     dt = system.dt_tensor
     p = state.pairs
+    same = system.spheres_are_bodies  # body indices = sphere indices: stream one array, not two
     if p.n:
         force, torque, tang, roll = kernels.pair(
-            xs, X, V, omega, force, torque, p.i, p.j, p.body_i, p.body_j, p.radius_i, p.radius_j,
+            xs, X, V, omega, force, torque, p.i, p.j, *((p.i, p.j) if same else (p.body_i, p.body_j)),
+            p.radius_i, p.radius_j,
             p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
             p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt=dt, period=system.grid.period,
             stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic, members=B,
@@ -218,7 +220,7 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
     if wc.n:
         walls = system.walls
         force, torque, tang, roll = kernels.wall(
-            xs, X, V, omega, force, torque, wc.sphere, wc.body, wc.wall,
+            xs, X, V, omega, force, torque, wc.sphere, wc.sphere if same else wc.body, wc.wall,
             walls.centre + walls.shift(time) if walls.moves else walls.centre, walls.axis_u, walls.axis_v, walls.half_u, walls.half_v,
             walls.velocity_at(time), walls.active_at(time), wc.radius, wc.mass_eff, wc.young_eff,
             wc.shear_eff, wc.beta, wc.mu_s, wc.mu_r, wc.rolling_damping, wc.rolling_inertia,

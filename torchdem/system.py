@@ -103,6 +103,14 @@ class System:
         return (self.sphere_body + base).reshape(-1)
 
     @functools.cached_property
+    def spheres_are_bodies(self) -> bool:
+        """True when sphere k is body k (flat indices; single spheres without padding): pair and
+        wall lists may then use sphere indices as body indices, one index stream less per step."""
+        n = self.sphere_body_flat.numel()
+        return self.spheres_only and n == self.batch * self.n_bodies and bool(
+            (self.sphere_body_flat == torch.arange(n, device=self.sphere_body_flat.device)).all())
+
+    @functools.cached_property
     def sphere_mass(self) -> Tensor:
         """``[B * Ns]`` mass of the body of every sphere, kg."""
         return self.mass.reshape(-1)[self.sphere_body_flat]
