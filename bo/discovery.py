@@ -77,7 +77,7 @@ from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
 
 __all__ = ["PARAMETERS", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore", "GainRow",
-           "DiscoveryResult", "discovery_stages", "gain_noise_sd", "measure_discrepancy", "run_discovery"]
+           "DiscoveryResult", "discovery_stages", "gain_noise_sd", "gain_rows", "measure_discrepancy", "run_discovery"]
 
 #: Name of the no-new-physics hypothesis (the calibrated parameters refitted).
 PARAMETERS = "parameters"
@@ -628,7 +628,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
     if cause is not None:
         chosen = next(h for h in hypotheses if h.name == cause)
         extension = {n: v for n, v in chosen.fitted_all.items() if n in chosen.parameters}
-        gain = _gain(chosen, discrepancy)
+        gain = gain_rows(chosen, discrepancy)
     evaluations = {}
     for stage in discovery_stages(names):
         c = store.counts(stage)
@@ -657,8 +657,8 @@ def gain_noise_sd(reference: Sequence[Cell], candidate: Sequence[Cell]) -> float
     return math.sqrt(var)
 
 
-def _gain(chosen: HypothesisScore, baseline: Discrepancy) -> list[GainRow]:
-    """Step 4: every held-out cell of the chosen mechanism next to the calibrated model's cell."""
+def gain_rows(chosen: HypothesisScore, baseline: Discrepancy) -> list[GainRow]:
+    """Step 4: every held-out cell of ``chosen`` next to the calibrated model's cell."""
     before = {(c.condition, c.kpi): c for c in baseline.cells}
     rows = []
     for a in chosen.held_out_cells:

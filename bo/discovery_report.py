@@ -11,11 +11,13 @@ Contract
   standard uncertainty, z, relative error), ``candidates`` (every hypothesis: name,
   description, parameters, bounds, parameters added, held-out chi^2 per condition of the DEM
   runs and as the surrogate predicted it, score, ``gain_noise_sd`` (the sd of its gain over
-  ``parameters`` from DEM noise alone), in-sample chi^2, fitted values, or why it was skipped),
+  ``parameters`` from DEM noise alone), in-sample chi^2, fitted values, the cells of its held-out
+  runs, or why it was skipped),
   ``errors`` (per held-out condition and KPI: measured, before and after with standard errors,
   relative errors and z), ``extension`` (the chosen mechanism's values fitted on every
   condition) and ``dem_evaluations`` (per stage and total);
-* ``discovery.md``: the same as tables, with the command that uses the extension;
+* ``discovery.md``: the same as tables, with the command that uses the extension (when no
+  cause is named, the best candidate's held-out errors next to the calibrated model's);
 * ``discrepancy.png``: z per KPI and condition (|z| > 2 marked), and, when a cause was named,
   ``gain.png``: relative error per KPI and held-out condition before and after.
 
@@ -31,7 +33,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from bo.discovery import DiscoveryResult
+from bo.discovery import DiscoveryResult, gain_rows
 from bo.plots import save_png
 from bo.screen import json_ready
 
@@ -52,7 +54,8 @@ def discovery_payload(result: DiscoveryResult) -> dict:
                         "fitted_all": dict(h.fitted_all), "fitted_without": {c: dict(v) for c, v in
                                                                              h.fitted_without.items()},
                         "design_points": h.points, "skipped": h.skipped,
-                        "held_out_failures": dict(h.held_out_failures)} for h in result.hypotheses],
+                        "held_out_failures": dict(h.held_out_failures),
+                        "held_out_cells": [c.to_dict() for c in h.held_out_cells]} for h in result.hypotheses],
         "errors": [g.to_dict() for g in result.gain],
         "extension": {"name": result.cause, "values": dict(result.extension)},
         "dem_evaluations": dict(result.evaluations),
@@ -102,6 +105,12 @@ def _gain_figure(result: DiscoveryResult) -> Figure:
     return fig
 
 
+def _gain_line(g) -> str:
+    return (f"| {g.condition} | {g.kpi} | {g.measured_mean:.4g} +- {g.measured_u:.2g} | {g.before_mean:.4g} +- "
+            f"{g.before_se:.2g} | {g.after_mean:.4g} +- {g.after_se:.2g} | {g.before_error_pct:+.1f} % | "
+            f"{g.after_error_pct:+.1f} % |")
+
+
 def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: str | None = None) -> dict[str, Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -144,6 +153,13 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
         failed = [f"- {h.name}: the held-out runs on {c} failed ({why})"
                   for h in result.hypotheses for c, why in h.held_out_failures.items()]
         lines += [""] + failed if failed else []
+        scored = [h for h in result.hypotheses[1:] if h.skipped is None and h.held_out_cells]
+        best = min(scored, key=lambda h: h.score) if scored else None
+        if result.cause is None and best is not None:  # what the best candidate did, though not a cause
+            lines += ["", f"The best candidate, {best.name}, on held-out conditions (not named a cause):", "",
+                      "| condition | KPI | measured | calibrated model | with " + best.name + " | error before | "
+                      "error after |", "| --- | --- | --- | --- | --- | ---: | ---: |"]
+            lines += [_gain_line(g) for g in gain_rows(best, d)]
     if result.gain:
         lines += ["", "## 3. Extension", "", "Values fitted on every condition: "
                   + ", ".join(f"{k} = {v:.4g}" for k, v in result.extension.items()) + "."]
@@ -152,10 +168,7 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
         lines += ["", "## 4. Gain on held-out conditions", "",
                   "| condition | KPI | measured | before | after | error before | error after |",
                   "| --- | --- | --- | --- | --- | ---: | ---: |"]
-        for g in result.gain:
-            lines.append(f"| {g.condition} | {g.kpi} | {g.measured_mean:.4g} +- {g.measured_u:.2g} | {g.before_mean:.4g}"
-                         f" +- {g.before_se:.2g} | {g.after_mean:.4g} +- {g.after_se:.2g} | {g.before_error_pct:+.1f} % |"
-                         f" {g.after_error_pct:+.1f} % |")
+        lines += [_gain_line(g) for g in result.gain]
         lines += ["", "![gain](gain.png)"]
     lines += ["", "DEM evaluations: " + ", ".join(f"{k} {v}" for k, v in result.evaluations.items())]
     files["md"] = out / "discovery.md"

@@ -272,6 +272,22 @@ def test_no_hidden_effect_invents_no_cause(tmp_path):
     assert scored.cause is None, scored.explanation  # fitted anyway: nothing beats the parameters + noise
     assert {h.name for h in scored.hypotheses} == {PARAMETERS, "density_per_material", "free_interaction",
                                                    "cohesion", "clump_shape"}
+    # the report says why no cause: every candidate's gain against its noise, the best one's cells
+    from bo.discovery_report import write_discovery_report
+
+    files = write_discovery_report(scored, tmp_path / "report")
+    payload = json.loads(files["json"].read_text())
+    assert payload["cause"] is None and payload["errors"] == []
+    assert set(payload["discrepancy"]["dem_noise"]) == set(KPIS)
+    assert all(v["dof"] > 0 and v["sd"] > 0 for v in payload["discrepancy"]["dem_noise"].values())
+    candidates = {c["name"]: c for c in payload["candidates"]}
+    assert candidates[PARAMETERS]["gain_noise_sd"] is None
+    assert all(c["gain_noise_sd"] > 0 and len(c["held_out_cells"]) == 12
+               for n, c in candidates.items() if n != PARAMETERS)
+    md = files["md"].read_text()
+    best = min((h for h in scored.hypotheses[1:]), key=lambda h: h.score)
+    assert f"The best candidate, {best.name}, on held-out conditions (not named a cause)" in md
+    assert "DEM replicate scatter per KPI" in md and "gain.png" not in md
 
 
 # -- config ----------------------------------------------------------------------------------
