@@ -622,6 +622,11 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
             explanation = ("No candidate explains the discrepancy better than the calibrated parameters and noise: "
                            + (f"the best, {best.name}, scores {best.score:.1f} against {reference.score:.1f} "
                               f"({rule})." if best is not None else "no candidate could be fitted."))
+        if not discrepancy.significant:
+            explanation += (f" With the DEM noise pooled over every run of the discovery, the calibrated model "
+                            f"agrees with the measurements within noise (chi^2 = {discrepancy.chi2:.1f} on "
+                            f"{discrepancy.dof} cells, p = {discrepancy.p_value:.3g}); the discrepancy runs' own "
+                            f"noise estimate had called it significant.")
     echo(f"cause: {cause}. {explanation}")
     gain: list[GainRow] = []
     extension: dict[str, float] = {}
