@@ -146,10 +146,14 @@ def rain_positions(bounding_radius: np.ndarray, layer: np.ndarray, volume: np.nd
         members = members[np.argsort(-bounding_radius[members], kind="stable")]
         R = bounding_radius[members] + gap / 2
         height = float((4 / 3 * np.pi * R ** 3).sum()) / (loose_fraction * W * D)
+        # Only spheres reaching above the slab's floor z0 can touch its candidates (centres at
+        # z >= z0 + R): the layers below end at z0, so they are left out of the overlap search
+        # (same positions, bit for bit; the search had grown with every layer placed).
+        reach = placed[:, 2] + placed_r > z0
         while True:
             lo = np.stack([-W / 2 + R, np.zeros_like(R) if periodic else R, z0 + R], 1)
             hi = np.stack([W / 2 - R, np.full_like(R, D) if periodic else D - R, np.maximum(z0 + height - R, z0 + R)], 1)
-            got = _place_slab(R, lo, hi, placed, placed_r, D, periodic, rng)
+            got = _place_slab(R, lo, hi, placed[reach], placed_r[reach], D, periodic, rng)
             if got is not None:
                 break
             height *= 1.1  # too crowded: give the slab more room and place the layer again
