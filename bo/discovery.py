@@ -42,8 +42,8 @@ returns an executor (``bo.executor``) that evaluates a ``bo.dem.DrawDownModel``.
    two hypotheses' held-out runs are independent, so their variances add, with m the mean of the
    two offsets (the measurement is common to both and cancels). Where the model misses a cell by
    many standard errors, noise alone moves that cell's z^2 by tens, and a fixed margin would
-   name whichever candidate's runs happened to land closer. If the discrepancy is not significant, no hypothesis is fitted (unless
-   ``always_score``) and the cause is none.
+   name whichever candidate's runs happened to land closer. If the discrepancy is not
+   significant, no hypothesis is fitted (unless ``always_score``) and the cause is none.
 4. Gain: the chosen mechanism's held-out runs of step 2 next to the calibrated model's runs of
    step 1: error per KPI and condition before and after, each with its uncertainty. The
    mechanism's values fitted on all conditions are the extension (``DiscoveryResult.extension``).
@@ -175,9 +175,6 @@ class Discrepancy:
     p_value: float
     significant: bool
     noise: ReplicateNoise
-
-    def chi2_of(self, condition: str) -> float:
-        return float(sum(c.z ** 2 for c in self.cells if c.condition == condition and math.isfinite(c.z)))
 
 
 @dataclass(frozen=True)
