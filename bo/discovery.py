@@ -374,24 +374,13 @@ def _expected_chi2_terms(mean: np.ndarray, gp_var: np.ndarray, dem_var: np.ndarr
 
 @dataclass(frozen=True)
 class _Fitted:
-    """Step 2 for one hypothesis before it is scored: what was fitted and the DEM runs made.
+    """Step 2 for one hypothesis before it is scored: ``hypothesis`` without its held-out chi^2
+    and score (those need the noise pooled over every hypothesis), ``held_reps`` condition ->
+    ``[r, K]`` held-out replicates (the discrepancy runs for a hypothesis without free
+    parameters), and ``groups``, replicate groups ``[..., r, K]`` of its runs for the pooled noise."""
 
-    ``held_reps``: condition -> ``[r, K]`` held-out replicates (the discrepancy runs for a
-    hypothesis without free parameters); ``groups``: replicate groups ``[..., r, K]`` of its
-    runs for the pooled noise; ``failures``: condition -> why its held-out runs gave no value."""
-
-    name: str
-    description: str
-    parameters: tuple[str, ...]
-    bounds: Mapping[str, tuple[float, float]]
-    added: int
-    fitted_without: Mapping[str, Mapping[str, float]]
-    fitted_all: Mapping[str, float]
-    in_sample_chi2: float
-    predicted_chi2: Mapping[str, float]
-    points: int
+    hypothesis: HypothesisScore
     held_reps: Mapping[str, np.ndarray]
-    failures: Mapping[str, str]
     groups: tuple[np.ndarray, ...]
 
 
@@ -408,8 +397,8 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     names = tuple(bounds)
     description = "the calibrated parameters refitted, no new physics" if mechanism is None else mechanism.description
     if not names:  # the calibrated model as is: its held-out runs are the discrepancy runs
-        return _Fitted(name, description, (), {}, 0, {c: {} for c in conditions}, {}, math.nan, {}, 0,
-                       {c: baseline_reps[i] for i, c in enumerate(conditions)}, {}, ())
+        return _Fitted(HypothesisScore(name, description, (), {}, 0, {}, {c: {} for c in conditions}, {}, math.nan,
+                                       math.nan, 0), {c: baseline_reps[i] for i, c in enumerate(conditions)}, ())
     b = np.array([[bounds[n][0] for n in names], [bounds[n][1] for n in names]], dtype=np.float64)
     n_points = max(settings.min_points, settings.points_per_parameter * len(names))
     X = latin_hypercube(b, n_points, seed=settings.seed)
@@ -484,25 +473,27 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                                + (f"; first error: {failed[0].error}" if failed else ""))
     echo(f"  {name}: {len(names)} parameters, {n_points} points fitted; surrogate held-out chi^2 "
          + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items()))
-    return _Fitted(name, description, names, {n: tuple(map(float, bounds[n])) for n in names}, len(extra), without,
-                   every, in_sample, predicted, n_points, held, failures, (reps, *(r[None] for r in held.values())))
+    hypothesis = HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names},
+                                 len(extra), {}, without, every, in_sample, math.nan, n_points,
+                                 predicted_chi2=predicted, held_out_failures=failures)
+    return _Fitted(hypothesis, held, (reps, *(r[None] for r in held.values())))
 
 
 def _score(f: _Fitted, kpis: Sequence[str], lab: Mapping[tuple[str, str], tuple[float, float]],
            noise: ReplicateNoise, penalty: float) -> HypothesisScore:
     """Held-out chi^2 of ``f``'s DEM runs against the measurements with the pooled ``noise``."""
+    h = f.hypothesis
     cells: list[Cell] = []
     held: dict[str, float] = {}
     for c, reps in f.held_reps.items():
         c_cells = _cells(reps[None], [c], kpis, lab, noise)
         cells += c_cells
-        held[c] = math.inf if c in f.failures else float(sum(x.z ** 2 for x in c_cells if math.isfinite(x.z)))
-    score = float(sum(held.values()) + penalty * f.added)
-    predicted = f.predicted_chi2 if f.parameters else dict(held)
-    in_sample = f.in_sample_chi2 if f.parameters else score
-    return HypothesisScore(f.name, f.description, f.parameters, f.bounds, f.added, held, f.fitted_without,
-                           f.fitted_all, in_sample, score, f.points, held_out_cells=tuple(cells),
-                           predicted_chi2=predicted, held_out_failures=f.failures)
+        held[c] = math.inf if c in h.held_out_failures else float(sum(x.z ** 2 for x in c_cells
+                                                                       if math.isfinite(x.z)))
+    score = float(sum(held.values()) + penalty * h.added)
+    if not h.parameters:  # the calibrated model as is: nothing was predicted, its runs are the fit
+        h = dataclasses.replace(h, predicted_chi2=dict(held), in_sample_chi2=score)
+    return dataclasses.replace(h, held_out_chi2=held, score=score, held_out_cells=tuple(cells))
 
 
 def model_context(model: DrawDownModel, calibrated: Mapping[str, float]) -> ModelContext:
@@ -594,7 +585,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         echo("DEM replicate noise pooled over every run (sd, dof): "
              + ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in noise.to_dict().items())
              + f"; discrepancy chi^2 {discrepancy.chi2:.1f}, p = {discrepancy.p_value:.3g}")
-        scored = {f.name: _score(f, kpis, lab, noise, settings.penalty) for f in fitted}
+        scored = {f.hypothesis.name: _score(f, kpis, lab, noise, settings.penalty) for f in fitted}
         scored.update({h.name: h for h in skipped})
         hypotheses = [scored[PARAMETERS]] + [scored[n] for n in names]
         for h in hypotheses:
