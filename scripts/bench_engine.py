@@ -49,7 +49,8 @@ Reading the figures:
   rolling spring into the current tangent plane each step (LIGGGHTS epsd2 does not).
 
 - ``--backend cpp`` (default) times the C++ contact kernels of ``torchdem/_ext``; ``--backend torch``
-  the torch ones (with ``--compile``: torch.compile'd). Drift and kick are torch either way.
+  the torch ones (with ``--compile``: torch.compile'd). With cpp, the drift, and the pair and wall
+  contacts with the kick (one fused call per step), are C++ too.
 
 Usage: ``python scripts/bench_engine.py [--steps 2000] [--json] [--quick] [--backend cpp|torch]``. Plain argparse,
 not Hydra: a benchmark with a handful of flags and no config groups.

@@ -249,6 +249,80 @@ def test_cpp_member_partition_equals_two_passes_bitwise(extension):
     assert float((two_pass[0] + two_pass[4] - torch_force).abs().max()) <= 1e-12 * scale
 
 
+def _unfused(system, state, xs, omega, kernels):
+    """contact_forces then the kick: the two calls that forces_and_kick fuses."""
+    from torchdem.integrate import contact_forces
+
+    force, torque, after = contact_forces(system, state, xs, omega, 0.0, kernels)
+    b = state.bodies
+    f, tau, v, L = kernels.kick(force, torque, b.velocity, b.angular_momentum, system.mass, system.gravity,
+                                b.active, system.dt_tensor)
+    return after.set(bodies=b.set(force=f, torque=tau, velocity=v, angular_momentum=L))
+
+
+def _step_outputs(state):
+    b, p, w = state.bodies, state.pairs, state.walls
+    return {"force": b.force, "torque": b.torque, "velocity": b.velocity, "momentum": b.angular_momentum,
+            "pair tangential": p.tangential, "pair rolling": p.rolling, "wall tangential": w.tangential,
+            "wall rolling": w.rolling}
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+@pytest.mark.parametrize("clumps", [0.0, 0.3])
+def test_fused_forces_and_kick_equal_the_three_calls_bitwise(extension, dtype, clumps):
+    """forces_and_kick (pairs, walls and kick of each member in one pass) gives the same bits as
+    pair_forces, wall_forces and kick one after the other: spheres (sphere k is body k) and
+    clumps, with inactive bodies, for 1, 2 and 3 threads, and for contacts that do not split
+    into members (fallback to the three calls). It also equals the torch kernels to rounding."""
+    from torchdem.integrate import forces_and_kick
+
+    system, state = _system(dtype=dtype, B=4, N=90, seed=21, clumps=clumps)
+    state, xs, omega = _with_history(system, state, seed=22)
+    state = state.set(bodies=state.bodies.set(active=state.bodies.active.clone().index_fill_(1, torch.tensor([5]), False)))
+    assert state.pairs.n > 300 and state.walls.n > 20 and not system.has_cohesion
+    cpp = Kernels(backend="cpp")
+    assert cpp.fuses(xs) and not Kernels(backend="torch").fuses(xs)
+    reference = _step_outputs(_unfused(system, state, xs, omega, cpp))
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            fused = _step_outputs(forces_and_kick(system, state, xs, omega, 0.0, cpp))
+            for name, value in reference.items():
+                assert torch.equal(fused[name], value), (n, name)
+    finally:
+        torch.set_num_threads(threads)
+    # pairs shuffled across members: the fused kernel cannot give members to threads
+    order = torch.randperm(state.pairs.n, generator=torch.Generator().manual_seed(23))
+    p = state.pairs
+    shuffled = state.set(pairs=p.set(**{k: getattr(p, k)[order] for k in (
+        "i", "j", "body_i", "body_j", "radius_i", "radius_j", "radius_eff", "mass_eff", "young_eff", "shear_eff",
+        "beta", "mu_s", "mu_r", "rolling_damping", "rolling_inertia", "tangential", "rolling")}))
+    fused = _step_outputs(forces_and_kick(system, shuffled, xs, omega, 0.0, cpp))
+    for name, value in _step_outputs(_unfused(system, shuffled, xs, omega, cpp)).items():
+        assert torch.equal(fused[name], value), name
+    eager = _step_outputs(forces_and_kick(system, state, xs, omega, 0.0, Kernels(backend="torch")))
+    rel = 1e-12 if dtype == F64 else 1e-4
+    for name, value in reference.items():
+        assert float((value - eager[name]).abs().max()) <= rel * float(eager[name].abs().max()), name
+
+
+def test_fused_forces_and_kick_reject_bad_indices(extension):
+    """A bad index in either list fails the fused call with the error of its own kernel."""
+    from torchdem.integrate import forces_and_kick
+
+    system, state = _system(B=2, N=60)
+    state, xs, omega = _with_history(system, state)
+    cpp = Kernels(backend="cpp")
+    p, w = state.pairs, state.walls
+    bad_pairs = state.set(pairs=p.set(j=p.j.clone().fill_(xs.shape[0])))
+    with pytest.raises(RuntimeError, match="pair_forces: .* outside"):
+        forces_and_kick(system, bad_pairs, xs, omega, 0.0, cpp)
+    bad_walls = state.set(walls=w.set(wall=w.wall.clone().fill_(system.walls.n)))
+    with pytest.raises(RuntimeError, match="wall_forces: .* out of range"):
+        forces_and_kick(system, bad_walls, xs, omega, 0.0, cpp)
+
+
 def test_cpp_kernels_reject_bad_indices(extension):
     system, state = _system(N=30)
     state, xs, omega = _with_history(system, state)
@@ -338,6 +412,11 @@ def test_cpp_drift_equals_torch_drift(extension, dtype, rel):
     out_s = Kernels(backend="cpp").drift(*args, True)
     for name, a, e in zip(names, out_s, ref_s):
         assert float((a - e).abs().max()) <= rel * float(e.abs().max()), name
+    # a sphere of a body that does not exist is an error naming it, not a read out of bounds
+    sphere_body = system.sphere_body_flat.clone()
+    sphere_body[7] = system.batch * system.n_bodies
+    with pytest.raises(RuntimeError, match="drift: sphere 7 belongs to body"):
+        Kernels(backend="cpp").drift(*args[:9], sphere_body, *args[10:], False)
 
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
@@ -394,3 +473,34 @@ def test_cpp_pair_constants_equal_torch(extension, dtype, monkeypatch):
     bad[7] = radius.numel()
     with pytest.raises(RuntimeError, match="outside"):
         extension.pair_constants(bad, *args[1:-1], system.tables.stacked)
+
+
+def test_kernel_outputs_recycle_only_memory_nobody_references(extension):
+    """The step kernels recycle the memory of outputs the caller has dropped (no fresh pages, so
+    no page faults, per step) and never that of outputs still referenced: a kept result, or a
+    view of one, keeps its values through later calls."""
+    g = torch.Generator().manual_seed(31)
+    N = 5000
+    mass = 1 + torch.rand(N, generator=g, dtype=F64)
+    gravity = torch.tensor([0.0, 0.0, -9.81], dtype=F64)
+    active = torch.ones(N, dtype=torch.bool)
+
+    def kick(scale):
+        force = scale * torch.randn(N, 3, generator=g, dtype=F64)
+        return extension.kick(force, force, force, force, mass, gravity, active, 1e-3)
+
+    kept = kick(1.0)
+    kept_copy = [t.clone() for t in kept]
+    view = kick(2.0)[2][10:20]                   # only a view survives of this call's velocity
+    view_copy = view.clone()
+    dropped = kick(3.0)
+    dropped_ptr = dropped[0].data_ptr()
+    del dropped
+    again = kick(4.0)
+    assert again[0].data_ptr() == dropped_ptr    # the dropped force's memory is handed out again
+    for _ in range(5):
+        kick(5.0)
+    for a, b in zip(kept, kept_copy):
+        assert torch.equal(a, b)
+    assert torch.equal(view, view_copy)
+    assert again[0].shape == (N, 3) and again[0].is_contiguous()

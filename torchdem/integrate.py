@@ -190,6 +190,24 @@ def wall_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, 
     return force, torque, tangential, rolling
 
 
+def _pair_operands(system: System, p: PairContacts) -> tuple[Tensor, ...]:
+    """The ``contacts`` of :meth:`Kernels.pair` (i ... rolling, in :func:`pair_kernel`'s order)."""
+    same = system.spheres_are_bodies  # body indices = sphere indices: stream one array, not two
+    return (p.i, p.j, *((p.i, p.j) if same else (p.body_i, p.body_j)), p.radius_i, p.radius_j,
+            p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
+            p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling)
+
+
+def _wall_operands(system: System, wc: WallContacts, time: float) -> tuple[Tensor, ...]:
+    """The ``contacts`` of :meth:`Kernels.wall` (sphere ... rolling, in :func:`wall_kernel`'s order)."""
+    walls = system.walls
+    return (wc.sphere, wc.sphere if system.spheres_are_bodies else wc.body, wc.wall,
+            walls.centre + walls.shift(time) if walls.moves else walls.centre, walls.axis_u, walls.axis_v,
+            walls.half_u, walls.half_v, walls.velocity_at(time), walls.active_at(time), wc.radius, wc.mass_eff,
+            wc.young_eff, wc.shear_eff, wc.beta, wc.mu_s, wc.mu_r, wc.rolling_damping, wc.rolling_inertia,
+            wc.tangential, wc.rolling)
+
+
 def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time: float,
                    kernels: "Kernels | None" = None) -> tuple[Tensor, Tensor, State]:
     """Total contact force and torque on every body, and the state with updated history.
@@ -206,29 +224,47 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
     force = torque = system.zero_body_vectors
     dt = system.dt_tensor
     p = state.pairs
-    same = system.spheres_are_bodies  # body indices = sphere indices: stream one array, not two
     if p.n:
         force, torque, tang, roll = kernels.pair(
-            xs, X, V, omega, force, torque, p.i, p.j, *((p.i, p.j) if same else (p.body_i, p.body_j)),
-            p.radius_i, p.radius_j,
-            p.radius_eff, p.mass_eff, p.young_eff, p.shear_eff, p.beta, p.mu_s, p.mu_r,
-            p.rolling_damping, p.rolling_inertia, p.tangential, p.rolling, dt=dt, period=system.grid.period,
+            xs, X, V, omega, force, torque, *_pair_operands(system, p), dt=dt, period=system.grid.period,
             stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic, members=B,
             lookup=system.pair_lookup, centred=system.spheres_only)
         p = p.set(tangential=tang, rolling=roll)
     wc = state.walls
     if wc.n:
-        walls = system.walls
         force, torque, tang, roll = kernels.wall(
-            xs, X, V, omega, force, torque, wc.sphere, wc.sphere if same else wc.body, wc.wall,
-            walls.centre + walls.shift(time) if walls.moves else walls.centre, walls.axis_u, walls.axis_v, walls.half_u, walls.half_v,
-            walls.velocity_at(time), walls.active_at(time), wc.radius, wc.mass_eff, wc.young_eff,
-            wc.shear_eff, wc.beta, wc.mu_s, wc.mu_r, wc.rolling_damping, wc.rolling_inertia,
-            wc.tangential, wc.rolling, dt=dt, stiffness_model=system.rolling_stiffness, members=B)
+            xs, X, V, omega, force, torque, *_wall_operands(system, wc, time), dt=dt,
+            stiffness_model=system.rolling_stiffness, members=B)
         wc = wc.set(tangential=tang, rolling=roll)
     if system.has_cohesion:
         force, torque = cohesion_forces(system, state, xs, X, force, torque, time)
     return force, torque, state.set(pairs=p, walls=wc)
+
+
+def forces_and_kick(system: System, state: State, xs: Tensor, omega: Tensor, time: float,
+                    kernels: "Kernels | None" = None) -> State:
+    """:func:`contact_forces` followed by the second half kick (:func:`kick_kernel`): the state
+    with the new force, torque (gravity added, inactive bodies masked), velocity, angular
+    momentum and contact history. Where the kernels can (:meth:`Kernels.fuses`), one fused
+    call (the same bits); else the two steps."""
+    kernels = kernels or EAGER
+    b = state.bodies
+    dt_t = system.dt_tensor
+    p, wc = state.pairs, state.walls
+    if p.n and wc.n and not system.has_cohesion and kernels.fuses(xs):
+        B, Nb = system.batch, system.n_bodies
+        f, tau, v, L, tang, roll, wtang, wroll = kernels.forces_kick(
+            xs, b.position.reshape(B * Nb, 3), b.velocity.reshape(B * Nb, 3), omega, system.zero_body_vectors,
+            system.zero_body_vectors, _pair_operands(system, p), _wall_operands(system, wc, time),
+            (b.velocity, b.angular_momentum, system.mass, system.gravity, b.active), dt=dt_t,
+            period=system.grid.period, stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic,
+            members=B, lookup=system.pair_lookup, centred=system.spheres_only)
+        state = state.set(pairs=p.set(tangential=tang, rolling=roll), walls=wc.set(tangential=wtang, rolling=wroll))
+    else:
+        force, torque, state = contact_forces(system, state, xs, omega, time, kernels)
+        f, tau, v, L = kernels.kick(force, torque, b.velocity, b.angular_momentum, system.mass, system.gravity,
+                                    b.active, dt_t)
+    return state.set(bodies=b.set(force=f, torque=tau, velocity=v, angular_momentum=L))
 
 
 def cohesion_forces(system: System, state: State, xs: Tensor, X: Tensor, force: Tensor, torque: Tensor,
@@ -364,11 +400,7 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
             rebuild_now = disp2.item() ** 0.5 + wall_move > 0.5 * system.skin
     if rebuild_now:
         state, xs = rebuild(system, state, xs, time)
-    force, torque, state = contact_forces(system, state, xs, omega, time, kernels)
-    b = state.bodies
-    f, tau, v, L = kernels.kick(force, torque, b.velocity, b.angular_momentum, system.mass, system.gravity,
-                                b.active, dt_t)
-    return state.set(bodies=b.set(force=f, torque=tau, velocity=v, angular_momentum=L))
+    return forces_and_kick(system, state, xs, omega, time, kernels)
 
 
 KERNEL_BACKENDS = ("auto", "cpp", "torch")
@@ -466,6 +498,29 @@ class Kernels:
         f, tau, tang, roll = ext.wall_forces(xs, X, V, omega, force, torque, *contacts, float(dt),
                                              _ai2011(stiffness_model), members)
         return f, tau, tang, roll
+
+    def fuses(self, like: Tensor) -> bool:
+        """True when :meth:`forces_kick` runs as one fused kernel for tensors like ``like``."""
+        return self.extension(like) is not None
+
+    def forces_kick(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
+                    pair_contacts: tuple[Tensor, ...], wall_contacts: tuple[Tensor, ...],
+                    kick: tuple[Tensor, ...], *, dt: Tensor, period: Tensor, stiffness_model: str,
+                    periodic: bool, members: int, lookup: tuple[Tensor, ...], centred: bool
+                    ) -> tuple[Tensor, ...]:
+        """:meth:`pair`, then :meth:`wall` on its force and torque, then :meth:`kick` (``kick`` =
+        velocity, angular_momentum, mass, gravity, active) in one C++ call: each thread runs the
+        three on its own ensemble members while their bodies are in its cache. Returns (f, tau,
+        v, L) as :meth:`kick`, then the pair springs and the wall springs; the same bits as the
+        three calls. Only where :meth:`fuses` is True."""
+        ext = self.extension(xs)
+        if ext is None:
+            raise RuntimeError("Kernels.forces_kick needs the C++ kernels (see Kernels.fuses)")
+        i, j, body_i, body_j = pair_contacts[:4]
+        tangential, rolling = pair_contacts[-2:]
+        pair = [xs, X, V, omega, force, torque, i, j, body_i, body_j, *lookup, tangential, rolling]
+        return tuple(ext.forces_kick(pair, list(wall_contacts), list(kick), float(dt), period.tolist(),
+                                     _ai2011(stiffness_model), periodic, members, centred))
 
 
 def _ai2011(stiffness_model: str) -> bool:

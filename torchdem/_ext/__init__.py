@@ -3,7 +3,8 @@
 Contract:
 - :func:`cpu_kernels` returns the operators of ``contact_cpu.cpp`` (``pair_forces`` and
   ``wall_forces``: the CPU twins of :func:`torchdem.integrate.pair_kernel` and
-  :func:`torchdem.integrate.wall_kernel`) and of ``cells_cpu.cpp`` (``cell_pairs``: the
+  :func:`torchdem.integrate.wall_kernel`; ``forces_kick``: both, then the kick, in one pass
+  per ensemble member) and of ``cells_cpu.cpp`` (``cell_pairs``: the
   candidate scan of :func:`torchdem.neighbors.find_pairs`; ``wall_pairs``: that of
   :func:`torchdem.neighbors.find_wall_pairs`) and ``rigid_cpu.cpp`` (``drift`` and ``kick``:
   the twins of :func:`torchdem.integrate.drift_kernel` and :func:`torchdem.integrate.kick_kernel`), registered as
@@ -34,6 +35,7 @@ import torch
 
 # One extension, three sources: the contact laws, the cell-list pair search, the drift.
 SOURCES = [Path(__file__).with_name(name) for name in ("contact_cpu.cpp", "cells_cpu.cpp", "rigid_cpu.cpp")]
+HEADERS = [Path(__file__).with_name(name) for name in ("kick.h", "recycle.h")]  # in the build's signature
 # -march=native: the loops vectorise across contacts with the widest vector unit of this CPU.
 # -fno-math-errno / -fno-trapping-math let sqrt and rounding vectorise; neither changes a result
 # (no -ffast-math: no reassociation, NaN and inf keep their IEEE meaning).
@@ -50,7 +52,7 @@ _state: dict[str, object] = {}
 
 def cpu_kernels() -> SimpleNamespace | None:
     """The compiled CPU kernels (``pair_forces``, ``wall_forces``, ``cell_pairs``, ``wall_pairs``,
-    ``carry_history``, ``pair_constants``, ``drift``, ``kick``), or None if
+    ``carry_history``, ``pair_constants``, ``drift``, ``kick``, ``forces_kick``), or None if
     they cannot be built (warns once)."""
     if "module" in _state:
         return _state["module"]  # type: ignore[return-value]
@@ -79,7 +81,7 @@ def _module_name() -> str:
     CPU, and two checkouts with different sources (two branches, two versions) never overwrite
     each other's build and load the other's operators."""
     signature = platform.machine() + " ".join(CFLAGS + LDFLAGS)
-    signature += "".join(hashlib.sha256(p.read_bytes()).hexdigest() for p in SOURCES)
+    signature += "".join(hashlib.sha256(p.read_bytes()).hexdigest() for p in SOURCES + HEADERS)
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith(("flags", "Features")):
@@ -103,7 +105,8 @@ def _build() -> SimpleNamespace | None:
         ops = torch.ops.torchdem
         return SimpleNamespace(pair_forces=ops.pair_forces, wall_forces=ops.wall_forces, cell_pairs=ops.cell_pairs,
                                wall_pairs=ops.wall_pairs, carry_history=ops.carry_history, drift=ops.drift,
-                               kick=ops.kick, pair_constants=ops.pair_constants)
+                               kick=ops.kick, pair_constants=ops.pair_constants,
+                               forces_kick=ops.forces_kick)
     except Exception as err:  # no compiler, no ninja, compile error: fall back to the torch kernels
         message = f"{type(err).__name__}: {err}".strip()
         _state["error"] = message

@@ -40,6 +40,9 @@
 #include <limits>
 #include <vector>
 
+#include "kick.h"
+#include "recycle.h"
+
 #if defined(__SSE__) || defined(__x86_64__)
 #include <xmmintrin.h>
 #define TORCHDEM_HAVE_MXCSR 1
@@ -301,32 +304,72 @@ inline std::vector<int64_t> member_starts(const int64_t* body_a, int64_t n, int6
   return start;
 }
 
-// Runs block(c0, cn, force, torque) over the contacts of whole members, each thread owning
-// members [m0, m1): it first copies the input force/torque of their bodies, then the blocks
-// of their contacts add to them. Returns false (outputs then unspecified) if some contact of
-// a member's range touches a body of another member: the caller falls back to two passes.
-template <typename T, typename Block>
-bool per_member(const std::vector<int64_t>& start, const int64_t* body_a, const int64_t* body_b,
-                int64_t n_bodies, const T* force_in, const T* torque_in, T* force_out, T* torque_out,
-                unsigned csr, Block block) {
-  const int64_t members = static_cast<int64_t>(start.size()) - 1;
+// A pass is one list of contacts and its contact law, as the drivers below take it:
+//   n, body_a, body_b: the number of contacts and their bodies (body_b nullptr: one body each);
+//   kWidth: values per row (9 with body_b, 6 without);
+//   ok(c0, m, bad): checks the indices of the block [c0, c0 + m), counting bad ones in `bad`;
+//   run(c0, m, rows, sel, bad): writes the packed rows of the block to `rows`, their offsets to
+//   `sel`, and returns how many rows it wrote.
+
+// True when every contact of [c0, c1) of `pass` acts on bodies in [lo, hi) only.
+template <typename Pass>
+bool owns(const Pass& pass, int64_t c0, int64_t c1, int64_t lo, int64_t hi) {
+  bool ok = true;
+  for (int64_t c = c0; c < c1; ++c) {
+    ok &= pass.body_a[c] >= lo && pass.body_a[c] < hi;
+    if (pass.body_b != nullptr) ok &= pass.body_b[c] >= lo && pass.body_b[c] < hi;
+  }
+  return ok;
+}
+
+// Runs the blocks of contacts [c0, c1) of `pass` and adds their rows to force/torque, in order.
+template <typename T, typename Pass>
+void member_blocks(const Pass& pass, int64_t c0, int64_t c1, T* force, T* torque, std::atomic<int64_t>& bad) {
+  alignas(64) T rows[Pass::kWidth * kBlockContacts];
+  int32_t sel[kBlockContacts];
+  for (int64_t c = c0; c < c1; c += kBlockContacts) {
+    const int64_t m = std::min(kBlockContacts, c1 - c);
+    if (!pass.ok(c, m, bad)) continue;
+    const int64_t r = pass.run(c, m, rows, sel, bad);
+    add_rows<T>(pass.body_a, pass.body_b, c, sel, rows, Pass::kWidth, r, force, torque);
+  }
+}
+
+// Runs the passes, one after the other, over the contacts of whole members, each thread owning
+// members [m0, m1): it copies the input force/torque of their bodies, adds the rows of every
+// pass in turn, then calls epilogue(lo, hi) on their bodies [lo, hi) while they are still in its
+// cache. Returns false (outputs then unspecified) when the members cannot be split (see
+// member_starts) or some contact of a member's range touches a body of another member: the
+// caller then falls back to two passes per list.
+template <typename T, typename Epilogue, typename... Pass>
+bool per_member(int64_t n_bodies, int64_t members, const T* force_in, const T* torque_in, T* force_out,
+                T* torque_out, unsigned csr, std::atomic<int64_t>& bad, Epilogue epilogue, const Pass&... pass) {
+  const std::vector<int64_t> starts[] = {member_starts(pass.body_a, pass.n, n_bodies, members)...};
+  for (const auto& s : starts)
+    if (s.empty()) return false;
   const int64_t per = n_bodies / members;
   std::atomic<bool> foreign{false};
   at::parallel_for(0, members, 1, [&](int64_t m0, int64_t m1) {
-    const int64_t lo = m0 * per, hi = m1 * per, c0 = start[m0], c1 = start[m1];
-    bool ok = true;
-    for (int64_t c = c0; c < c1; ++c) {
-      ok &= body_a[c] >= lo && body_a[c] < hi;
-      if (body_b != nullptr) ok &= body_b[c] >= lo && body_b[c] < hi;
-    }
-    if (!ok) {
+    const int64_t lo = m0 * per, hi = m1 * per;
+    int k = 0;  // the pass's index in starts; && and , evaluate the passes left to right
+    auto owned = [&](const auto& p) {
+      const std::vector<int64_t>& s = starts[k++];
+      return owns(p, s[m0], s[m1], lo, hi);
+    };
+    if (!(owned(pass) && ...)) {
       foreign = true;
       return;
     }
     DenormalMode mode(csr);
     std::copy(force_in + 3 * lo, force_in + 3 * hi, force_out + 3 * lo);
     std::copy(torque_in + 3 * lo, torque_in + 3 * hi, torque_out + 3 * lo);
-    for (int64_t c = c0; c < c1; c += kBlockContacts) block(c, std::min(kBlockContacts, c1 - c), force_out, torque_out);
+    k = 0;
+    auto blocks = [&](const auto& p) {
+      const std::vector<int64_t>& s = starts[k++];
+      member_blocks<T>(p, s[m0], s[m1], force_out, torque_out, bad);
+    };
+    (blocks(pass), ...);
+    epilogue(lo, hi);
   });
   return !foreign.load();
 }
@@ -343,41 +386,36 @@ T* scratch(int slot, int64_t count) {
   return reinterpret_cast<T*>(buffer.data());
 }
 
-// Runs the contact law over n contacts in blocks and adds their rows (kWidth 9 with body_b,
-// 6 without) to the bodies, per member when the contacts allow it, else in two passes (all
-// rows into a scratch buffer, then scatter_to_bodies). block_ok(c0, m) checks a block's
-// indices (counting bad ones in `bad`); run_block(c0, m, rows, sel) writes the packed rows of
-// its m contacts to `rows` and their offsets to `sel` and returns how many rows it wrote.
-template <typename T, int kWidth, typename Ok, typename Run>
-void contacts_to_bodies(int64_t n, const int64_t* body_a, const int64_t* body_b, int64_t n_bodies, int64_t members,
-                        const T* force_in, const T* torque_in, T* force_out, T* torque_out, unsigned csr,
-                        std::atomic<int64_t>& bad, Ok block_ok, Run run_block) {
-  const auto start = member_starts(body_a, n, n_bodies, members);
-  const bool direct = !start.empty() &&
-      per_member<T>(start, body_a, body_b, n_bodies, force_in, torque_in, force_out, torque_out, csr,
-                    [&](int64_t c0, int64_t m, T* f, T* t) {
-                      if (!block_ok(c0, m)) return;
-                      alignas(64) T rows[kWidth * kBlockContacts];
-                      int32_t sel[kBlockContacts];
-                      const int64_t r = run_block(c0, m, rows, sel);
-                      add_rows<T>(body_a, body_b, c0, sel, rows, kWidth, r, f, t);
-                    });
-  if (direct) return;
+// The rows of every contact of `pass` into a scratch buffer (parallel over blocks), then
+// scatter_to_bodies. Resets `bad` first. Nothing is written to the outputs when an index is bad.
+template <typename T, typename Pass>
+void two_passes(const Pass& pass, int64_t n_bodies, const T* force_in, const T* torque_in, T* force_out,
+                T* torque_out, unsigned csr, std::atomic<int64_t>& bad) {
   bad = 0;
-  const int64_t n_blocks = (n + kBlockContacts - 1) / kBlockContacts;
-  T* rows = scratch<T>(0, kWidth * n);
+  const int64_t n = pass.n, n_blocks = (n + kBlockContacts - 1) / kBlockContacts;
+  T* rows = scratch<T>(0, Pass::kWidth * n);
   int32_t* sel = scratch<int32_t>(1, n);
   int64_t* count = scratch<int64_t>(2, n_blocks);
   at::parallel_for(0, n_blocks, 4, [&](int64_t b0, int64_t b1) {
     DenormalMode mode(csr);
     for (int64_t blk = b0; blk < b1; ++blk) {
       const int64_t c0 = blk * kBlockContacts, m = std::min(kBlockContacts, n - c0);
-      count[blk] = block_ok(c0, m) ? run_block(c0, m, rows + kWidth * c0, sel + c0) : 0;
+      count[blk] = pass.ok(c0, m, bad) ? pass.run(c0, m, rows + Pass::kWidth * c0, sel + c0, bad) : 0;
     }
   });
   if (bad.load() == 0)
-    scatter_to_bodies<T>(body_a, body_b, rows, sel, count, kWidth, n, n_bodies, force_in, torque_in, force_out,
-                         torque_out);
+    scatter_to_bodies<T>(pass.body_a, pass.body_b, rows, sel, count, Pass::kWidth, n, n_bodies, force_in,
+                         torque_in, force_out, torque_out);
+}
+
+// Runs the contact law of `pass` over its contacts and adds their rows to the bodies: out = in +
+// rows, per member when the contacts allow it, else in two passes.
+template <typename T, typename Pass>
+void contacts_to_bodies(const Pass& pass, int64_t n_bodies, int64_t members, const T* force_in, const T* torque_in,
+                        T* force_out, T* torque_out, unsigned csr, std::atomic<int64_t>& bad) {
+  if (!per_member<T>(n_bodies, members, force_in, torque_in, force_out, torque_out, csr, bad,
+                     [](int64_t, int64_t) {}, pass))
+    two_passes<T>(pass, n_bodies, force_in, torque_in, force_out, torque_out, csr, bad);
 }
 
 void check_cpu(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t rows, int64_t cols) {
@@ -627,62 +665,92 @@ inline int64_t count_out_of_range(const int64_t* __restrict__ idx, int64_t n, in
 }
 
 
-// pair_forces for one dtype (inputs validated and contiguous).
+// The sphere-sphere pass of pair_forces (see "A pass" above), on validated contiguous inputs
+// `in` (pair_forces' tensors in order) writing the springs to tang_out and roll_out.
 template <typename T>
-void pair_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, at::Tensor& torque_out,
-                      at::Tensor& tang_out, at::Tensor& roll_out, int64_t S, int64_t NB, int64_t P, double dt,
-                      at::ArrayRef<double> period, bool ai2011, bool periodic, int64_t members, bool centred) {
+struct PairPass {
+  static constexpr int kWidth = 9;
   PairData<T> data;
-  data.x = in[0].data_ptr<T>();
-  data.X = in[1].data_ptr<T>();
-  data.V = in[2].data_ptr<T>();
-  data.W = in[3].data_ptr<T>();
-  data.i = in[6].data_ptr<int64_t>();
-  data.j = in[7].data_ptr<int64_t>();
-  data.body_i = in[8].data_ptr<int64_t>();
-  data.body_j = in[9].data_ptr<int64_t>();
-  data.radius = in[10].data_ptr<T>();
-  data.mass = in[11].data_ptr<T>();
-  data.rolling_inertia = in[12].data_ptr<T>();
-  data.pair_row = in[13].data_ptr<int64_t>();
-  data.material = in[14].data_ptr<int64_t>();
-  data.table = in[15].data_ptr<T>();
-  data.table_columns = in[15].size(1);
-  data.tangential = in[16].data_ptr<T>();
-  data.rolling = in[17].data_ptr<T>();
-  data.tangential_new = tang_out.data_ptr<T>();
-  data.rolling_new = roll_out.data_ptr<T>();
-  for (int d = 0; d < 3; ++d) {
-    data.period[d] = periodic && period[d] > 0 ? T(period[d]) : T(0);
-    data.inv_period[d] = data.period[d] > 0 ? T(1) / data.period[d] : T(0);
+  int64_t n, S, NB;
+  const int64_t *body_a, *body_b;
+  bool centred;
+
+  PairPass(const std::vector<at::Tensor>& in, at::Tensor& tang_out, at::Tensor& roll_out, double dt,
+           at::ArrayRef<double> period, bool ai2011, bool periodic, bool centred)
+      : n(in[6].size(0)), S(in[0].size(0)), NB(in[1].size(0)), centred(centred) {
+    data.x = in[0].data_ptr<T>();
+    data.X = in[1].data_ptr<T>();
+    data.V = in[2].data_ptr<T>();
+    data.W = in[3].data_ptr<T>();
+    data.i = in[6].data_ptr<int64_t>();
+    data.j = in[7].data_ptr<int64_t>();
+    data.body_i = in[8].data_ptr<int64_t>();
+    data.body_j = in[9].data_ptr<int64_t>();
+    data.radius = in[10].data_ptr<T>();
+    data.mass = in[11].data_ptr<T>();
+    data.rolling_inertia = in[12].data_ptr<T>();
+    data.pair_row = in[13].data_ptr<int64_t>();
+    data.material = in[14].data_ptr<int64_t>();
+    data.table = in[15].data_ptr<T>();
+    data.table_columns = in[15].size(1);
+    data.tangential = in[16].data_ptr<T>();
+    data.rolling = in[17].data_ptr<T>();
+    data.tangential_new = tang_out.data_ptr<T>();
+    data.rolling_new = roll_out.data_ptr<T>();
+    for (int d = 0; d < 3; ++d) {
+      data.period[d] = periodic && period[d] > 0 ? T(period[d]) : T(0);
+      data.inv_period[d] = data.period[d] > 0 ? T(1) / data.period[d] : T(0);
+    }
+    data.dt = T(dt);
+    data.ai2011 = ai2011;
+    data.n_pairs = n;
+    body_a = data.body_i;
+    body_b = data.body_j;
   }
-  data.dt = T(dt);
-  data.ai2011 = ai2011;
-  data.n_pairs = P;
-  // One parallel region per pass: every block checks its own indices before it reads
-  // through them (a block with a bad index is skipped and the call fails after the pass).
-  std::atomic<int64_t> bad{0};
-  const unsigned csr = DenormalMode::caller();
+
   // Checks a block's indices before anything reads through them (a block with a bad index is
   // skipped and the call fails after the pass).
-  auto block_ok = [&](int64_t p0, int64_t n) {
-    const int64_t n_bad = count_out_of_range(data.i + p0, n, S) + count_out_of_range(data.j + p0, n, S) +
-                          count_out_of_range(data.body_i + p0, n, NB) + count_out_of_range(data.body_j + p0, n, NB);
-    bad += n_bad;
+  bool ok(int64_t p0, int64_t m, std::atomic<int64_t>& bad) const {
+    const int64_t n_bad = count_out_of_range(data.i + p0, m, S) + count_out_of_range(data.j + p0, m, S) +
+                          count_out_of_range(data.body_i + p0, m, NB) + count_out_of_range(data.body_j + p0, m, NB);
+    if (n_bad) bad += n_bad;
     return n_bad == 0;
-  };
-  auto run_block = [&](int64_t p0, int64_t n, T* rows, int32_t* sel) {
+  }
+
+  int64_t run(int64_t p0, int64_t m, T* rows, int32_t* sel, std::atomic<int64_t>& bad) const {
     if (centred) {
-      return data.ai2011 ? pair_block<T, true, true>(data, p0, n, rows, sel, bad)
-                         : pair_block<T, false, true>(data, p0, n, rows, sel, bad);
+      return data.ai2011 ? pair_block<T, true, true>(data, p0, m, rows, sel, bad)
+                         : pair_block<T, false, true>(data, p0, m, rows, sel, bad);
     }
-    return data.ai2011 ? pair_block<T, true, false>(data, p0, n, rows, sel, bad)
-                       : pair_block<T, false, false>(data, p0, n, rows, sel, bad);
-  };
-  contacts_to_bodies<T, 9>(P, data.body_i, data.body_j, NB, members, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
-                           force_out.data_ptr<T>(), torque_out.data_ptr<T>(), csr, bad, block_ok, run_block);
-  TORCH_CHECK(bad.load() == 0, "pair_forces: ", bad.load(), " sphere, body or table indices are outside [0, ", S,
-              ") (spheres), [0, ", NB, ") (bodies) or [0, ", data.table_columns, ") (columns of the material-pair table)");
+    return data.ai2011 ? pair_block<T, true, false>(data, p0, m, rows, sel, bad)
+                       : pair_block<T, false, false>(data, p0, m, rows, sel, bad);
+  }
+
+  void fail_if_bad(const std::atomic<int64_t>& bad) const {
+    TORCH_CHECK(bad.load() == 0, "pair_forces: ", bad.load(), " sphere, body or table indices are outside [0, ", S,
+                ") (spheres), [0, ", NB, ") (bodies) or [0, ", data.table_columns,
+                ") (columns of the material-pair table)");
+  }
+};
+
+// Validates pair_forces' tensors (in its argument order) and returns them contiguous.
+std::vector<at::Tensor> pair_inputs(std::vector<at::Tensor> in) {
+  TORCH_CHECK(in.size() == 18, "pair_forces takes 18 tensors, got ", in.size());
+  at::Tensor &xs = in[0], &X = in[1], &i = in[6], &table = in[15];
+  const auto dtype = xs.scalar_type();
+  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
+  const int64_t S = rows_of(xs, "xs"), NB = rows_of(X, "X"), P = rows_of(i, "i");
+  check_cpu(xs, "xs", dtype, S, 3);
+  for (int k = 1; k <= 5; ++k) check_cpu(in[k], "body tensor", dtype, NB, 3);             // X V omega force torque
+  for (int k = 6; k <= 9; ++k) check_cpu(in[k], "index tensor", at::kLong, P, 0);         // i j body_i body_j
+  for (int k = 10; k <= 12; ++k) check_cpu(in[k], "per-sphere tensor", dtype, S, 0);      // radius mass I_r
+  for (int k = 13; k <= 14; ++k) check_cpu(in[k], "per-sphere index tensor", at::kLong, S, 0);
+  TORCH_CHECK(table.dim() == 2 && table.size(0) == 6, "table has shape ", table.sizes(), "; expected [6, R]");
+  check_cpu(table, "table", dtype, 6, table.size(1));
+  check_cpu(in[16], "tangential", dtype, P, 3);
+  check_cpu(in[17], "rolling", dtype, P, 3);
+  for (auto& t : in) t = t.contiguous();
+  return in;
 }
 
 std::vector<at::Tensor> pair_forces(
@@ -691,27 +759,21 @@ std::vector<at::Tensor> pair_forces(
     at::Tensor sphere_mass, at::Tensor sphere_rolling_inertia, at::Tensor sphere_pair_row,
     at::Tensor sphere_material, at::Tensor table, at::Tensor tangential, at::Tensor rolling, double dt,
     at::ArrayRef<double> period, bool ai2011, bool periodic, int64_t members, bool centred) {
-  const auto dtype = xs.scalar_type();
-  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
   TORCH_CHECK(period.size() == 3, "period has ", period.size(), " entries; expected 3");
-  const int64_t S = rows_of(xs, "xs"), NB = rows_of(X, "X"), P = rows_of(i, "i");
-  check_cpu(xs, "xs", dtype, S, 3);
-  for (auto* p : {&X, &V, &omega, &force, &torque}) check_cpu(*p, "body tensor", dtype, NB, 3);
-  for (auto* p : {&i, &j, &body_i, &body_j}) check_cpu(*p, "index tensor", at::kLong, P, 0);
-  for (auto* p : {&sphere_radius, &sphere_mass, &sphere_rolling_inertia}) check_cpu(*p, "per-sphere tensor", dtype, S, 0);
-  for (auto* p : {&sphere_pair_row, &sphere_material}) check_cpu(*p, "per-sphere index tensor", at::kLong, S, 0);
-  TORCH_CHECK(table.dim() == 2 && table.size(0) == 6, "table has shape ", table.sizes(), "; expected [6, R]");
-  check_cpu(table, "table", dtype, 6, table.size(1));
-  check_cpu(tangential, "tangential", dtype, P, 3);
-  check_cpu(rolling, "rolling", dtype, P, 3);
-  std::vector<at::Tensor> in = {xs, X, V, omega, force, torque, i, j, body_i, body_j, sphere_radius, sphere_mass,
-                                sphere_rolling_inertia, sphere_pair_row, sphere_material, table, tangential, rolling};
-  for (auto& t : in) t = t.contiguous();
-  at::Tensor force_out = at::empty_like(in[4]), torque_out = at::empty_like(in[5]);
-  at::Tensor tang_out = at::empty_like(in[16]), roll_out = at::empty_like(in[17]);
-  AT_DISPATCH_FLOATING_TYPES(dtype, "pair_forces", [&] {
-    pair_forces_impl<scalar_t>(in, force_out, torque_out, tang_out, roll_out, S, NB, P, dt, period, ai2011,
-                               periodic, members, centred);
+  const std::vector<at::Tensor> in =
+      pair_inputs({xs, X, V, omega, force, torque, i, j, body_i, body_j, sphere_radius, sphere_mass,
+                   sphere_rolling_inertia, sphere_pair_row, sphere_material, table, tangential, rolling});
+  using torchdem_recycle::output_like;
+  const int s = torchdem_recycle::kPairForces;
+  at::Tensor force_out = output_like(s, in[4]), torque_out = output_like(s + 1, in[5]);
+  at::Tensor tang_out = output_like(s + 2, in[16]), roll_out = output_like(s + 3, in[17]);
+  AT_DISPATCH_FLOATING_TYPES(xs.scalar_type(), "pair_forces", [&] {
+    const PairPass<scalar_t> pass(in, tang_out, roll_out, dt, period, ai2011, periodic, centred);
+    std::atomic<int64_t> bad{0};
+    contacts_to_bodies<scalar_t>(pass, pass.NB, members, in[4].data_ptr<scalar_t>(), in[5].data_ptr<scalar_t>(),
+                                 force_out.data_ptr<scalar_t>(), torque_out.data_ptr<scalar_t>(),
+                                 DenormalMode::caller(), bad);
+    pass.fail_if_bad(bad);
   });
   return {force_out, torque_out, tang_out, roll_out};
 }
@@ -828,30 +890,60 @@ int64_t wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, 
   return n;
 }
 
-// wall_forces for one dtype (inputs validated and contiguous).
+// The sphere-wall pass of wall_forces (see "A pass" above), on validated contiguous inputs
+// `in` (wall_forces' tensors in order) writing the springs to tang_out and roll_out.
 template <typename T>
-void wall_forces_impl(const std::vector<at::Tensor>& in, at::Tensor& force_out, at::Tensor& torque_out,
-                      at::Tensor& tang_out, at::Tensor& roll_out, int64_t S, int64_t NB, int64_t Q, int64_t W,
-                      double dt, bool ai2011, int64_t members) {
-  std::atomic<int64_t> bad{0};
-  const int64_t *ps = in[6].data_ptr<int64_t>(), *pb = in[7].data_ptr<int64_t>(), *pw = in[8].data_ptr<int64_t>();
-  T* tang_new = tang_out.data_ptr<T>();
-  T* roll_new = roll_out.data_ptr<T>();
-  const unsigned csr = DenormalMode::caller();
-  auto block_ok = [&](int64_t q0, int64_t n) {
-    const int64_t n_bad = count_out_of_range(ps + q0, n, S) + count_out_of_range(pb + q0, n, NB) +
-                          count_out_of_range(pw + q0, n, W);
-    bad += n_bad;
+struct WallPass {
+  static constexpr int kWidth = 6;
+  const std::vector<at::Tensor>& in;
+  int64_t n, S, NB, W;
+  const int64_t *body_a, *body_b = nullptr, *sphere, *wall;
+  T *tang_new, *roll_new;
+  T dt;
+  bool ai2011;
+
+  WallPass(const std::vector<at::Tensor>& in, at::Tensor& tang_out, at::Tensor& roll_out, double dt, bool ai2011)
+      : in(in), n(in[6].size(0)), S(in[0].size(0)), NB(in[1].size(0)), W(in[9].size(0)),
+        body_a(in[7].data_ptr<int64_t>()), sphere(in[6].data_ptr<int64_t>()), wall(in[8].data_ptr<int64_t>()),
+        tang_new(tang_out.data_ptr<T>()), roll_new(roll_out.data_ptr<T>()), dt(T(dt)), ai2011(ai2011) {}
+
+  bool ok(int64_t q0, int64_t m, std::atomic<int64_t>& bad) const {
+    const int64_t n_bad = count_out_of_range(sphere + q0, m, S) + count_out_of_range(body_a + q0, m, NB) +
+                          count_out_of_range(wall + q0, m, W);
+    if (n_bad) bad += n_bad;
     return n_bad == 0;
-  };
-  auto run_block = [&](int64_t q0, int64_t n, T* rows, int32_t* sel) {
-    return ai2011 ? wall_block<T, true>(in, tang_new, roll_new, rows, sel, T(dt), q0, n)
-                  : wall_block<T, false>(in, tang_new, roll_new, rows, sel, T(dt), q0, n);
-  };
-  contacts_to_bodies<T, 6>(Q, pb, nullptr, NB, members, in[4].data_ptr<T>(), in[5].data_ptr<T>(),
-                           force_out.data_ptr<T>(), torque_out.data_ptr<T>(), csr, bad, block_ok, run_block);
-  TORCH_CHECK(bad.load() == 0, "wall_forces: ", bad.load(), " sphere, body or wall indices are out of range (",
-              S, " spheres, ", NB, " bodies, ", W, " walls)");
+  }
+
+  int64_t run(int64_t q0, int64_t m, T* rows, int32_t* sel, std::atomic<int64_t>&) const {
+    return ai2011 ? wall_block<T, true>(in, tang_new, roll_new, rows, sel, dt, q0, m)
+                  : wall_block<T, false>(in, tang_new, roll_new, rows, sel, dt, q0, m);
+  }
+
+  void fail_if_bad(const std::atomic<int64_t>& bad) const {
+    TORCH_CHECK(bad.load() == 0, "wall_forces: ", bad.load(), " sphere, body or wall indices are out of range (",
+                S, " spheres, ", NB, " bodies, ", W, " walls)");
+  }
+};
+
+// Validates wall_forces' tensors (in its argument order) and returns them contiguous.
+std::vector<at::Tensor> wall_inputs(std::vector<at::Tensor> in) {
+  TORCH_CHECK(in.size() == 27, "wall_forces takes 27 tensors, got ", in.size());
+  const at::Tensor &xs = in[0], &X = in[1], &sphere = in[6], &wall_centre = in[9];
+  const auto dtype = xs.scalar_type();
+  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
+  const int64_t S = rows_of(xs, "xs"), NB = rows_of(X, "X"), Q = rows_of(sphere, "sphere");
+  const int64_t W = rows_of(wall_centre, "wall_centre");
+  check_cpu(xs, "xs", dtype, S, 3);
+  for (int k = 1; k <= 5; ++k) check_cpu(in[k], "body tensor", dtype, NB, 3);      // X V omega force torque
+  for (int k = 6; k <= 8; ++k) check_cpu(in[k], "index tensor", at::kLong, Q, 0);  // sphere body wall
+  for (int k : {9, 10, 11, 14}) check_cpu(in[k], "wall tensor", dtype, W, 3);      // centre u v velocity
+  for (int k = 12; k <= 13; ++k) check_cpu(in[k], "wall half-extent", dtype, W, 0);
+  check_cpu(in[15], "wall_present", at::kBool, W, 0);
+  for (int k = 16; k <= 24; ++k) check_cpu(in[k], "per-contact tensor", dtype, Q, 0);
+  check_cpu(in[25], "tangential", dtype, Q, 3);
+  check_cpu(in[26], "rolling", dtype, Q, 3);
+  for (auto& t : in) t = t.contiguous();
+  return in;
 }
 
 std::vector<at::Tensor> wall_forces(
@@ -861,32 +953,82 @@ std::vector<at::Tensor> wall_forces(
     at::Tensor radius, at::Tensor mass_eff, at::Tensor young_eff, at::Tensor shear_eff, at::Tensor beta,
     at::Tensor mu_s, at::Tensor mu_r, at::Tensor rolling_damping, at::Tensor rolling_inertia,
     at::Tensor tangential, at::Tensor rolling, double dt, bool ai2011, int64_t members) {
-  const auto dtype = xs.scalar_type();
-  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
-  const int64_t S = rows_of(xs, "xs"), NB = rows_of(X, "X"), Q = rows_of(sphere, "sphere");
-  const int64_t W = rows_of(wall_centre, "wall_centre");
-  check_cpu(xs, "xs", dtype, S, 3);
-  for (auto* p : {&X, &V, &omega, &force, &torque}) check_cpu(*p, "body tensor", dtype, NB, 3);
-  for (auto* p : {&sphere, &body, &wall}) check_cpu(*p, "index tensor", at::kLong, Q, 0);
-  for (auto* p : {&wall_centre, &wall_u, &wall_v, &wall_velocity}) check_cpu(*p, "wall tensor", dtype, W, 3);
-  for (auto* p : {&half_u, &half_v}) check_cpu(*p, "wall half-extent", dtype, W, 0);
-  check_cpu(wall_present, "wall_present", at::kBool, W, 0);
-  for (auto* p : {&radius, &mass_eff, &young_eff, &shear_eff, &beta, &mu_s, &mu_r, &rolling_damping,
-                  &rolling_inertia})
-    check_cpu(*p, "per-contact tensor", dtype, Q, 0);
-  check_cpu(tangential, "tangential", dtype, Q, 3);
-  check_cpu(rolling, "rolling", dtype, Q, 3);
-  std::vector<at::Tensor> in = {xs, X, V, omega, force, torque, sphere, body, wall, wall_centre, wall_u, wall_v,
-                                half_u, half_v, wall_velocity, wall_present, radius, mass_eff, young_eff,
-                                shear_eff, beta, mu_s, mu_r, rolling_damping, rolling_inertia, tangential,
-                                rolling};
-  for (auto& t : in) t = t.contiguous();
-  at::Tensor force_out = at::empty_like(in[4]), torque_out = at::empty_like(in[5]);
-  at::Tensor tang_out = at::empty_like(in[25]), roll_out = at::empty_like(in[26]);
-  AT_DISPATCH_FLOATING_TYPES(dtype, "wall_forces", [&] {
-    wall_forces_impl<scalar_t>(in, force_out, torque_out, tang_out, roll_out, S, NB, Q, W, dt, ai2011, members);
+  const std::vector<at::Tensor> in =
+      wall_inputs({xs, X, V, omega, force, torque, sphere, body, wall, wall_centre, wall_u, wall_v, half_u, half_v,
+                   wall_velocity, wall_present, radius, mass_eff, young_eff, shear_eff, beta, mu_s, mu_r,
+                   rolling_damping, rolling_inertia, tangential, rolling});
+  using torchdem_recycle::output_like;
+  const int s = torchdem_recycle::kWallForces;
+  at::Tensor force_out = output_like(s, in[4]), torque_out = output_like(s + 1, in[5]);
+  at::Tensor tang_out = output_like(s + 2, in[25]), roll_out = output_like(s + 3, in[26]);
+  AT_DISPATCH_FLOATING_TYPES(xs.scalar_type(), "wall_forces", [&] {
+    const WallPass<scalar_t> pass(in, tang_out, roll_out, dt, ai2011);
+    std::atomic<int64_t> bad{0};
+    contacts_to_bodies<scalar_t>(pass, pass.NB, members, in[4].data_ptr<scalar_t>(), in[5].data_ptr<scalar_t>(),
+                                 force_out.data_ptr<scalar_t>(), torque_out.data_ptr<scalar_t>(),
+                                 DenormalMode::caller(), bad);
+    pass.fail_if_bad(bad);
   });
   return {force_out, torque_out, tang_out, roll_out};
+}
+
+// forces_kick: pair_forces, then wall_forces on its force and torque, then kick (gravity, masks,
+// second half kick) in one call, with the same bits as the three calls. `pair`: pair_forces'
+// 18 tensors in order (its force and torque are the input sums, zeros in a step); `wall`:
+// wall_forces' tensors from `sphere` on (21; the rest are shared with `pair`); `kick`: velocity,
+// angular_momentum, mass, gravity, active as for kick. Returns (f, tau, v, L) of kick, shaped like
+// velocity, then the pair springs (tangential, rolling) and the wall springs.
+// When the contacts split into members, each thread runs the pairs, the walls and the kick of its
+// own members one after the other, while their bodies are in its cache: one parallel region
+// instead of three, and the bodies' force, torque, velocity and momentum pass through memory once
+// (not in four sweeps: two force copies, the kick's reads and its writes).
+std::vector<at::Tensor> forces_kick(std::vector<at::Tensor> pair, std::vector<at::Tensor> wall,
+                                    std::vector<at::Tensor> kick, double dt, at::ArrayRef<double> period,
+                                    bool ai2011, bool periodic, int64_t members, bool centred) {
+  using torchdem_kick::kick_bodies;
+  TORCH_CHECK(period.size() == 3, "period has ", period.size(), " entries; expected 3");
+  TORCH_CHECK(wall.size() == 21, "forces_kick: wall takes the 21 tensors of wall_forces from sphere to rolling, got ",
+              wall.size());
+  TORCH_CHECK(kick.size() == 5, "forces_kick: kick takes 5 tensors (velocity, angular_momentum, mass, gravity, "
+              "active), got ", kick.size());
+  const std::vector<at::Tensor> in_p = pair_inputs(std::move(pair));
+  wall.insert(wall.begin(), in_p.begin(), in_p.begin() + 6);
+  const std::vector<at::Tensor> in_w = wall_inputs(std::move(wall));
+  const auto dtype = in_p[0].scalar_type();
+  const int64_t NB = in_p[1].size(0);
+  const std::vector<at::Tensor> in_k = torchdem_kick::kick_inputs(std::move(kick), dtype, NB, "forces_kick");
+  using torchdem_recycle::output_like;
+  const int s = torchdem_recycle::kForcesKick;
+  at::Tensor force_out = output_like(s, in_k[0]), torque_out = output_like(s + 1, in_k[0]);
+  at::Tensor velocity_out = output_like(s + 2, in_k[0]), momentum_out = output_like(s + 3, in_k[1]);
+  at::Tensor tang_out = output_like(s + 4, in_p[16]), roll_out = output_like(s + 5, in_p[17]);
+  at::Tensor wtang_out = output_like(s + 6, in_w[25]), wroll_out = output_like(s + 7, in_w[26]);
+  AT_DISPATCH_FLOATING_TYPES(dtype, "forces_kick", [&] {
+    using T = scalar_t;
+    const PairPass<T> pairs(in_p, tang_out, roll_out, dt, period, ai2011, periodic, centred);
+    const WallPass<T> walls(in_w, wtang_out, wroll_out, dt, ai2011);
+    T *f = force_out.data_ptr<T>(), *tau = torque_out.data_ptr<T>();
+    // The kick runs in place on the contact sums f and tau.
+    const auto k = torchdem_kick::kick_data<T>(in_k, f, tau, force_out, torque_out, velocity_out, momentum_out,
+                                              T(dt));
+    const T *f_in = in_p[4].data_ptr<T>(), *tau_in = in_p[5].data_ptr<T>();
+    const unsigned csr = DenormalMode::caller();
+    std::atomic<int64_t> bad{0};
+    const bool fused = per_member<T>(NB, members, f_in, tau_in, f, tau, csr, bad,
+                                     [&](int64_t lo, int64_t hi) { kick_bodies<T>(k, lo, hi); }, pairs, walls);
+    if (!fused || bad.load() != 0) {
+      // The three steps one after the other (and, for bad indices, their own errors).
+      at::Tensor pf = at::empty_like(in_p[4]), pt = at::empty_like(in_p[5]);
+      bad = 0;
+      contacts_to_bodies<T>(pairs, NB, members, f_in, tau_in, pf.data_ptr<T>(), pt.data_ptr<T>(), csr, bad);
+      pairs.fail_if_bad(bad);
+      bad = 0;
+      contacts_to_bodies<T>(walls, NB, members, pf.data_ptr<T>(), pt.data_ptr<T>(), f, tau, csr, bad);
+      walls.fail_if_bad(bad);
+      at::parallel_for(0, NB, 2048, [&](int64_t b0, int64_t b1) { kick_bodies<T>(k, b0, b1); });
+    }
+  });
+  return {force_out, torque_out, velocity_out, momentum_out, tang_out, roll_out, wtang_out, wroll_out};
 }
 
 }  // namespace
@@ -907,4 +1049,7 @@ TORCH_LIBRARY_FRAGMENT(torchdem, m) {
         "Tensor young_eff, Tensor shear_eff, Tensor beta, Tensor mu_s, Tensor mu_r, Tensor rolling_damping, "
         "Tensor rolling_inertia, Tensor tangential, Tensor rolling, float dt, bool ai2011, int members=1) -> Tensor[]",
         &wall_forces);
+  m.def("forces_kick(Tensor[] pair, Tensor[] wall, Tensor[] kick, float dt, float[] period, bool ai2011, "
+        "bool periodic, int members=1, bool centred=False) -> Tensor[]",
+        &forces_kick);
 }

@@ -25,6 +25,9 @@
 #include <tuple>
 #include <vector>
 
+#include "kick.h"
+#include "recycle.h"
+
 namespace {
 
 template <typename T>
@@ -143,12 +146,17 @@ void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out,
   });
   const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (S + 1023) / 1024));
   std::vector<T> chunk_max(chunks, T(0));
+  std::vector<int64_t> chunk_bad(chunks, 0);  // 1 + the last sphere of the chunk with a bad body
   at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
     for (int64_t c = c0; c < c1; ++c) {
       T best = T(0);
       const int64_t s0 = S * c / chunks, s1 = S * (c + 1) / chunks;
       for (int64_t s = s0; s < s1; ++s) {
         const int64_t b = sb[s];
+        if (static_cast<uint64_t>(b) >= static_cast<uint64_t>(NB)) {  // reported after the pass
+          chunk_bad[c] = s + 1;
+          continue;
+        }
         V3<T> p{x[3 * b], x[3 * b + 1], x[3 * b + 2]};
         if (!spheres_only) {
           const Quat<T> qb{q[4 * b], q[4 * b + 1], q[4 * b + 2], q[4 * b + 3]};
@@ -165,6 +173,10 @@ void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out,
       chunk_max[c] = best;
     }
   });
+  for (int64_t c = 0; c < chunks; ++c) {
+    const int64_t s = chunk_bad[c] - 1;
+    TORCH_CHECK(s < 0, "drift: sphere ", s, " belongs to body ", sb[s < 0 ? 0 : s], ", outside [0, ", NB, ")");
+  }
   out[6].fill_(*std::max_element(chunk_max.begin(), chunk_max.end()));
 }
 
@@ -186,38 +198,16 @@ std::vector<at::Tensor> drift(at::Tensor position, at::Tensor velocity, at::Tens
   std::vector<at::Tensor> in = {position, velocity, angular_momentum, orientation, force, torque, mass, inertia,
                                 active, sphere_body, sphere_offset, reference};
   for (auto& t : in) t = t.contiguous();
-  const int64_t* sb = in[9].data_ptr<int64_t>();
-  for (int64_t s = 0; s < S; ++s)
-    TORCH_CHECK(sb[s] >= 0 && sb[s] < NB, "drift: sphere ", s, " belongs to body ", sb[s], ", outside [0, ", NB, ")");
-  std::vector<at::Tensor> out = {at::empty_like(in[0]), at::empty_like(in[1]), at::empty_like(in[2]),
-                                 at::empty_like(in[3]), at::empty({S, 3}, in[0].options()),
-                                 at::empty({NB, 3}, in[0].options()), at::empty({}, in[0].options())};
+  using torchdem_recycle::output_like;
+  const int s = torchdem_recycle::kDrift;
+  std::vector<at::Tensor> out = {output_like(s, in[0]), output_like(s + 1, in[1]), output_like(s + 2, in[2]),
+                                 output_like(s + 3, in[3]), torchdem_recycle::output(s + 4, {S, 3}, in[0].options()),
+                                 torchdem_recycle::output(s + 5, {NB, 3}, in[0].options()),
+                                 at::empty({}, in[0].options())};
   AT_DISPATCH_FLOATING_TYPES(dtype, "drift", [&] {
     drift_impl<scalar_t>(in, out, NB, S, static_cast<scalar_t>(dt), spheres_only);
   });
   return out;
-}
-
-template <typename T>
-void kick_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out, int64_t NB, T dt) {
-  const T *F = in[0].data_ptr<T>(), *tau = in[1].data_ptr<T>(), *v0 = in[2].data_ptr<T>(),
-          *L0 = in[3].data_ptr<T>(), *m = in[4].data_ptr<T>(), *g = in[5].data_ptr<T>();
-  const bool* active = in[6].data_ptr<bool>();
-  T *f = out[0].data_ptr<T>(), *t = out[1].data_ptr<T>(), *v = out[2].data_ptr<T>(), *L = out[3].data_ptr<T>();
-  const T h = T(0.5) * dt, gx = g[0], gy = g[1], gz = g[2];
-  at::parallel_for(0, NB, 2048, [&](int64_t b0, int64_t b1) {
-    for (int64_t b = b0; b < b1; ++b) {
-      const T act = active[b] ? T(1) : T(0);
-      const T grav[3] = {gx, gy, gz};
-      for (int c = 0; c < 3; ++c) {
-        const int64_t k = 3 * b + c;
-        f[k] = (F[k] + m[b] * grav[c]) * act;
-        t[k] = tau[k] * act;
-        v[k] = v0[k] + h * f[k] / m[b];
-        L[k] = L0[k] + h * t[k];
-      }
-    }
-  });
 }
 
 // The twin of integrate.kick_kernel: gravity, inactive bodies masked, second half kick.
@@ -229,16 +219,20 @@ std::vector<at::Tensor> kick(at::Tensor force, at::Tensor torque, at::Tensor vel
   TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "kick: velocity has dtype ", dtype,
               "; expected float32 or float64");
   const int64_t NB = velocity.numel() / 3;
-  for (auto* p : {&force, &torque, &velocity, &angular_momentum}) check(*p, "body vector", dtype, NB, 3);
-  check(mass, "mass", dtype, NB, 0);
-  check(gravity, "gravity", dtype, 3, 0);
-  check(active, "active", at::kBool, NB, 0);
-  std::vector<at::Tensor> in = {force, torque, velocity, angular_momentum, mass, gravity, active};
-  for (auto& t : in) t = t.contiguous();
-  std::vector<at::Tensor> out = {at::empty_like(in[2]), at::empty_like(in[2]), at::empty_like(in[2]),
-                                 at::empty_like(in[3])};
-  AT_DISPATCH_FLOATING_TYPES(dtype, "kick", [&] { kick_impl<scalar_t>(in, out, NB, static_cast<scalar_t>(dt)); });
-  return out;
+  for (auto* p : {&force, &torque}) check(*p, "body vector", dtype, NB, 3);
+  const at::Tensor F = force.contiguous(), tau = torque.contiguous();
+  const std::vector<at::Tensor> in =
+      torchdem_kick::kick_inputs({velocity, angular_momentum, mass, gravity, active}, dtype, NB, "kick");
+  using torchdem_recycle::output_like;
+  const int s = torchdem_recycle::kKick;
+  at::Tensor f = output_like(s, in[0]), t = output_like(s + 1, in[0]), v = output_like(s + 2, in[0]),
+             L = output_like(s + 3, in[1]);
+  AT_DISPATCH_FLOATING_TYPES(dtype, "kick", [&] {
+    const auto k = torchdem_kick::kick_data<scalar_t>(in, F.data_ptr<scalar_t>(), tau.data_ptr<scalar_t>(), f, t, v,
+                                                      L, static_cast<scalar_t>(dt));
+    at::parallel_for(0, NB, 2048, [&](int64_t b0, int64_t b1) { torchdem_kick::kick_bodies<scalar_t>(k, b0, b1); });
+  });
+  return {f, t, v, L};
 }
 
 }  // namespace
