@@ -7,6 +7,8 @@
 // an operator keeps the last few tensors it returned; when the caller has dropped one (the state
 // that held it was replaced), the next call hands its memory out again instead of fresh memory.
 // Memory anyone still references (a saved state, a view, a NumPy array over it) is never reused.
+// The cost: each thread that calls the kernels keeps up to kHeldPerSlot storages per slot until the
+// process ends (about 60 MB for the 16-member benchmark; nothing on CUDA, which never gets here).
 #pragma once
 
 #include <ATen/core/Tensor.h>
