@@ -480,11 +480,9 @@ class Kernels:
             return self.torch_pair(xs, X, V, omega, force, torque, *contacts, dt, period, stiffness_model, periodic)
         if lookup is None:
             raise ValueError("Kernels.pair: the C++ pair kernel needs lookup=system.pair_lookup")
-        i, j, body_i, body_j = contacts[:4]
-        tangential, rolling = contacts[-2:]
-        f, tau, tang, roll = ext.pair_forces(xs, X, V, omega, force, torque, i, j, body_i, body_j, *lookup,
-                                             tangential, rolling, float(dt), period.tolist(),
-                                             _ai2011(stiffness_model), periodic, members, centred)
+        f, tau, tang, roll = ext.pair_forces(*_cpp_pair_tensors(xs, X, V, omega, force, torque, contacts, lookup),
+                                             float(dt), period.tolist(), _ai2011(stiffness_model), periodic,
+                                             members, centred)
         return f, tau, tang, roll
 
     def wall(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
@@ -516,11 +514,18 @@ class Kernels:
         ext = self.extension(xs)
         if ext is None:
             raise RuntimeError("Kernels.forces_kick needs the C++ kernels (see Kernels.fuses)")
-        i, j, body_i, body_j = pair_contacts[:4]
-        tangential, rolling = pair_contacts[-2:]
-        pair = [xs, X, V, omega, force, torque, i, j, body_i, body_j, *lookup, tangential, rolling]
+        pair = _cpp_pair_tensors(xs, X, V, omega, force, torque, pair_contacts, lookup)
         return tuple(ext.forces_kick(pair, list(wall_contacts), list(kick), float(dt), period.tolist(),
                                      _ai2011(stiffness_model), periodic, members, centred))
+
+
+def _cpp_pair_tensors(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
+                      contacts: tuple[Tensor, ...], lookup: tuple[Tensor, ...]) -> list[Tensor]:
+    """The tensors of the C++ ``pair_forces`` in its order, from the arguments of :meth:`Kernels.pair`:
+    the pairs' indices and springs from ``contacts``, the per-pair constants from ``lookup``."""
+    i, j, body_i, body_j = contacts[:4]
+    tangential, rolling = contacts[-2:]
+    return [xs, X, V, omega, force, torque, i, j, body_i, body_j, *lookup, tangential, rolling]
 
 
 def _ai2011(stiffness_model: str) -> bool:
