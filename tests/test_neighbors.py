@@ -182,11 +182,14 @@ def test_periodic_period_needs_twice_the_contact_distance_not_the_skin():
         simulation(pos, torch.full((1, 2), R, dtype=F64), mats, table, domain=((0, 0, 0), (0.1, 0.019, 0.1)), **kw)
 
 
-@pytest.mark.parametrize("periodic", [(False, False, False), (False, True, False), (True, True, False)])
+@pytest.mark.parametrize("periodic", [(False, False, False), (False, True, False), (True, True, False),
+                                      (False, False, True), (True, True, True)])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_cpp_cell_search_equals_torch_path(periodic, dtype):
     """The C++ candidate scan (torchdem/_ext/cells_cpu.cpp) returns exactly the torch path's list,
-    including periodic axes with 2 cells (wrapped neighbour cells visited once) and padding."""
+    including periodic axes with 2 cells (wrapped neighbour cells visited once), a periodic
+    sort axis of 11 cells (windows that wrap), a sort axis other than z (x when z is periodic),
+    padding and spheres with non-finite positions (no pairs)."""
     from torchdem import _ext
 
     if _ext.cpu_kernels() is None:
@@ -198,11 +201,19 @@ def test_cpp_cell_search_equals_torch_path(periodic, dtype):
     rad = 0.002 + 0.006 * torch.rand(B * N, generator=gen, dtype=dtype)
     body = torch.arange(B * N) // 3
     active = torch.rand(B * N, generator=gen) > 0.1
+    pos[7] = float("nan")
+    pos[N + 11, 2] = float("inf")
     grid = cell_grid((0, 0, 0), hi, float(2 * rad.max() + 0.002), periodic=periodic, dtype=dtype)
-    a = find_pairs(pos, rad, body, active, N, grid, 0.002)
     b = find_pairs(pos, rad, body, active, N, grid, 0.002, use_extension=False)
-    assert a[0].numel() > 1000
-    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    assert b[0].numel() > 1000
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 3):  # the columns are split over threads; the list must not depend on how
+            torch.set_num_threads(n)
+            a = find_pairs(pos, rad, body, active, N, grid, 0.002)
+            assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    finally:
+        torch.set_num_threads(threads)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
