@@ -54,13 +54,90 @@ def test_cell_list_matches_oracle_after_particles_move_and_list_is_rebuilt():
     reference = pos.clone()
     for _ in range(5):
         pos = pos + 0.0004 * torch.randn(pos.shape, generator=g, dtype=F64)
-        if needs_rebuild(pos, reference, 0.0, skin):
+        if needs_rebuild(pos, reference, skin):
             reference = pos.clone()
         i, j = find_pairs(reference, radius, body, active, Ns, grid, skin)
         listed = set(zip(i.tolist(), j.tolist()))
         # Skin guarantee: every pair touching *now* is in the list built at `reference`.
         touching = _oracle(pos, radius, body, active, Ns, 0.0)
         assert touching <= listed
+
+
+def test_skin_criterion_waits_for_spheres_moving_alike_and_never_misses_a_contact():
+    """The lists hold while the displacement box's diagonal stays within the skin: a rigid
+    shift of three skins keeps them, so does a block of spheres falling 0.9 skin past resting
+    ones (the rule of half the skin would have rebuilt at 0.5); 1.1 skin expires them. Every
+    pair touching when they hold was listed at the build. A wall's movement adds to the
+    largest displacement."""
+    from torchdem.neighbors import displacement_box, lists_expired
+
+    pos, radius, body, active, Ns = _random_packing(7)
+    skin = 0.0015
+    grid = cell_grid((0, 0, 0), (0.08, 0.08, 0.08), 2 * float(radius.max()) + skin, dtype=F64)
+    i, j = find_pairs(pos, radius, body, active, Ns, grid, skin)
+    listed = set(zip(i.tolist(), j.tolist()))
+    g = torch.Generator().manual_seed(2)
+    shift = torch.tensor([0.5, -1.0, 2.7], dtype=F64) * skin  # |shift| = 2.9 skin
+    jitter = 0.1 * skin * (2 * torch.rand(pos.shape, generator=g, dtype=F64) - 1)
+    falling = (pos[:, 0] > 0.04)[:, None] * torch.tensor([0.0, 0.0, -1.0], dtype=F64)
+    cases = [(pos + shift + jitter, False), (pos + 0.9 * skin * falling, False), (pos + 1.1 * skin * falling, True)]
+    for moved, expired in cases:
+        assert needs_rebuild(moved, pos, skin) == expired
+        if not expired:
+            assert _oracle(moved, radius, body, active, Ns, 0.0) <= listed
+    touching = _oracle(pos + 0.9 * skin * falling, radius, body, active, Ns, 0.0)
+    assert touching - _oracle(pos, radius, body, active, Ns, 0.0)  # the fall made new contacts
+    assert needs_rebuild(pos + shift, pos, skin, wall_move=0.0)  # with walls, a shift may reach one
+    box = displacement_box(pos + 0.6 * skin * falling, pos).tolist()
+    assert box[0][2] == pytest.approx(-0.6 * skin) and box[0][5] == 0.0
+    assert box[0][6] == pytest.approx((0.6 * skin) ** 2)
+    assert not lists_expired(box, skin, 0.3 * skin) and lists_expired(box, skin, 0.5 * skin)
+    nan = pos.clone()
+    nan[3] = float("nan")
+    assert displacement_box(nan, pos).tolist() == [[0.0] * 7]  # non-finite left out
+    assert displacement_box(nan + shift, pos)[0, :6].tolist() == pytest.approx(2 * shift.tolist())
+    # members apart: one member's shift and another's fall do not add up (pairs never cross members)
+    S = pos.shape[0] - pos.shape[0] % 2
+    apart = torch.cat([shift.expand(S // 2, 3), 0.9 * skin * falling[S // 2:S]])
+    assert needs_rebuild(pos[:S] + apart, pos[:S], skin, members=1)
+    assert not needs_rebuild(pos[:S] + apart, pos[:S], skin, members=2)
+
+
+def test_simulation_lists_hold_every_touching_pair_while_spheres_fall_onto_resting_ones():
+    """End to end with the step's criterion: two members, each a block of spheres falling at
+    2.5 m/s onto a bed of resting ones (bouncing back up), a floor below. At every step every
+    pair touching now is listed and every sphere touching the floor has its wall contact."""
+    from conftest import simulation, two_material_table
+    from torchdem.integrate import sphere_positions
+    from torchdem.walls import WallSpec
+
+    R = 0.004
+    mats, table = two_material_table(2, dict(mu_s=0.5, mu_r=0.05, restitution=0.6))
+    bed = [(0.01 + 0.0088 * a, 0.01 + 0.0088 * b, 0.0045) for a in range(9) for b in range(3)]
+    block = [(0.014 + 0.0092 * a, 0.012 + 0.0092 * b, 0.02 + 0.0092 * c) for a in range(8) for b in range(2)
+             for c in range(3)]
+    pos = torch.tensor([bed + block, [(x + 0.002, y, z) for x, y, z in bed + block]], dtype=F64)
+    vel = torch.zeros_like(pos)
+    vel[:, len(bed):, 2] = -2.5
+    floor = WallSpec("floor", (0.05, 0.02, 0.0), (0, 0, 1), (1, 0, 0), float("inf"), float("inf"), "steel")
+    sim = simulation(pos, torch.full(pos.shape[:2], R, dtype=F64), mats, table, velocity=vel, gravity=(0, 0, -9.81),
+                     walls=[floor], time_step_fraction=0.1, domain=((0, 0, -0.01), (0.1, 0.04, 0.06)))
+    system = sim.system
+    Ns = system.n_spheres
+    radius = system.sphere_radius.reshape(-1)
+    body = system.sphere_body_flat
+    active = torch.ones(2 * Ns, dtype=torch.bool)
+    steps = int(0.02 / system.dt)
+    for _ in range(steps):
+        sim.advance(1)
+        xs = sphere_positions(system, sim.state.bodies)
+        listed = set(zip(sim.state.pairs.i.tolist(), sim.state.pairs.j.tolist()))
+        assert _oracle(xs, radius, body, active, Ns, 0.0) <= listed
+        on_floor = set(torch.nonzero(xs[:, 2] < radius).squeeze(1).tolist())
+        assert on_floor <= set(sim.state.walls.sphere.tolist())
+    v = sim.state.bodies.velocity
+    assert float(v[:, len(bed):, 2].max()) > 0.1  # some bounced back up
+    assert sim.state.rebuilds < steps / 3
 
 
 @pytest.mark.parametrize("use_extension", [True, False])

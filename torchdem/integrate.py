@@ -340,11 +340,12 @@ def drift_kernel(position: Tensor, velocity: Tensor, angular_momentum: Tensor, o
                  force: Tensor, torque: Tensor, mass: Tensor, inertia: Tensor, active: Tensor,
                  sphere_body: Tensor, sphere_offset: Tensor, reference: Tensor, dt: Tensor,
                  spheres_only: bool) -> tuple[Tensor, ...]:
-    """First half kick and drift; sphere positions, angular velocities and the largest sphere
-    displacement since the last list build (squared, NaN ignored).
+    """First half kick and drift; sphere positions, angular velocities and the box of the sphere
+    displacements since the last list build (:func:`neighbors.displacement_box`).
 
     Shapes: bodies ``[B, Nb, ...]``; sphere_body ``[B*Ns]`` flat; sphere_offset ``[B*Ns, 3]``;
-    reference ``[B*Ns, 3]``. Returns (x, v, L, q, xs ``[B*Ns, 3]``, omega ``[B*Nb, 3]``, max_disp2).
+    reference ``[B*Ns, 3]``. Returns (x, v, L, q, xs ``[B*Ns, 3]``, omega ``[B*Nb, 3]``,
+    displacement ``[B, 7]``).
     """
     act = active[..., None].to(position.dtype)
     v = velocity + (0.5 * dt) * force / mass[..., None]
@@ -362,8 +363,8 @@ def drift_kernel(position: Tensor, velocity: Tensor, angular_momentum: Tensor, o
         q_flat = q.reshape(-1, 4)
         xs = xs + quat_rotate(torch.index_select(q_flat, 0, sphere_body), sphere_offset)
         omega = angular_velocity(q_flat, L_flat, I_flat)
-    disp2 = torch.nan_to_num((xs - reference).square().sum(-1), nan=0.0, posinf=0.0)
-    return x, v, L, q, xs, omega, disp2.max()
+    members = position.shape[0] if position.dim() == 3 else 1
+    return x, v, L, q, xs, omega, neighbors.displacement_box(xs, reference, members)
 
 
 def kick_kernel(force: Tensor, torque: Tensor, velocity: Tensor, angular_momentum: Tensor,
@@ -384,20 +385,21 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
     dt = system.dt
     b = state.bodies
     dt_t = system.dt_tensor
-    x, v, L, q, xs, omega, disp2 = kernels.drift(
+    x, v, L, q, xs, omega, displacement = kernels.drift(
         b.position, b.velocity, b.angular_momentum, b.orientation, b.force, b.torque, system.mass,
         system.inertia, b.active, system.sphere_body_flat, system.sphere_offset.reshape(-1, 3),
         state.reference, dt_t, system.spheres_only)
     state = state.set(bodies=b.set(position=x, velocity=v, angular_momentum=L, orientation=q),
                       step=state.step + 1)
     time = state.step * dt
-    rebuild_now = disp2.item() ** 0.5 > 0.5 * system.skin
+    displacement = displacement.tolist()
+    rebuild_now = neighbors.lists_expired(displacement, system.skin, 0.0 if system.walls.n else None)
     if system.walls.n and not rebuild_now and system.wall_events:
         if any((time - dt) < e <= time for e in system.wall_events):
             rebuild_now = bool((system.walls.active_at(time) != state.wall_active).any())
         if not rebuild_now and system.walls_move:
             wall_move = float((system.walls.shift(time) - state.wall_shift).norm(dim=-1).max())
-            rebuild_now = disp2.item() ** 0.5 + wall_move > 0.5 * system.skin
+            rebuild_now = neighbors.lists_expired(displacement, system.skin, wall_move)
     if rebuild_now:
         state, xs = rebuild(system, state, xs, time)
     return forces_and_kick(system, state, xs, omega, time, kernels)

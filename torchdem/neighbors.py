@@ -15,13 +15,16 @@ Contract:
 - :func:`find_wall_pairs` returns every (sphere, wall) closer than ``r + skin``.
 - :func:`carry_history` copies spring history from an old list to a new one by matching
   sorted int64 keys (pairs that persist keep their springs; new pairs start at zero).
-- :func:`needs_rebuild` is the skin criterion: rebuild when any sphere moved more than half
-  the skin (minus how far any wall moved) since the last build.
+- :func:`lists_expired` is the skin criterion: rebuild when the box of a member's sphere
+  displacements since the last build has a diagonal above the skin (two of its spheres may
+  then have closed the skin between them), or, with walls, when the largest displacement plus
+  how far any wall moved is above it.
 """
 from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -232,13 +235,41 @@ def carry_history(old_key: Tensor, old_values: list[Tensor], new_key: Tensor,
     return out
 
 
-def needs_rebuild(position: Tensor, reference: Tensor, wall_move: float, skin: float) -> bool:
-    """Skin criterion: max sphere displacement + wall displacement > skin / 2.
+def displacement_box(position: Tensor, reference: Tensor, members: int = 1) -> Tensor:
+    """``[members, 7]``: per ensemble member, the lowest x, y, z and the highest x, y, z of its
+    sphere displacements ``position - reference`` (``[members * Ns, 3]`` each), then the largest
+    squared length. Non-finite displacements are left out (the blow-up guard reports them); all
+    0 for a member with none finite."""
+    d = (position - reference).reshape(members, -1, 3)
+    d2 = d.square().sum(-1)
+    finite = torch.isfinite(d2)[..., None]
+    inf = torch.full_like(d, math.inf)
+    box = torch.cat([torch.where(finite, d, inf).amin(1), torch.where(finite, d, -inf).amax(1),
+                     torch.where(finite[..., 0], d2, torch.zeros_like(d2)).amax(1, keepdim=True)], dim=1)
+    return torch.where(torch.isfinite(box), box, torch.zeros_like(box))  # none finite: all 0 (no host read)
 
-    Non-finite positions are ignored here (the blow-up guard reports them).
+
+def lists_expired(displacement: Sequence[Sequence[float]], skin: float, wall_move: float | None = None) -> bool:
+    """Skin criterion from a :func:`displacement_box` (one row per member): whether a contact
+    may now be missing.
+
+    Two spheres of a member not listed were at least r_i + r_j + skin apart at the build; since
+    then they approached by at most |d_i - d_j|, which is at most the diagonal of the member's
+    displacement box. A sphere not listed for a wall had a gap of at least the skin; it closed
+    by at most |d_i| plus the wall's own movement ``wall_move`` (None: no walls). So the lists
+    hold while every member's box diagonal, and its largest displacement plus ``wall_move``,
+    stay within the skin. This is never earlier than the usual rule (largest displacement above
+    half the skin), and later when spheres move alike: a discharge stream falls together past
+    resting spheres, so the diagonal is about the largest displacement, not twice it.
     """
-    if position.shape[0] == 0:
-        return False
-    d2 = (position - reference).square().sum(-1)
-    d2 = torch.nan_to_num(d2, nan=0.0, posinf=0.0)
-    return math.sqrt(float(d2.max())) + wall_move > 0.5 * skin
+    for row in displacement:
+        diagonal = math.sqrt(sum((row[a + 3] - row[a]) ** 2 for a in range(3)))
+        if diagonal > skin or (wall_move is not None and math.sqrt(row[6]) + wall_move > skin):
+            return True
+    return False
+
+
+def needs_rebuild(position: Tensor, reference: Tensor, skin: float, wall_move: float | None = None,
+                  members: int = 1) -> bool:
+    """:func:`lists_expired` for sphere positions ``[members * Ns, 3]`` and those at the last build."""
+    return lists_expired(displacement_box(position, reference, members).tolist(), skin, wall_move)

@@ -1,15 +1,18 @@
 // CPU kernels of the drift of torchdem/integrate.py (drift_kernel): half kick, drift,
-// midpoint quaternion rotation, sphere positions, angular velocities and the largest sphere
-// displacement since the last neighbour-list build; and of its kick (kick_kernel: gravity,
-// masks, second half kick; one pass instead of a dozen tensor operations, 0.2 ms a step).
+// midpoint quaternion rotation, sphere positions, angular velocities and the box of the sphere
+// displacements since the last neighbour-list build (with the largest length); and of its
+// kick (kick_kernel: gravity, masks, second half kick; one pass instead of a dozen tensor
+// operations, 0.2 ms a step).
 //
 // Contract: `drift` computes what `drift_kernel` computes with the quaternion functions of
 // torchdem/rigid.py, in float32 or float64, in one pass over the bodies and one over the
 // spheres instead of ~70 tensor operations (each a separate sweep over memory plus a few
 // microseconds of dispatch: for a few thousand bodies the dispatch dominated the step). It
-// returns new tensors (x, v, L, q, xs, omega, max_disp2); nothing passed in is modified.
+// returns new tensors (x, v, L, q, xs, omega, displacement [B, 7]: per member the lowest x, y, z
+// and highest x, y, z sphere displacement and the largest squared length, non-finite ones left
+// out, all 0 when none is finite); nothing passed in is modified.
 // Parallel over bodies and spheres (at::parallel_for); each element is written by one thread
-// and the displacement maximum is order-independent, so results do not depend on the number
+// and the displacement extremes are order-independent, so results do not depend on the number
 // of threads. They differ from the torch kernel by rounding only.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -19,6 +22,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -105,8 +109,8 @@ void check(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t 
 }
 
 template <typename T>
-void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out, int64_t NB, int64_t S, T dt,
-                bool spheres_only) {
+void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out, int64_t NB, int64_t S,
+                int64_t members, T dt, bool spheres_only) {
   const T *x0 = in[0].data_ptr<T>(), *v0 = in[1].data_ptr<T>(), *L0 = in[2].data_ptr<T>(), *q0 = in[3].data_ptr<T>(),
           *F = in[4].data_ptr<T>(), *tau = in[5].data_ptr<T>(), *m = in[6].data_ptr<T>(), *I = in[7].data_ptr<T>();
   const bool* active = in[8].data_ptr<bool>();
@@ -144,13 +148,19 @@ void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out,
       w[3 * b + 2] = wb.z;
     }
   });
-  const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (S + 1023) / 1024));
-  std::vector<T> chunk_max(chunks, T(0));
+  // Chunks of spheres within each member: per chunk the displacement box (lowest x, y, z,
+  // highest x, y, z) and the largest squared length.
+  const int64_t Ns = S / members;
+  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (Ns + 1023) / 1024));
+  const int64_t chunks = members * parts;
+  std::vector<std::array<T, 7>> chunk_disp(chunks);
   std::vector<int64_t> chunk_bad(chunks, 0);  // 1 + the last sphere of the chunk with a bad body
   at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
     for (int64_t c = c0; c < c1; ++c) {
-      T best = T(0);
-      const int64_t s0 = S * c / chunks, s1 = S * (c + 1) / chunks;
+      constexpr T kBig = std::numeric_limits<T>::max();
+      T lo[3] = {kBig, kBig, kBig}, hi[3] = {-kBig, -kBig, -kBig}, best = T(0);
+      const int64_t member = c / parts, part = c % parts;
+      const int64_t s0 = member * Ns + Ns * part / parts, s1 = member * Ns + Ns * (part + 1) / parts;
       for (int64_t s = s0; s < s1; ++s) {
         const int64_t b = sb[s];
         if (static_cast<uint64_t>(b) >= static_cast<uint64_t>(NB)) {  // reported after the pass
@@ -166,18 +176,33 @@ void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out,
         xs[3 * s] = p.x;
         xs[3 * s + 1] = p.y;
         xs[3 * s + 2] = p.z;
-        const T dx = p.x - ref[3 * s], dy = p.y - ref[3 * s + 1], dz = p.z - ref[3 * s + 2];
-        const T d2 = dx * dx + dy * dy + dz * dz;
-        if (d2 > best && d2 <= std::numeric_limits<T>::max()) best = d2;  // NaN and inf count as 0
+        const T d[3] = {p.x - ref[3 * s], p.y - ref[3 * s + 1], p.z - ref[3 * s + 2]};
+        const T d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        if (!(d2 <= std::numeric_limits<T>::max())) continue;  // NaN and inf are left out
+        best = std::max(best, d2);
+        for (int a = 0; a < 3; ++a) {
+          lo[a] = std::min(lo[a], d[a]);
+          hi[a] = std::max(hi[a], d[a]);
+        }
       }
-      chunk_max[c] = best;
+      chunk_disp[c] = {lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], best};
     }
   });
   for (int64_t c = 0; c < chunks; ++c) {
     const int64_t s = chunk_bad[c] - 1;
     TORCH_CHECK(s < 0, "drift: sphere ", s, " belongs to body ", sb[s < 0 ? 0 : s], ", outside [0, ", NB, ")");
   }
-  out[6].fill_(*std::max_element(chunk_max.begin(), chunk_max.end()));
+  T* disp = out[6].data_ptr<T>();
+  for (int64_t member = 0; member < members; ++member) {
+    std::array<T, 7> box = chunk_disp[member * parts];
+    for (int64_t part = 1; part < parts; ++part)
+      for (int k = 0; k < 7; ++k) {
+        const T v = chunk_disp[member * parts + part][k];
+        box[k] = k < 3 ? std::min(box[k], v) : std::max(box[k], v);
+      }
+    if (box[0] > box[3]) box.fill(T(0));  // no finite displacement
+    std::copy(box.begin(), box.end(), disp + 7 * member);
+  }
 }
 
 std::vector<at::Tensor> drift(at::Tensor position, at::Tensor velocity, at::Tensor angular_momentum,
@@ -188,6 +213,8 @@ std::vector<at::Tensor> drift(at::Tensor position, at::Tensor velocity, at::Tens
   TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "drift: position has dtype ", dtype,
               "; expected float32 or float64");
   const int64_t NB = position.numel() / 3, S = sphere_body.numel();
+  const int64_t members = position.dim() == 3 ? position.size(0) : 1;  // [B, Nb, 3] or [Nb, 3]
+  TORCH_CHECK(members > 0 && S % members == 0, "drift: ", S, " spheres do not split into ", members, " members");
   for (auto* p : {&position, &velocity, &angular_momentum, &force, &torque, &inertia}) check(*p, "body vector", dtype, NB, 3);
   check(orientation, "orientation", dtype, NB, 4);
   check(mass, "mass", dtype, NB, 0);
@@ -203,9 +230,9 @@ std::vector<at::Tensor> drift(at::Tensor position, at::Tensor velocity, at::Tens
   std::vector<at::Tensor> out = {output_like(s, in[0]), output_like(s + 1, in[1]), output_like(s + 2, in[2]),
                                  output_like(s + 3, in[3]), torchdem_recycle::output(s + 4, {S, 3}, in[0].options()),
                                  torchdem_recycle::output(s + 5, {NB, 3}, in[0].options()),
-                                 at::empty({}, in[0].options())};
+                                 at::empty({members, 7}, in[0].options())};
   AT_DISPATCH_FLOATING_TYPES(dtype, "drift", [&] {
-    drift_impl<scalar_t>(in, out, NB, S, static_cast<scalar_t>(dt), spheres_only);
+    drift_impl<scalar_t>(in, out, NB, S, members, static_cast<scalar_t>(dt), spheres_only);
   });
   return out;
 }
