@@ -291,6 +291,10 @@ def test_cpp_cell_search_equals_torch_path(periodic, dtype):
             assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
     finally:
         torch.set_num_threads(threads)
+    ext = _ext.cpu_kernels()
+    args = (grid.lower.tolist(), grid.cell_size.tolist(), list(grid.dims), grid.period.tolist(), N, 0.002)
+    with pytest.raises(RuntimeError, match=r"radius, body and active need 4500 entries"):
+        ext.cell_pairs(pos, rad[:-1], body, active, *args)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])

@@ -120,15 +120,12 @@ inline int sort_axis_runs(const Grid& g, int a, int64_t c, Run* out) {
 // Candidate slots tested per vectorised pass.
 constexpr int64_t kScan = 64;
 
-// The sorted spheres (slots) and what the scan reads of them.
+// What the scan reads of the sorted spheres (slots).
 struct Sorted {
-  const int64_t* order;      // [n] sphere index of each slot
-  const int64_t* start;      // [members * n_columns * n_sort + 1] first slot of each member-column-cell
   const double *x, *y, *z;   // [n] positions by slot, one array per axis (the scan vectorises)
   const double* key;         // x, y or z: the sort-axis coordinate
   const double* radius;      // [n]
   const int64_t* body;       // [n]
-  const int64_t* cell;       // [n] cell along the sort axis
   double period[3], inv_period[3];  // 0 on non-periodic axes
   double skin;
 
@@ -192,11 +189,17 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
   TORCH_CHECK(lower.size() == 3 && cell_size.size() == 3 && dims.size() == 3 && period.size() == 3,
               "cell_pairs: lower, cell_size, dims and period need 3 entries");
   TORCH_CHECK(n_per_member > 0, "cell_pairs: n_per_member must be positive, got ", n_per_member);
+  TORCH_CHECK(position.dim() == 2 && position.size(1) == 3, "cell_pairs: position has shape ", position.sizes(),
+              "; expected [S, 3]");
+  const int64_t S = position.size(0);
+  TORCH_CHECK(radius.numel() == S && body.numel() == S && active.numel() == S, "cell_pairs: radius, body and active ",
+              "need ", S, " entries (one per sphere), got ", radius.numel(), ", ", body.numel(), " and ", active.numel());
+  TORCH_CHECK(radius.scalar_type() == position.scalar_type(), "cell_pairs: radius has dtype ", radius.scalar_type(),
+              "; expected ", position.scalar_type());
   auto pos = position.contiguous();
   auto rad = radius.contiguous();
   auto bod = body.contiguous().to(at::kLong);
   auto act = active.contiguous().to(at::kBool);
-  const int64_t S = pos.size(0);
   const int64_t members = S ? (S + n_per_member - 1) / n_per_member : 0;
   Grid g;
   double size[3];
@@ -265,8 +268,7 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
   });
   const int64_t n_sorted = static_cast<int64_t>(order.size());
   const double r_max = n_sorted ? *std::max_element(srad.begin(), srad.end()) : 0.0;
-  Sorted s{order.data(), start.data(), sx.data(), sy.data(), sz.data(), nullptr, srad.data(), sbody.data(),
-           scell.data(), {}, {}, skin};
+  Sorted s{sx.data(), sy.data(), sz.data(), nullptr, srad.data(), sbody.data(), {}, {}, skin};
   s.key = axes[2] == 0 ? s.x : (axes[2] == 1 ? s.y : s.z);
   for (int a = 0; a < 3; ++a) {
     s.period[a] = g.periodic[a] ? g.period[a] : 0.0;
