@@ -96,6 +96,14 @@ def test_skin_criterion_waits_for_spheres_moving_alike_and_never_misses_a_contac
     nan[3] = float("nan")
     assert displacement_box(nan, pos).tolist() == [[0.0] * 7]  # non-finite left out
     assert displacement_box(nan + shift, pos)[0, :6].tolist() == pytest.approx(2 * shift.tolist())
+    # spheres spread in six directions by 0.4 skin: a box diagonal of 1.39 skin, but no two of them
+    # approached by more than 0.8 skin (twice the largest), so the lists hold, as by the half-skin rule
+    spread = torch.zeros_like(pos)
+    for k, direction in enumerate(torch.eye(3, dtype=F64).repeat_interleave(2, 0) * torch.tensor([1.0, -1.0] * 3,
+                                                                                                   dtype=F64)[:, None]):
+        spread[k::6] = 0.4 * skin * direction
+    assert not needs_rebuild(pos + spread, pos, skin)
+    assert _oracle(pos + spread, radius, body, active, Ns, 0.0) <= listed
     # members apart: one member's shift and another's fall do not add up (pairs never cross members)
     S = pos.shape[0] - pos.shape[0] % 2
     apart = torch.cat([shift.expand(S // 2, 3), 0.9 * skin * falling[S // 2:S]])

@@ -254,17 +254,19 @@ def lists_expired(displacement: Sequence[Sequence[float]], skin: float, wall_mov
     may now be missing.
 
     Two spheres of a member not listed were at least r_i + r_j + skin apart at the build; since
-    then they approached by at most |d_i - d_j|, which is at most the diagonal of the member's
-    displacement box. A sphere not listed for a wall had a gap of at least the skin; it closed
-    by at most |d_i| plus the wall's own movement ``wall_move`` (None: no walls). So the lists
-    hold while every member's box diagonal, and its largest displacement plus ``wall_move``,
-    stay within the skin. This is never earlier than the usual rule (largest displacement above
-    half the skin), and later when spheres move alike: a discharge stream falls together past
-    resting spheres, so the diagonal is about the largest displacement, not twice it.
+    then they approached by at most |d_i - d_j|, which is at most both the diagonal of the
+    member's displacement box and twice its largest displacement. A sphere not listed for a
+    wall had a gap of at least the skin; it closed by at most |d_i| plus the wall's own movement
+    ``wall_move`` (None: no walls). So the lists hold while, in every member, the smaller of the
+    two pair bounds, and the largest displacement plus ``wall_move``, stay within the skin. This
+    is never earlier than the usual rule (largest displacement above half the skin), and later
+    when spheres move alike: a discharge stream falls together past resting spheres, so the
+    diagonal is about the largest displacement, not twice it.
     """
     for row in displacement:
         diagonal = math.sqrt(sum((row[a + 3] - row[a]) ** 2 for a in range(3)))
-        if diagonal > skin or (wall_move is not None and math.sqrt(row[6]) + wall_move > skin):
+        largest = math.sqrt(row[6])
+        if min(diagonal, 2 * largest) > skin or (wall_move is not None and largest + wall_move > skin):
             return True
     return False
 
