@@ -356,7 +356,13 @@ def _dem_lab(model, hidden: dict, seeds) -> MeasuredData:
 
 
 def _dem_discover(tmp_path, model, lab):
-    """Density per material against refitting nothing, with 2 replicates per design point.
+    """Density per material against refitting nothing, with 3 replicates per design point.
+
+    With 2, the verdict hung on the round-off of the run: three realizations of the same
+    physics (the neighbour lists rebuilt at different steps, eighth sitting) gave a gain of
+    21.2 against a threshold of 19.9, a pass of unknown margin, and -7.9 against 24.8 (no cause
+    named). With 3, all three name the cause: 20.2 against 16.1, 18.8 against 14.9 and 27.5
+    against 19.6.
 
     clump_shape is not a candidate here: in the mass-filled mini box a heavier sinter and a
     longer sinter clump (more volume, more mass per clump) both show as fewer, heavier sinter
@@ -367,7 +373,7 @@ def _dem_discover(tmp_path, model, lab):
     from bo.dem import evaluate_batch
 
     restricted = dataclasses.replace(model, conditions={c: model.conditions[c] for c in DEM_CONDITIONS})
-    settings = DiscoverySettings(kpis=DEM_KPIS, seeds=(0, 1, 2, 3), fit_seeds=(0, 1),
+    settings = DiscoverySettings(kpis=DEM_KPIS, seeds=(0, 1, 2, 3), fit_seeds=(0, 1, 2),
                                  candidates=("density_per_material",), points_per_parameter=5,
                                  min_points=6)
     store = CampaignStore(tmp_path / "d.sqlite", "dem", extra_stages=discovery_stages())
