@@ -207,7 +207,9 @@ def test_killed_campaign_resumes_without_losing_or_repeating_a_run(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     done_before = CampaignStore(db, "known-answer", extra_stages=EXTRA_STAGES).records(status="done")
-    assert 13 * 3 + 20 <= len(done_before)
+    # a batch (6 runs) is logged as it returns and stored as done just after: the kill may fall between
+    # the two (it did once in CI: 57 of 59 logged runs stored). The screening (39 runs) is done for sure
+    assert 13 * 3 + 20 - 6 <= len(done_before)
     finished = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert finished.returncode == 0, finished.stderr[-3000:]
     store = CampaignStore(db, "known-answer", extra_stages=EXTRA_STAGES)

@@ -242,11 +242,10 @@ def displacement_box(position: Tensor, reference: Tensor, members: int = 1) -> T
     0 for a member with none finite."""
     d = (position - reference).reshape(members, -1, 3)
     d2 = d.square().sum(-1)
-    finite = torch.isfinite(d2)[..., None]
-    inf = torch.full_like(d, math.inf)
-    box = torch.cat([torch.where(finite, d, inf).amin(1), torch.where(finite, d, -inf).amax(1),
-                     torch.where(finite[..., 0], d2, torch.zeros_like(d2)).amax(1, keepdim=True)], dim=1)
-    return torch.where(torch.isfinite(box), box, torch.zeros_like(box))  # none finite: all 0 (no host read)
+    bad = ~torch.isfinite(d2)
+    box = torch.cat([d.masked_fill(bad[..., None], math.inf).amin(1), d.masked_fill(bad[..., None], -math.inf).amax(1),
+                     d2.masked_fill(bad, 0.0).amax(1, keepdim=True)], dim=1)
+    return box.masked_fill(~torch.isfinite(box), 0.0)  # a member with none finite: all 0 (no host read)
 
 
 def lists_expired(displacement: Sequence[Sequence[float]], skin: float, wall_move: float | None = None) -> bool:
