@@ -8,10 +8,13 @@
   balances k_c times the area of the intersection circle; overlap within 0.5 %, and the net
   force on the pair is zero (the centre of mass does not move, 1e-12 m).
 - The contact-area formula equals pi a^2 of the exact intersection circle (1e-12 relative).
+Both equilibria are solved with the C++ kernels (cohesion inside their contact law) and with the
+torch kernels (cohesion a pass of its own).
 """
 import math
 
 import numpy as np
+import pytest
 import torch
 from scipy.optimize import brentq
 
@@ -51,7 +54,8 @@ def _young(a, b):
                                          torch.tensor(b.young_modulus), torch.tensor(b.poisson_ratio)))
 
 
-def test_sphere_on_a_plane_settles_where_hertz_balances_weight_and_cohesion():
+@pytest.mark.parametrize("backend", ["cpp", "torch"])
+def test_sphere_on_a_plane_settles_where_hertz_balances_weight_and_cohesion(backend):
     B = len(KC)
     g = 9.81
     mats = [glass(G=G_MOD, density=DENSITY), steel()]
@@ -64,7 +68,7 @@ def test_sphere_on_a_plane_settles_where_hertz_balances_weight_and_cohesion():
                                  walls=[plane("floor", (0, 0, 0), (0, 0, 1), "steel")], gravity=(0, 0, -g),
                                  time_step_fraction=0.1, domain=((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1)))
     assert system.has_cohesion
-    sim = Simulation(system, state, GuardSettings(check_every=1000))
+    sim = Simulation(system, state, GuardSettings(check_every=1000), backend=backend)
     sim.advance(8000)
     overlap = R - sim.state.bodies.position[:, 0, 2].numpy()
     assert float(sim.state.bodies.velocity.norm(dim=-1).max()) < 1e-6  # at rest
@@ -77,7 +81,8 @@ def test_sphere_on_a_plane_settles_where_hertz_balances_weight_and_cohesion():
     assert overlap[2] > overlap[1] > overlap[0]
 
 
-def test_two_free_spheres_are_pulled_to_the_cohesive_equilibrium():
+@pytest.mark.parametrize("backend", ["cpp", "torch"])
+def test_two_free_spheres_are_pulled_to_the_cohesive_equilibrium(backend):
     kc = 2.0e4  # equilibrium overlap ~1.3e-5 m
     mats = [glass(G=G_MOD, density=DENSITY), steel()]
     table = interaction_table(mats, {("glass", "glass"): dict(mu_s=0.5, mu_r=0.0, restitution=0.2, cohesion=kc),
@@ -86,7 +91,7 @@ def test_two_free_spheres_are_pulled_to_the_cohesive_equilibrium():
     system, state = build_system(pos, torch.zeros(1, 2, dtype=torch.long), mats, table,
                                  radius=torch.full((1, 2), R, dtype=F64), gravity=(0, 0, 0),
                                  time_step_fraction=0.1, domain=((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1)))
-    sim = Simulation(system, state, GuardSettings(check_every=1000))
+    sim = Simulation(system, state, GuardSettings(check_every=1000), backend=backend)
     sim.advance(8000)
     x = sim.state.bodies.position[0].numpy()
     overlap = 2 * R - float(np.linalg.norm(x[1] - x[0]))

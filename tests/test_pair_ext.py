@@ -48,10 +48,11 @@ def extension():
 
 
 def _system(dtype=F64, rolling_stiffness="tangential", B=3, N=60, seed=0, spacing=0.0095, size=1.0,
-            clumps=0.3):
+            clumps=0.3, cohesion=None):
     """Mixed packing: spheres (r 3-5.5 mm x size) and, a fraction ``clumps`` of the bodies, clumps
     (8-11 mm long x size) on a jittered lattice (6 x 5 per layer, so spacing 0.01 m fills the
-    periodic x period), random spins."""
+    periodic x period), random spins. ``cohesion``: SJKR k_c of the sphere pairs and of the
+    sphere-wall pairs per member (two lists), or None."""
     g = torch.Generator().manual_seed(seed)
     k = torch.arange(N)
     lattice = torch.stack([k % 6, (k // 6) % 5, k // 30], -1).to(F64) * spacing + torch.tensor([0.004, 0.004, 0.006])
@@ -65,6 +66,8 @@ def _system(dtype=F64, rolling_stiffness="tangential", B=3, N=60, seed=0, spacin
               rolling_damping=[0.0, 0.3, 0.7, 0.1])
     pw = dict(mu_s=[0.3, 0.4, 0.6, 0.5], mu_r=[0.05, 0.01, 0.2, 0.1], restitution=[0.5, 0.7, 0.4, 0.8],
               rolling_damping=[0.2, 0.0, 0.5, 0.3])
+    if cohesion is not None:
+        pp["cohesion"], pw["cohesion"] = cohesion
     members = lambda coefficients: {k: v[:B] for k, v in coefficients.items()}  # noqa: E731
     table = interaction_table(mats, {("glass", "glass"): members(pp), ("glass", "steel"): members(pw)}, batch=B)
     walls = [WallSpec("floor", (0.03, 0.025, 0.0), (0, 0, 1), (1, 0, 0), 0.02, 0.015, "steel"),
@@ -173,6 +176,48 @@ def test_cpp_contact_kernels_equal_torch_eager_for_single_spheres(extension, rol
         assert torch.equal(value, _outputs(cpp_out)[name]), name
 
 
+# SJKR k_c (J/m^3) of the sphere pairs and the sphere-wall pairs per member (E* of glass-glass is
+# 1.3e8 Pa): up to the mechanism's prior of 1 % E* and beyond; member 3 of the sphere-wall pairs none.
+COHESION = ([2e6, 5e6, 1e7, 1e6], [1e7, 0.0, 3e6, 1e6])
+
+
+@pytest.mark.parametrize("dtype, rel", [(F64, 1e-12), (torch.float32, 1e-4)])
+@pytest.mark.parametrize("clumps", [0.0, 0.3])
+def test_cpp_cohesion_equals_torch_cohesion(extension, dtype, rel, clumps):
+    """The C++ kernels add the SJKR cohesion inside their contact law (pairs: the 7th row of the
+    lookup table; walls: per contact); the torch kernels in a pass of their own. Same forces and
+    torques to rounding, and the cohesion moves them by far more than that."""
+    system, state = _system(dtype=dtype, clumps=clumps, cohesion=COHESION)
+    assert system.has_cohesion and system.pair_lookup[-1].shape[0] == 7
+    state, xs, omega = _with_history(system, state)
+    torch_out, cpp_out = _both(system, state, xs, omega)
+    _assert_close(_outputs(cpp_out), _outputs(torch_out), rel)
+    plain_system, plain_state = _system(dtype=dtype, clumps=clumps)
+    assert not plain_system.has_cohesion and plain_system.pair_lookup[-1].shape[0] == 6
+    plain_state, plain_xs, _ = _with_history(plain_system, plain_state)
+    assert torch.equal(plain_xs, xs)
+    plain = contact_forces(plain_system, plain_state, xs, omega, 0.0, Kernels(backend="cpp"))
+    def moved(k):  # 0: force, 1: torque
+        return float((plain[k] - cpp_out[k]).abs().max()) / float(plain[k].abs().max())
+
+    assert moved(0) > 0.05
+    if clumps:
+        assert moved(1) > 0.05  # the pull acts at the contact point, off the clump's centre
+    else:
+        assert moved(1) <= 10 * rel  # a sphere's pull points at its centre: no torque
+    # the springs do not feel cohesion (its force is not in the Coulomb or rolling limits)
+    for name in ("pair tangential", "pair rolling", "wall tangential", "wall rolling"):
+        assert torch.equal(_outputs(plain)[name], _outputs(cpp_out)[name]), name
+    # a cohesive call needs the cohesion row
+    p = state.pairs
+    with pytest.raises(ValueError, match=r"lookup table has shape \(6, "):
+        Kernels(backend="cpp").pair(xs, state.bodies.position.reshape(-1, 3), state.bodies.velocity.reshape(-1, 3),
+                                    omega, system.zero_body_vectors, system.zero_body_vectors,
+                                    p.i, p.j, p.body_i, p.body_j, p.tangential, p.rolling, dt=system.dt_tensor,
+                                    period=system.grid.period, stiffness_model="tangential", periodic=True,
+                                    lookup=plain_system.pair_lookup, cohesion=p.cohesion)
+
+
 def test_cpp_contact_kernels_equal_torch_eager_float32(extension):
     system, state = _system(dtype=torch.float32)
     state, xs, omega = _with_history(system, state)
@@ -268,18 +313,19 @@ def _step_outputs(state):
 
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
-@pytest.mark.parametrize("clumps", [0.0, 0.3])
-def test_fused_forces_and_kick_equal_the_three_calls_bitwise(extension, dtype, clumps):
+@pytest.mark.parametrize("clumps, cohesion", [(0.0, None), (0.3, None), (0.3, COHESION)])
+def test_fused_forces_and_kick_equal_the_three_calls_bitwise(extension, dtype, clumps, cohesion):
     """forces_and_kick (pairs, walls and kick of each member in one pass) gives the same bits as
     pair_forces, wall_forces and kick one after the other: spheres (sphere k is body k) and
-    clumps, with inactive bodies, for 1, 2 and 3 threads, and for contacts that do not split
-    into members (fallback to the three calls). It also equals the torch kernels to rounding."""
+    clumps, with and without cohesion, with inactive bodies, for 1, 2 and 3 threads, and for
+    contacts that do not split into members (fallback to the three calls). It also equals the
+    torch kernels to rounding."""
     from torchdem.integrate import forces_and_kick
 
-    system, state = _system(dtype=dtype, B=4, N=90, seed=21, clumps=clumps)
+    system, state = _system(dtype=dtype, B=4, N=90, seed=21, clumps=clumps, cohesion=cohesion)
     state, xs, omega = _with_history(system, state, seed=22)
     state = state.set(bodies=state.bodies.set(active=state.bodies.active.clone().index_fill_(1, torch.tensor([5]), False)))
-    assert state.pairs.n > 300 and state.walls.n > 20 and not system.has_cohesion
+    assert state.pairs.n > 300 and state.walls.n > 20 and system.has_cohesion == (cohesion is not None)
     cpp = Kernels(backend="cpp")
     assert cpp.fuses(xs) and not Kernels(backend="torch").fuses(xs)
     reference = _step_outputs(_unfused(system, state, xs, omega, cpp))

@@ -7,7 +7,8 @@ Contract: ``step(system, state) -> state``. Per step:
 2. drift      x += dt v,  q <- exp(dt omega_mid) q
 3. sphere positions from body pose; neighbour lists rebuilt if the skin criterion fires
    (contact history carried over by key)
-4. forces: Hertz-Mindlin + EPSD rolling for sphere pairs and sphere-wall pairs, gravity
+4. forces: Hertz-Mindlin + EPSD rolling (+ SJKR cohesion where a pair has it) for sphere pairs
+   and sphere-wall pairs, gravity
 5. half kick with the new forces
 
 Forces are evaluated with the half-step velocities, as in LIGGGHTS. The wiring here
@@ -23,7 +24,6 @@ from torchdem.materials import MaterialTables
 from torchdem.rigid import advance_orientation, angular_velocity, quat_rotate
 from torchdem.state import Bodies, PairContacts, State, WallContacts
 from torchdem.system import System
-from torchdem.walls import closest_points
 
 Tensor = torch.Tensor
 
@@ -108,6 +108,50 @@ def pair_constants(i: Tensor, j: Tensor, radius: Tensor, mass: Tensor, rolling_i
                 rolling_inertia=ir_i * ir_j / (ir_i + ir_j), **tables.gather(pair_row[i] + material[j]))
 
 
+def _pair_geometry(xs: Tensor, X: Tensor, i: Tensor, j: Tensor, body_i: Tensor, body_j: Tensor,
+                   radius_i: Tensor, radius_j: Tensor, period: Tensor, periodic: bool
+                   ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Overlap, centre distance ``[P]``, unit normal from i to j and the lever arms from both
+    bodies' centres to the contact point ``[P, 3]`` (mid-overlap on the line of centres)."""
+    xi = torch.index_select(xs, 0, i)
+    d = torch.index_select(xs, 0, j) - xi
+    if periodic:
+        d = neighbors.minimum_image(d, period)
+    dist = d.norm(dim=-1)
+    overlap = radius_i + radius_j - dist
+    n = d / dist.clamp_min(1e-30)[:, None]
+    cp = xi + (radius_i - 0.5 * overlap)[:, None] * n
+    arm_i = cp - torch.index_select(X, 0, body_i)
+    arm_j = cp - torch.index_select(X, 0, body_j)
+    if periodic:
+        arm_i = neighbors.minimum_image(arm_i, period)
+        arm_j = neighbors.minimum_image(arm_j, period)
+    return overlap, dist, n, arm_i, arm_j
+
+
+def _wall_geometry(xs: Tensor, X: Tensor, sphere: Tensor, body: Tensor, wall: Tensor, wall_centre: Tensor,
+                   wall_u: Tensor, wall_v: Tensor, half_u: Tensor, half_v: Tensor, wall_present: Tensor,
+                   radius: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Overlap (-1 where the wall is absent), distance to the closest point of the wall ``[Q]``,
+    unit normal towards the wall and lever arm from the body centre to the contact point ``[Q, 3]``."""
+    xw = torch.index_select(xs, 0, sphere)
+    c = torch.index_select(wall_centre, 0, wall)
+    u = torch.index_select(wall_u, 0, wall)
+    v = torch.index_select(wall_v, 0, wall)
+    rel = xw - c
+    hu = torch.index_select(half_u, 0, wall)
+    hv = torch.index_select(half_v, 0, wall)
+    su = torch.maximum(torch.minimum((rel * u).sum(-1), hu), -hu)
+    sv = torch.maximum(torch.minimum((rel * v).sum(-1), hv), -hv)
+    d = c + su[:, None] * u + sv[:, None] * v - xw
+    dist = d.norm(dim=-1)
+    present = torch.index_select(wall_present, 0, wall)
+    overlap = torch.where(present, radius - dist, torch.full_like(dist, -1.0))
+    n = d / dist.clamp_min(1e-30)[:, None]
+    arm = xw + (radius - 0.5 * overlap)[:, None] * n - torch.index_select(X, 0, body)
+    return overlap, dist, n, arm
+
+
 def pair_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
                 i: Tensor, j: Tensor, body_i: Tensor, body_j: Tensor, radius_i: Tensor, radius_j: Tensor,
                 radius_eff: Tensor, mass_eff: Tensor, young_eff: Tensor, shear_eff: Tensor, beta: Tensor,
@@ -123,19 +167,8 @@ def pair_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, 
     (no host reads, no data-dependent Python control flow), so it can be compiled.
     Returns (force, torque, tangential, rolling).
     """
-    xi = torch.index_select(xs, 0, i)
-    d = torch.index_select(xs, 0, j) - xi
-    if periodic:
-        d = neighbors.minimum_image(d, period)
-    dist = d.norm(dim=-1)
-    overlap = radius_i + radius_j - dist
-    n = d / dist.clamp_min(1e-30)[:, None]
-    cp = xi + (radius_i - 0.5 * overlap)[:, None] * n
-    arm_i = cp - torch.index_select(X, 0, body_i)
-    arm_j = cp - torch.index_select(X, 0, body_j)
-    if periodic:
-        arm_i = neighbors.minimum_image(arm_i, period)
-        arm_j = neighbors.minimum_image(arm_j, period)
+    overlap, dist, n, arm_i, arm_j = _pair_geometry(xs, X, i, j, body_i, body_j, radius_i, radius_j, period,
+                                                    periodic)
     wi = torch.index_select(omega, 0, body_i)
     wj = torch.index_select(omega, 0, body_j)
     v_rel = (torch.index_select(V, 0, body_i) + torch.linalg.cross(wi, arm_i, dim=-1)
@@ -161,22 +194,8 @@ def wall_kernel(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, 
                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Sphere-wall contacts (walls: current centre ``[W, 3]``, axes, half-extents, velocity,
     presence ``[W]``). Same conventions as :func:`pair_kernel`."""
-    xw = torch.index_select(xs, 0, sphere)
-    c = torch.index_select(wall_centre, 0, wall)
-    u = torch.index_select(wall_u, 0, wall)
-    v = torch.index_select(wall_v, 0, wall)
-    rel = xw - c
-    hu = torch.index_select(half_u, 0, wall)
-    hv = torch.index_select(half_v, 0, wall)
-    su = torch.maximum(torch.minimum((rel * u).sum(-1), hu), -hu)
-    sv = torch.maximum(torch.minimum((rel * v).sum(-1), hv), -hv)
-    d = c + su[:, None] * u + sv[:, None] * v - xw
-    dist = d.norm(dim=-1)
-    present = torch.index_select(wall_present, 0, wall)
-    overlap = torch.where(present, radius - dist, torch.full_like(dist, -1.0))
-    n = d / dist.clamp_min(1e-30)[:, None]
-    cp = xw + (radius - 0.5 * overlap)[:, None] * n
-    arm = cp - torch.index_select(X, 0, body)
+    overlap, _, n, arm = _wall_geometry(xs, X, sphere, body, wall, wall_centre, wall_u, wall_v, half_u, half_v,
+                                        wall_present, radius)
     w = torch.index_select(omega, 0, body)
     v_rel = (torch.index_select(V, 0, body) + torch.linalg.cross(w, arm, dim=-1)
              - torch.index_select(wall_velocity, 0, wall))
@@ -224,20 +243,19 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
     force = torque = system.zero_body_vectors
     dt = system.dt_tensor
     p = state.pairs
+    cohesive = system.has_cohesion
     if p.n:
         force, torque, tang, roll = kernels.pair(
             xs, X, V, omega, force, torque, *_pair_operands(system, p), dt=dt, period=system.grid.period,
             stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic, members=B,
-            lookup=system.pair_lookup, centred=system.spheres_only)
+            lookup=system.pair_lookup, centred=system.spheres_only, cohesion=p.cohesion if cohesive else None)
         p = p.set(tangential=tang, rolling=roll)
     wc = state.walls
     if wc.n:
         force, torque, tang, roll = kernels.wall(
             xs, X, V, omega, force, torque, *_wall_operands(system, wc, time), dt=dt,
-            stiffness_model=system.rolling_stiffness, members=B)
+            stiffness_model=system.rolling_stiffness, members=B, cohesion=wc.cohesion if cohesive else None)
         wc = wc.set(tangential=tang, rolling=roll)
-    if system.has_cohesion:
-        force, torque = cohesion_forces(system, state, xs, X, force, torque, time)
     return force, torque, state.set(pairs=p, walls=wc)
 
 
@@ -251,14 +269,15 @@ def forces_and_kick(system: System, state: State, xs: Tensor, omega: Tensor, tim
     b = state.bodies
     dt_t = system.dt_tensor
     p, wc = state.pairs, state.walls
-    if p.n and wc.n and not system.has_cohesion and kernels.fuses(xs):
+    if p.n and wc.n and kernels.fuses(xs):
         B, Nb = system.batch, system.n_bodies
         f, tau, v, L, tang, roll, wtang, wroll = kernels.forces_kick(
             xs, b.position.reshape(B * Nb, 3), b.velocity.reshape(B * Nb, 3), omega, system.zero_body_vectors,
             system.zero_body_vectors, _pair_operands(system, p), _wall_operands(system, wc, time),
             (b.velocity, b.angular_momentum, system.mass, system.gravity, b.active), dt=dt_t,
             period=system.grid.period, stiffness_model=system.rolling_stiffness, periodic=system.grid.is_periodic,
-            members=B, lookup=system.pair_lookup, centred=system.spheres_only)
+            members=B, lookup=system.pair_lookup, centred=system.spheres_only,
+            wall_cohesion=wc.cohesion if system.has_cohesion else None)
         state = state.set(pairs=p.set(tangential=tang, rolling=roll), walls=wc.set(tangential=wtang, rolling=wroll))
     else:
         force, torque, state = contact_forces(system, state, xs, omega, time, kernels)
@@ -267,45 +286,32 @@ def forces_and_kick(system: System, state: State, xs: Tensor, omega: Tensor, tim
     return state.set(bodies=b.set(force=f, torque=tau, velocity=v, angular_momentum=L))
 
 
-def cohesion_forces(system: System, state: State, xs: Tensor, X: Tensor, force: Tensor, torque: Tensor,
-                    time: float) -> tuple[Tensor, Tensor]:
-    """Add the SJKR cohesion (:func:`contact.sjkr_cohesion`) of every touching sphere pair and
-    sphere-wall contact: an attractive normal force at the contact point (its torque included).
-    A separate pass over the neighbour lists, run only for systems with cohesion, so the force
-    kernels (torch, compiled or C++) stay as they are."""
-    p = state.pairs
-    if p.n:
-        xi = torch.index_select(xs, 0, p.i)
-        d = torch.index_select(xs, 0, p.j) - xi
-        if system.grid.is_periodic:
-            d = neighbors.minimum_image(d, system.grid.period)
-        dist = d.norm(dim=-1)
-        overlap = p.radius_i + p.radius_j - dist
-        n = d / dist.clamp_min(1e-30)[:, None]
-        f = (contact.sjkr_cohesion(contact.sjkr_contact_area(overlap, dist, p.radius_i, p.radius_j),
-                                   p.cohesion))[:, None] * n  # on i, towards j
-        cp = xi + (p.radius_i - 0.5 * overlap)[:, None] * n
-        arm_i, arm_j = cp - torch.index_select(X, 0, p.body_i), cp - torch.index_select(X, 0, p.body_j)
-        if system.grid.is_periodic:
-            arm_i = neighbors.minimum_image(arm_i, system.grid.period)
-            arm_j = neighbors.minimum_image(arm_j, system.grid.period)
-        force = force.index_add(0, p.body_i, f).index_add(0, p.body_j, -f)
-        torque = (torque.index_add(0, p.body_i, torch.linalg.cross(arm_i, f, dim=-1))
-                  .index_add(0, p.body_j, torch.linalg.cross(arm_j, -f, dim=-1)))
-    wc = state.walls
-    if wc.n:
-        walls = system.walls
-        xw = torch.index_select(xs, 0, wc.sphere)
-        d = closest_points(walls, walls.shift(time), xw, wc.wall) - xw
-        dist = d.norm(dim=-1)
-        present = torch.index_select(walls.active_at(time), 0, wc.wall)
-        overlap = torch.where(present, wc.radius - dist, torch.full_like(dist, -1.0))
-        n = d / dist.clamp_min(1e-30)[:, None]
-        f = contact.sjkr_cohesion(contact.sjkr_contact_area(overlap, dist, wc.radius), wc.cohesion)[:, None] * n
-        cp = xw + (wc.radius - 0.5 * overlap)[:, None] * n
-        arm = cp - torch.index_select(X, 0, wc.body)
-        force = force.index_add(0, wc.body, f)
-        torque = torque.index_add(0, wc.body, torch.linalg.cross(arm, f, dim=-1))
+def pair_cohesion(xs: Tensor, X: Tensor, force: Tensor, torque: Tensor, i: Tensor, j: Tensor, body_i: Tensor,
+                  body_j: Tensor, radius_i: Tensor, radius_j: Tensor, cohesion: Tensor, period: Tensor,
+                  periodic: bool = False) -> tuple[Tensor, Tensor]:
+    """Add the SJKR cohesion (:func:`contact.sjkr_cohesion`, ``cohesion`` ``[P]`` J/m^3) of every
+    touching sphere pair to ``force``/``torque`` ``[B*Nb, 3]``: an attractive normal force at the
+    contact point of :func:`pair_kernel` (its torque included). The torch kernels' cohesion (the
+    C++ pair kernel adds it inside its contact law). Returns (force, torque)."""
+    overlap, dist, n, arm_i, arm_j = _pair_geometry(xs, X, i, j, body_i, body_j, radius_i, radius_j, period,
+                                                    periodic)
+    f = contact.sjkr_cohesion(contact.sjkr_contact_area(overlap, dist, radius_i, radius_j), cohesion)[:, None] * n
+    force = force.index_add(0, body_i, f).index_add(0, body_j, -f)
+    torque = (torque.index_add(0, body_i, torch.linalg.cross(arm_i, f, dim=-1))
+              .index_add(0, body_j, torch.linalg.cross(f, arm_j, dim=-1)))
+    return force, torque
+
+
+def wall_cohesion(xs: Tensor, X: Tensor, force: Tensor, torque: Tensor, sphere: Tensor, body: Tensor, wall: Tensor,
+                  wall_centre: Tensor, wall_u: Tensor, wall_v: Tensor, half_u: Tensor, half_v: Tensor,
+                  wall_present: Tensor, radius: Tensor, cohesion: Tensor) -> tuple[Tensor, Tensor]:
+    """The sphere-wall twin of :func:`pair_cohesion` (walls as in :func:`wall_kernel`; ``cohesion``
+    ``[Q]``). Returns (force, torque)."""
+    overlap, dist, n, arm = _wall_geometry(xs, X, sphere, body, wall, wall_centre, wall_u, wall_v, half_u, half_v,
+                                           wall_present, radius)
+    f = contact.sjkr_cohesion(contact.sjkr_contact_area(overlap, dist, radius), cohesion)[:, None] * n
+    force = force.index_add(0, body, f)
+    torque = torque.index_add(0, body, torch.linalg.cross(arm, f, dim=-1))
     return force, torque
 
 
@@ -437,6 +443,8 @@ class Kernels:
         self.torch_wall = wrap(wall_kernel)
         self.torch_drift = wrap(drift_kernel)
         self.torch_kick = wrap(kick_kernel)
+        self.torch_pair_cohesion = wrap(pair_cohesion)
+        self.torch_wall_cohesion = wrap(wall_cohesion)
 
     def extension(self, like: Tensor):
         """The C++ kernels for tensors like ``like``, or None when the torch kernels are used."""
@@ -467,7 +475,7 @@ class Kernels:
     def pair(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
              *contacts: Tensor, dt: Tensor, period: Tensor, stiffness_model: str, periodic: bool,
              members: int = 1, lookup: tuple[Tensor, ...] | None = None,
-             centred: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+             centred: bool = False, cohesion: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """:func:`pair_kernel` (same arguments; ``contacts`` are i ... rolling in its order).
 
         ``members``: ensemble size B of the flat ``[B*Nb]`` bodies; the C++ kernel then gives
@@ -476,27 +484,42 @@ class Kernels:
         it instead of from ``contacts`` (same values, less memory traffic).
         ``centred``: every body is one sphere at its centre (:attr:`System.spheres_only`); the C++
         kernel then takes the lever arms from the sphere centres and skips the body centres
-        (same values up to rounding)."""
+        (same values up to rounding).
+        ``cohesion``: ``[P]`` SJKR cohesion energy density of every pair (None: no cohesion), added
+        by :func:`pair_cohesion` after the torch kernel; the C++ kernel adds it inside its contact
+        law, reading it from the 7th row of the lookup table (:attr:`System.pair_lookup` of a
+        system with cohesion)."""
         ext = self.extension(xs)
         if ext is None:
-            return self.torch_pair(xs, X, V, omega, force, torque, *contacts, dt, period, stiffness_model, periodic)
+            out = self.torch_pair(xs, X, V, omega, force, torque, *contacts, dt, period, stiffness_model, periodic)
+            if cohesion is None:
+                return out
+            f, tau = self.torch_pair_cohesion(xs, X, out[0], out[1], *contacts[:6], cohesion, period, periodic)
+            return f, tau, out[2], out[3]
         if lookup is None:
             raise ValueError("Kernels.pair: the C++ pair kernel needs lookup=system.pair_lookup")
-        f, tau, tang, roll = ext.pair_forces(*_cpp_pair_tensors(xs, X, V, omega, force, torque, contacts, lookup),
-                                             float(dt), period.tolist(), _ai2011(stiffness_model), periodic,
-                                             members, centred)
+        f, tau, tang, roll = ext.pair_forces(
+            *_cpp_pair_tensors(xs, X, V, omega, force, torque, contacts, _law_lookup(lookup, cohesion)),
+            float(dt), period.tolist(), _ai2011(stiffness_model), periodic, members, centred)
         return f, tau, tang, roll
 
     def wall(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
-             *contacts: Tensor, dt: Tensor, stiffness_model: str, members: int = 1
-             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+             *contacts: Tensor, dt: Tensor, stiffness_model: str, members: int = 1,
+             cohesion: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """:func:`wall_kernel` (same arguments; ``contacts`` are sphere ... rolling in its order;
-        ``members`` as in :meth:`pair`)."""
+        ``members`` as in :meth:`pair`; ``cohesion`` ``[Q]`` per contact or None, added by
+        :func:`wall_cohesion` after the torch kernel, inside the C++ kernel's law)."""
         ext = self.extension(xs)
         if ext is None:
-            return self.torch_wall(xs, X, V, omega, force, torque, *contacts, dt, stiffness_model)
+            out = self.torch_wall(xs, X, V, omega, force, torque, *contacts, dt, stiffness_model)
+            if cohesion is None:
+                return out
+            sphere, body, wall, centre, u, v, hu, hv, _, present, radius = contacts[:11]
+            f, tau = self.torch_wall_cohesion(xs, X, out[0], out[1], sphere, body, wall, centre, u, v, hu, hv,
+                                              present, radius, cohesion)
+            return f, tau, out[2], out[3]
         f, tau, tang, roll = ext.wall_forces(xs, X, V, omega, force, torque, *contacts, float(dt),
-                                             _ai2011(stiffness_model), members)
+                                             _ai2011(stiffness_model), members, cohesion)
         return f, tau, tang, roll
 
     def fuses(self, like: Tensor) -> bool:
@@ -506,18 +529,20 @@ class Kernels:
     def forces_kick(self, xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Tensor, torque: Tensor,
                     pair_contacts: tuple[Tensor, ...], wall_contacts: tuple[Tensor, ...],
                     kick: tuple[Tensor, ...], *, dt: Tensor, period: Tensor, stiffness_model: str,
-                    periodic: bool, members: int, lookup: tuple[Tensor, ...], centred: bool
-                    ) -> tuple[Tensor, ...]:
+                    periodic: bool, members: int, lookup: tuple[Tensor, ...], centred: bool,
+                    wall_cohesion: Tensor | None = None) -> tuple[Tensor, ...]:
         """:meth:`pair`, then :meth:`wall` on its force and torque, then :meth:`kick` (``kick`` =
         velocity, angular_momentum, mass, gravity, active) in one C++ call: each thread runs the
         three on its own ensemble members while their bodies are in its cache. Returns (f, tau,
         v, L) as :meth:`kick`, then the pair springs and the wall springs; the same bits as the
-        three calls. Only where :meth:`fuses` is True."""
+        three calls. Only where :meth:`fuses` is True. Cohesion: the pairs' from a ``[7, R]``
+        lookup table, the walls' from ``wall_cohesion`` ``[Q]`` (None: none)."""
         ext = self.extension(xs)
         if ext is None:
             raise RuntimeError("Kernels.forces_kick needs the C++ kernels (see Kernels.fuses)")
         pair = _cpp_pair_tensors(xs, X, V, omega, force, torque, pair_contacts, lookup)
-        return tuple(ext.forces_kick(pair, list(wall_contacts), list(kick), float(dt), period.tolist(),
+        wall = list(wall_contacts) + ([] if wall_cohesion is None else [wall_cohesion])
+        return tuple(ext.forces_kick(pair, wall, list(kick), float(dt), period.tolist(),
                                      _ai2011(stiffness_model), periodic, members, centred))
 
 
@@ -528,6 +553,16 @@ def _cpp_pair_tensors(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Te
     i, j, body_i, body_j = contacts[:4]
     tangential, rolling = contacts[-2:]
     return [xs, X, V, omega, force, torque, i, j, body_i, body_j, *lookup, tangential, rolling]
+
+
+def _law_lookup(lookup: tuple[Tensor, ...], cohesion: Tensor | None) -> tuple[Tensor, ...]:
+    """``lookup`` whose law table carries the cohesion row exactly when ``cohesion`` is given (the
+    C++ pair kernel adds cohesion when its table has 7 rows)."""
+    table = lookup[-1]
+    if cohesion is not None and table.shape[0] != 7:
+        raise ValueError(f"Kernels.pair: cohesion given but the lookup table has shape {tuple(table.shape)}; "
+                         "expected [7, R] with the cohesion row (System.pair_lookup of a system with cohesion)")
+    return lookup if cohesion is not None or table.shape[0] == 6 else (*lookup[:-1], table[:6])
 
 
 def _ai2011(stiffness_model: str) -> bool:

@@ -139,9 +139,13 @@ class System:
     def pair_lookup(self) -> tuple[Tensor, ...]:
         """Where the C++ pair kernel looks up the per-pair constants of a touching pair: per
         sphere ``[B * Ns]`` radius, body mass, rolling inertia, pair-table row and material,
-        and the ``[6, B * M * M]`` :attr:`MaterialTables.law_table`."""
+        and the ``[6, B * M * M]`` :attr:`MaterialTables.law_table`, with the cohesion table as a
+        7th row when the system has cohesion (:attr:`has_cohesion`)."""
+        table = self.tables.law_table
+        if self.has_cohesion:
+            table = torch.cat([table, self.tables.cohesion.reshape(1, -1)])
         return (self.sphere_radius.reshape(-1).contiguous(), self.sphere_mass, self.sphere_rolling_inertia,
-                self.sphere_pair_row, self.sphere_material.reshape(-1).contiguous(), self.tables.law_table)
+                self.sphere_pair_row, self.sphere_material.reshape(-1).contiguous(), table)
 
     @functools.cached_property
     def sphere_pair_row(self) -> Tensor:

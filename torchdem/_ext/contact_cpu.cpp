@@ -3,7 +3,9 @@
 // Contract: `pair_forces` and `wall_forces` compute exactly what `pair_kernel` and
 // `wall_kernel` in torchdem/integrate.py compute with the laws of torchdem/contact.py
 // (Hertz-Mindlin no-slip with tangential history, EPSD type-C rolling resistance with
-// history, periodic minimum image), in float32 or float64, and return new tensors
+// history, periodic minimum image), plus the SJKR cohesion of contact.sjkr_cohesion where the
+// caller gives it (integrate.pair_cohesion / wall_cohesion in the torch path), in float32 or
+// float64, and return new tensors
 // (force, torque, tangential, rolling); nothing passed in is modified. `pair_forces` takes
 // the per-pair constants of pair_kernel as per-sphere arrays and the material-pair table
 // (see PairData), `wall_forces` as per-contact arrays like wall_kernel.
@@ -38,6 +40,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <optional>
 #include <vector>
 
 #include "kick.h"
@@ -50,8 +53,9 @@
 
 namespace {
 
-constexpr unsigned kDenormalFlags = 0x8040;
-constexpr int64_t kBlockContacts = 64;  // contacts per block: gathered operands stay in L1  // MXCSR FTZ (bit 15) | DAZ (bit 6)
+constexpr unsigned kDenormalFlags = 0x8040;  // MXCSR FTZ (bit 15) | DAZ (bit 6)
+constexpr double kPi = 3.14159265358979323846;
+constexpr int64_t kBlockContacts = 64;  // contacts per block: gathered operands stay in L1
 
 // Applies the caller's denormal flags to a worker thread for one parallel chunk.
 class DenormalMode {
@@ -129,6 +133,22 @@ TORCHDEM_INLINE Vec3<T> rotate_history(Vec3<T> s, Vec3<T> n) {
   const T new_len = norm(proj);
   const T scale = new_len > 0 ? old_len / std::max(new_len, std::numeric_limits<T>::min()) : T(0);
   return scale * proj;
+}
+
+// contact.sjkr_contact_area of two spheres at centre distance dist: the area of the intersection
+// circle of their surfaces, 0 unless they overlap.
+template <typename T>
+TORCHDEM_INLINE T sjkr_pair_area(T overlap, T dist, T ri, T rj) {
+  const T d = std::max(dist, std::numeric_limits<T>::min());
+  const T area = T(-0.25 * kPi) * (d - ri - rj) * (d + ri - rj) * (d - ri + rj) * (d + ri + rj) / (d * d);
+  return overlap > 0 ? std::max(area, T(0)) : T(0);
+}
+
+// contact.sjkr_contact_area of a sphere of radius r at distance dist from a wall.
+template <typename T>
+TORCHDEM_INLINE T sjkr_wall_area(T overlap, T dist, T r) {
+  const T area = T(kPi) * (r * r - dist * dist);
+  return overlap > 0 ? std::max(area, T(0)) : T(0);
 }
 
 // Per-contact constants (one row of PairContacts / WallContacts).
@@ -438,8 +458,9 @@ int64_t rows_of(const at::Tensor& t, const char* name) {
 // The per-pair constants of pair_kernel (radii, R*, m*, I_r*, E*, G*, beta, mu_s, mu_r, eta_r)
 // are not streamed per pair: they are looked up, for the pairs that touch only, in per-sphere
 // arrays (a few thousand entries per member, cache-resident) and in the [6, R] table of the
-// material pairs (rows young_eff, shear_eff, beta, mu_s, mu_r, rolling_damping; column
-// pair_row[i] + material[j]), and combined exactly as integrate.pair_constants combines them.
+// material pairs (rows young_eff, shear_eff, beta, mu_s, mu_r, rolling_damping and, for a
+// [7, R] table, the SJKR cohesion energy density; column pair_row[i] + material[j]), and combined
+// exactly as integrate.pair_constants combines them.
 // That takes 88 of the ~250 bytes a listed pair cost per step off the memory traffic.
 template <typename T>
 struct PairData {
@@ -447,8 +468,9 @@ struct PairData {
   const int64_t *i, *j, *body_i, *body_j;  // [P]
   const T *radius, *mass, *rolling_inertia;  // [S]
   const int64_t *pair_row, *material;      // [S]
-  const T* table;                          // [6, R]
+  const T* table;                          // [6, R], or [7, R] with cohesion
   int64_t table_columns;                   // R
+  bool cohesion;                           // the table has the cohesion row
   const T *tangential, *rolling;          // [P, 3]
   T *tangential_new, *rolling_new;        // [P, 3]
   T period[3], inv_period[3];
@@ -506,7 +528,7 @@ constexpr int64_t kBlock = kBlockContacts;
 // effective R*, m* and I_r* are formed in the vectorised law loop (this loop is scalar).
 enum PairOperand {
   kXA, kXB = 3, kBA = 6, kBB = 9, kVA = 12, kVB = 15, kWA = 18, kWB = 21, kTG = 24, kRL = 27,
-  kRI = 30, kRJ, kMI, kMJ, kII, kIJ, kE, kG, kBETA, kMUS, kMUR, kETA, kPairOperands
+  kRI = 30, kRJ, kMI, kMJ, kII, kIJ, kE, kG, kBETA, kMUS, kMUR, kETA, kCOH, kPairOperands
 };
 
 // Stage 0 of pair_block: the pairs of [p0, p0 + n) that may touch, as offsets from p0 (their
@@ -576,6 +598,7 @@ TORCHDEM_SCALAR_LOOP int64_t gather_pairs(const PairData<T>& data, int64_t p0, c
     g[kMUS][t] = data.table[3 * R + col];
     g[kMUR][t] = data.table[4 * R + col];
     g[kETA][t] = data.table[5 * R + col];
+    g[kCOH][t] = data.cohesion ? data.table[6 * R + col] : T(0);
   }
   return bad;
 }
@@ -587,8 +610,8 @@ TORCHDEM_SCALAR_LOOP int64_t gather_pairs(const PairData<T>& data, int64_t p0, c
 // to the sign of zero) and rows for the pairs that may touch (the others' would be zero).
 // rows, rsel: where the packed rows of this block go (row t at rows + 9 t, for the pair
 // p0 + rsel[t]); returns their number. Pairs with a table column out of range are counted in
-// `bad`. kCentred: see gather_pairs.
-template <typename T, bool kAi2011, bool kCentred>
+// `bad`. kCentred: see gather_pairs. kCohesion: add the SJKR cohesion (table row 6).
+template <typename T, bool kAi2011, bool kCentred, bool kCohesion>
 int64_t pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows, int32_t* rsel, std::atomic<int64_t>& bad) {
   enum { XA = kXA, XB = kXB, BA = kBA, BB = kBB, VA = kVA, VB = kVB, WA = kWA, WB = kWB, TG = kTG, RL = kRL };
   int64_t sel[kBlock];
@@ -628,9 +651,11 @@ int64_t pair_block(const PairData<T>& data, int64_t p0, int64_t n, T* rows, int3
     const Coefficients<T> c{ri * rj / (ri + rj), mi * mj / (mi + mj), g[kE][k], g[kG][k], g[kBETA][k],
                             g[kMUS][k],  g[kMUR][k],  g[kETA][k], Ii * Ij / (Ii + Ij)};
     const LawResult<T> r = contact_law<T, kAi2011>(overlap, nrm, v_rel, wi - wj, vec(TG, k), vec(RL, k), c, dt);
-    put(F, k, r.force);
-    put(TI, k, cross(arm_i, r.force) + r.m_roll);
-    put(TJ, k, cross(r.force, arm_j) - r.m_roll);
+    // SJKR cohesion: k_c A pulling i towards j, at the same contact point.
+    const Vec3<T> f = kCohesion ? r.force + (g[kCOH][k] * sjkr_pair_area(overlap, dist, ri, rj)) * nrm : r.force;
+    put(F, k, f);
+    put(TI, k, cross(arm_i, f) + r.m_roll);
+    put(TJ, k, cross(f, arm_j) - r.m_roll);
     put(TN, k, r.tangential_new);
     put(RN, k, r.rolling_new);
   }
@@ -693,6 +718,7 @@ struct PairPass {
     data.material = in[14].data_ptr<int64_t>();
     data.table = in[15].data_ptr<T>();
     data.table_columns = in[15].size(1);
+    data.cohesion = in[15].size(0) == 7;
     data.tangential = in[16].data_ptr<T>();
     data.rolling = in[17].data_ptr<T>();
     data.tangential_new = tang_out.data_ptr<T>();
@@ -718,12 +744,17 @@ struct PairPass {
   }
 
   int64_t run(int64_t p0, int64_t m, T* rows, int32_t* sel, std::atomic<int64_t>& bad) const {
+    return data.cohesion ? run_model<true>(p0, m, rows, sel, bad) : run_model<false>(p0, m, rows, sel, bad);
+  }
+
+  template <bool kCohesion>
+  int64_t run_model(int64_t p0, int64_t m, T* rows, int32_t* sel, std::atomic<int64_t>& bad) const {
     if (centred) {
-      return data.ai2011 ? pair_block<T, true, true>(data, p0, m, rows, sel, bad)
-                         : pair_block<T, false, true>(data, p0, m, rows, sel, bad);
+      return data.ai2011 ? pair_block<T, true, true, kCohesion>(data, p0, m, rows, sel, bad)
+                         : pair_block<T, false, true, kCohesion>(data, p0, m, rows, sel, bad);
     }
-    return data.ai2011 ? pair_block<T, true, false>(data, p0, m, rows, sel, bad)
-                       : pair_block<T, false, false>(data, p0, m, rows, sel, bad);
+    return data.ai2011 ? pair_block<T, true, false, kCohesion>(data, p0, m, rows, sel, bad)
+                       : pair_block<T, false, false, kCohesion>(data, p0, m, rows, sel, bad);
   }
 
   void fail_if_bad(const std::atomic<int64_t>& bad) const {
@@ -745,8 +776,9 @@ std::vector<at::Tensor> pair_inputs(std::vector<at::Tensor> in) {
   for (int k = 6; k <= 9; ++k) check_cpu(in[k], "index tensor", at::kLong, P, 0);         // i j body_i body_j
   for (int k = 10; k <= 12; ++k) check_cpu(in[k], "per-sphere tensor", dtype, S, 0);      // radius mass I_r
   for (int k = 13; k <= 14; ++k) check_cpu(in[k], "per-sphere index tensor", at::kLong, S, 0);
-  TORCH_CHECK(table.dim() == 2 && table.size(0) == 6, "table has shape ", table.sizes(), "; expected [6, R]");
-  check_cpu(table, "table", dtype, 6, table.size(1));
+  TORCH_CHECK(table.dim() == 2 && (table.size(0) == 6 || table.size(0) == 7), "table has shape ", table.sizes(),
+              "; expected [6, R] (no cohesion) or [7, R] (the last row the SJKR cohesion)");
+  check_cpu(table, "table", dtype, table.size(0), table.size(1));
   check_cpu(in[16], "tangential", dtype, P, 3);
   check_cpu(in[17], "rolling", dtype, P, 3);
   for (auto& t : in) t = t.contiguous();
@@ -833,8 +865,9 @@ TORCHDEM_INLINE void prefetch_wall_rows(const std::vector<at::Tensor>& in, int64
 }
 
 // Sphere-wall contacts [q0, q0 + n), n <= kBlock; stages 1-3 of pair_block, on every contact
-// (a wall list is short): row k at rows + 6 k, rsel[k] = k; returns n.
-template <typename T, bool kAi2011>
+// (a wall list is short): row k at rows + 6 k, rsel[k] = k; returns n. kCohesion: add the SJKR
+// cohesion, k_c per contact in in[27].
+template <typename T, bool kAi2011, bool kCohesion>
 int64_t wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, T* rows, int32_t* rsel, T dt,
                    int64_t q0, int64_t n) {
   enum { XW = kWXW, C = kWC, U = kWU, VV = kWVV, WV = kWWV, BX = kWBX, BV = kWBV, BW = kWBW, TG = kWTG, RL = kWRL,
@@ -850,6 +883,7 @@ int64_t wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, 
           *__restrict__ bt = in[20].data_ptr<T>() + q0, *__restrict__ mus = in[21].data_ptr<T>() + q0,
           *__restrict__ mur = in[22].data_ptr<T>() + q0, *__restrict__ eta = in[23].data_ptr<T>() + q0,
           *__restrict__ Ir = in[24].data_ptr<T>() + q0;
+  const T* __restrict__ coh = kCohesion ? in[27].data_ptr<T>() + q0 : nullptr;
   auto vec = [&](int c, int64_t k) { return Vec3<T>{g[c][k], g[c + 1][k], g[c + 2][k]}; };
   auto put = [&](int c, int64_t k, Vec3<T> v) {
     o[c][k] = v.x;
@@ -872,8 +906,9 @@ int64_t wall_block(const std::vector<at::Tensor>& in, T* tang_new, T* roll_new, 
     const Vec3<T> v_rel = vec(BV, k) + cross(wb, arm) - vec(WV, k);
     const Coefficients<T> co{rad[k], meff[k], E[k], G[k], bt[k], mus[k], mur[k], eta[k], Ir[k]};
     const LawResult<T> r = contact_law<T, kAi2011>(overlap, nrm, v_rel, wb, vec(TG, k), vec(RL, k), co, dt);
-    put(F, k, r.force);
-    put(TQ, k, cross(arm, r.force) + r.m_roll);
+    const Vec3<T> f = kCohesion ? r.force + (coh[k] * sjkr_wall_area(overlap, dist, rad[k])) * nrm : r.force;
+    put(F, k, f);
+    put(TQ, k, cross(arm, f) + r.m_roll);
     put(TN, k, r.tangential_new);
     put(RN, k, r.rolling_new);
   }
@@ -900,12 +935,13 @@ struct WallPass {
   const int64_t *body_a, *body_b = nullptr, *sphere, *wall;
   T *tang_new, *roll_new;
   T dt;
-  bool ai2011;
+  bool ai2011, cohesion;
 
   WallPass(const std::vector<at::Tensor>& in, at::Tensor& tang_out, at::Tensor& roll_out, double dt, bool ai2011)
       : in(in), n(in[6].size(0)), S(in[0].size(0)), NB(in[1].size(0)), W(in[9].size(0)),
         body_a(in[7].data_ptr<int64_t>()), sphere(in[6].data_ptr<int64_t>()), wall(in[8].data_ptr<int64_t>()),
-        tang_new(tang_out.data_ptr<T>()), roll_new(roll_out.data_ptr<T>()), dt(T(dt)), ai2011(ai2011) {}
+        tang_new(tang_out.data_ptr<T>()), roll_new(roll_out.data_ptr<T>()), dt(T(dt)), ai2011(ai2011),
+        cohesion(in.size() == 28) {}
 
   bool ok(int64_t q0, int64_t m, std::atomic<int64_t>& bad) const {
     const int64_t n_bad = count_out_of_range(sphere + q0, m, S) + count_out_of_range(body_a + q0, m, NB) +
@@ -915,8 +951,11 @@ struct WallPass {
   }
 
   int64_t run(int64_t q0, int64_t m, T* rows, int32_t* sel, std::atomic<int64_t>&) const {
-    return ai2011 ? wall_block<T, true>(in, tang_new, roll_new, rows, sel, dt, q0, m)
-                  : wall_block<T, false>(in, tang_new, roll_new, rows, sel, dt, q0, m);
+    if (cohesion)
+      return ai2011 ? wall_block<T, true, true>(in, tang_new, roll_new, rows, sel, dt, q0, m)
+                    : wall_block<T, false, true>(in, tang_new, roll_new, rows, sel, dt, q0, m);
+    return ai2011 ? wall_block<T, true, false>(in, tang_new, roll_new, rows, sel, dt, q0, m)
+                  : wall_block<T, false, false>(in, tang_new, roll_new, rows, sel, dt, q0, m);
   }
 
   void fail_if_bad(const std::atomic<int64_t>& bad) const {
@@ -925,9 +964,11 @@ struct WallPass {
   }
 };
 
-// Validates wall_forces' tensors (in its argument order) and returns them contiguous.
+// Validates wall_forces' tensors (in its argument order, then the per-contact cohesion if given)
+// and returns them contiguous.
 std::vector<at::Tensor> wall_inputs(std::vector<at::Tensor> in) {
-  TORCH_CHECK(in.size() == 27, "wall_forces takes 27 tensors, got ", in.size());
+  TORCH_CHECK(in.size() == 27 || in.size() == 28, "wall_forces takes 27 tensors (28 with cohesion), got ",
+              in.size());
   const at::Tensor &xs = in[0], &X = in[1], &sphere = in[6], &wall_centre = in[9];
   const auto dtype = xs.scalar_type();
   TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "xs has dtype ", dtype, "; expected float32 or float64");
@@ -942,6 +983,7 @@ std::vector<at::Tensor> wall_inputs(std::vector<at::Tensor> in) {
   for (int k = 16; k <= 24; ++k) check_cpu(in[k], "per-contact tensor", dtype, Q, 0);
   check_cpu(in[25], "tangential", dtype, Q, 3);
   check_cpu(in[26], "rolling", dtype, Q, 3);
+  if (in.size() == 28) check_cpu(in[27], "cohesion", dtype, Q, 0);
   for (auto& t : in) t = t.contiguous();
   return in;
 }
@@ -952,11 +994,13 @@ std::vector<at::Tensor> wall_forces(
     at::Tensor wall_v, at::Tensor half_u, at::Tensor half_v, at::Tensor wall_velocity, at::Tensor wall_present,
     at::Tensor radius, at::Tensor mass_eff, at::Tensor young_eff, at::Tensor shear_eff, at::Tensor beta,
     at::Tensor mu_s, at::Tensor mu_r, at::Tensor rolling_damping, at::Tensor rolling_inertia,
-    at::Tensor tangential, at::Tensor rolling, double dt, bool ai2011, int64_t members) {
-  const std::vector<at::Tensor> in =
-      wall_inputs({xs, X, V, omega, force, torque, sphere, body, wall, wall_centre, wall_u, wall_v, half_u, half_v,
-                   wall_velocity, wall_present, radius, mass_eff, young_eff, shear_eff, beta, mu_s, mu_r,
-                   rolling_damping, rolling_inertia, tangential, rolling});
+    at::Tensor tangential, at::Tensor rolling, double dt, bool ai2011, int64_t members,
+    const std::optional<at::Tensor>& cohesion) {
+  std::vector<at::Tensor> tensors{xs, X, V, omega, force, torque, sphere, body, wall, wall_centre, wall_u, wall_v,
+                                  half_u, half_v, wall_velocity, wall_present, radius, mass_eff, young_eff,
+                                  shear_eff, beta, mu_s, mu_r, rolling_damping, rolling_inertia, tangential, rolling};
+  if (cohesion.has_value()) tensors.push_back(*cohesion);
+  const std::vector<at::Tensor> in = wall_inputs(std::move(tensors));
   using torchdem_recycle::output_like;
   const int s = torchdem_recycle::kWallForces;
   at::Tensor force_out = output_like(s, in[4]), torque_out = output_like(s + 1, in[5]);
@@ -975,7 +1019,8 @@ std::vector<at::Tensor> wall_forces(
 // forces_kick: pair_forces, then wall_forces on its force and torque, then kick (gravity, masks,
 // second half kick) in one call, with the same bits as the three calls. `pair`: pair_forces'
 // 18 tensors in order (its force and torque are the input sums, zeros in a step); `wall`:
-// wall_forces' tensors from `sphere` on (21; the rest are shared with `pair`); `kick`: velocity,
+// wall_forces' tensors from `sphere` on (21, or 22 with the per-contact cohesion; the rest are
+// shared with `pair`); `kick`: velocity,
 // angular_momentum, mass, gravity, active as for kick. Returns (f, tau, v, L) of kick, shaped like
 // velocity, then the pair springs (tangential, rolling) and the wall springs.
 // When the contacts split into members, each thread runs the pairs, the walls and the kick of its
@@ -987,7 +1032,8 @@ std::vector<at::Tensor> forces_kick(std::vector<at::Tensor> pair, std::vector<at
                                     bool ai2011, bool periodic, int64_t members, bool centred) {
   using torchdem_kick::kick_bodies;
   TORCH_CHECK(period.size() == 3, "period has ", period.size(), " entries; expected 3");
-  TORCH_CHECK(wall.size() == 21, "forces_kick: wall takes the 21 tensors of wall_forces from sphere to rolling, got ",
+  TORCH_CHECK(wall.size() == 21 || wall.size() == 22,
+              "forces_kick: wall takes the 21 tensors of wall_forces from sphere to rolling (22 with cohesion), got ",
               wall.size());
   TORCH_CHECK(kick.size() == 5, "forces_kick: kick takes 5 tensors (velocity, angular_momentum, mass, gravity, "
               "active), got ", kick.size());
@@ -1047,7 +1093,8 @@ TORCH_LIBRARY_FRAGMENT(torchdem, m) {
         "Tensor body, Tensor wall, Tensor wall_centre, Tensor wall_u, Tensor wall_v, Tensor half_u, "
         "Tensor half_v, Tensor wall_velocity, Tensor wall_present, Tensor radius, Tensor mass_eff, "
         "Tensor young_eff, Tensor shear_eff, Tensor beta, Tensor mu_s, Tensor mu_r, Tensor rolling_damping, "
-        "Tensor rolling_inertia, Tensor tangential, Tensor rolling, float dt, bool ai2011, int members=1) -> Tensor[]",
+        "Tensor rolling_inertia, Tensor tangential, Tensor rolling, float dt, bool ai2011, int members=1, "
+        "Tensor? cohesion=None) -> Tensor[]",
         &wall_forces);
   m.def("forces_kick(Tensor[] pair, Tensor[] wall, Tensor[] kick, float dt, float[] period, bool ai2011, "
         "bool periodic, int members=1, bool centred=False) -> Tensor[]",
