@@ -118,10 +118,18 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     executor_settings = executor_settings_from(plain.get("executor") or {})
     data = plain.get("data") if plain.get("data") is not None else plain.get("measured")
     measured = load_measured(data)
+    subset = (plain.get("discovery") or {}).get("conditions")
+    if subset is not None:
+        if isinstance(subset, str) or not isinstance(subset, (list, tuple)):
+            raise out_of_range("conditions", subset, f"a list of conditions of the data {list(measured.names)}, "
+                               "or null (all)", "config discovery")
+        measured = measured.subset(subset, "config discovery")
     model, _ = calibration_model_from({**plain, "measured": data}, measured)
     calibrated, source = calibrated_from(plain, model.fixed)
     path = store_path_from(plain, out)
-    store = CampaignStore(path, config_hash({**plain, "measured": data}, MODEL_KEYS + ("measured", "calibration")),
+    # the store is for this data file and, when given, this choice of its conditions
+    hashed = {**plain, "measured": data if subset is None else [data, list(measured.names)]}
+    store = CampaignStore(path, config_hash(hashed, MODEL_KEYS + ("measured", "calibration")),
                           allow_config_mismatch=bool(plain.get("allow_config_mismatch")),
                           extra_stages=discovery_stages())
     echo(f"torchdem-discover: {len(measured.names)} conditions of {measured.origin}; calibrated set from {source}; "

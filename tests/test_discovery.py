@@ -308,6 +308,9 @@ def test_calibration_paper_is_the_papers_table_8_restricted_set_over_the_config(
     ("discovery.alpha=2", r"discovery: alpha = 2.0 is not allowed; expected a probability in \(0, 1\)"),
     ("calibration=/nonexistent/calibration.json", r"calibration = '/nonexistent/calibration.json': cannot read it"),
     ("data=/nonexistent/lab.json", r"/nonexistent/lab.json: cannot read measured-data file"),
+    ("discovery.conditions=[50-50,50/50]", r"config discovery: conditions = \['50-50', '50/50'\] is not allowed; "
+                                           r"expected a non-empty list of distinct conditions of .*'25-75'"),
+    ("discovery.conditions=50-50", r"config discovery: conditions = '50-50' is not allowed; expected a list"),
 ])
 def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message):
     store = tmp_path / "never.sqlite"

@@ -262,6 +262,16 @@ def test_user_file_with_kpi_subset_new_kpi_and_three_materials(shipped, tmp_path
         load_measured(path, required_kpis=CALIBRATION_KPIS)
 
 
+def test_subset_keeps_the_named_conditions_in_their_order(shipped):
+    sub = shipped.subset(["25-75", "50-50"])
+    assert sub.names == ("25-75", "50-50") and sub.origin == shipped.origin
+    assert sub.condition("50-50") == shipped.condition("50-50")
+    for bad in ([], ["50-50", "50-50"], ["50/50"]):
+        with pytest.raises(ConfigError, match=r"lab: conditions = .* is not allowed; expected a non-empty list of "
+                                              r"distinct conditions of .*hadi2025_pellet_sinter.json: \['50-50'"):
+            shipped.subset(bad, "lab")
+
+
 def test_unknown_condition_lists_known_names(shipped):
     with pytest.raises(UnknownConditionError) as error:
         shipped.condition("50/50")

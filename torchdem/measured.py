@@ -62,7 +62,7 @@ from collections.abc import Iterable, Mapping
 from types import MappingProxyType
 from typing import Any
 
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, out_of_range
 
 FORMAT = "torchdem-measured-data/1"
 SHIPPED_FILE = "hadi2025_pellet_sinter.json"
@@ -382,6 +382,17 @@ class MeasuredData:
         raise UnknownConditionError(
             f"{self.origin or 'MeasuredData'}: unknown condition {name!r}; "
             f"known conditions: {', '.join(self.names)}{hint}")
+
+    def subset(self, names: Iterable[str], source: str = "MeasuredData.subset") -> "MeasuredData":
+        """A copy with only the conditions ``names``, in that order. An empty list, a repeated or an
+        unknown name is a :class:`ConfigError` from ``source`` (the setting that asked) listing the
+        known names."""
+        names = [str(n) for n in names]
+        known = list(self.names)
+        if not names or len(set(names)) < len(names) or not set(names) <= set(known):
+            raise out_of_range("conditions", names, f"a non-empty list of distinct conditions of "
+                               f"{self.origin or 'the measured data'}: {known}", source)
+        return dataclasses.replace(self, conditions=tuple(self.condition(n) for n in names))
 
     def with_condition(self, condition: Condition) -> "MeasuredData":
         """A copy with ``condition`` added, replacing any condition of the same name."""
