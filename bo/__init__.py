@@ -1,0 +1,1 @@
+"""Calibration and discovery on top of torchdem: designs, screening, surrogates, campaigns, reports."""

@@ -20,8 +20,8 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from bo.cli_calibrate import calibrate
-from bo.cli_screen import plain_config
+from bo.cli.calibrate import calibrate
+from bo.cli.common import plain_config
 from torchdem.cli import CONF_DIR
 from torchdem.cpu_monitor import CpuMonitor
 

@@ -1,12 +1,12 @@
 """Compare the paper's DSD (Table A.1) with ours for 12 factors and 2 fake factors.
 
-Prints ``bo.dsd.check_dsd`` reports for both coded designs. The paper's design is read from
+Prints ``bo.design.dsd.check_dsd`` reports for both coded designs. The paper's design is read from
 ``bo/data/tableA1_paper_dsd.json`` and coded against Table 4 (``bo/data/table4_dsd_levels.json``)
 by nearest level. Usage: ``python scripts/check_paper_dsd.py``.
 """
 from __future__ import annotations
 
-from bo.dsd import check_dsd, code_design, definitive_screening_design, paper_design, \
+from bo.design.dsd import check_dsd, code_design, definitive_screening_design, paper_design, \
     paper_parameter_table
 
 

@@ -29,7 +29,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from scipy import stats
 
-from bo.dem import DENSITY_PREFIX
+from torchdem.model import DENSITY_PREFIX
 from torchdem.cli import CONF_DIR
 from torchdem.measured import load_measured
 
@@ -44,7 +44,7 @@ KPIS = {"angle_of_repose_deg": "angle_of_repose_deg", "shear_angle_deg": "shear_
 
 
 def main(argv=None) -> None:
-    from bo.cli_calibrate import calibration_model_from
+    from bo.cli.calibrate import calibration_model_from
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", required=True)

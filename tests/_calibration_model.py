@@ -22,7 +22,7 @@ import zlib
 
 import numpy as np
 
-from bo.executor import EvalOutcome, EvalTask
+from bo.campaign.executor import EvalOutcome, EvalTask
 from torchdem.measured import Condition, KPIValue, MeasuredData
 
 TRUE = {"mu_s_pp": 0.62, "mu_r_pp": 0.12, "mu_s_ss": 0.78, "mu_r_ss": 0.09}
@@ -86,12 +86,12 @@ def known_measurement() -> MeasuredData:
 
 def small_settings(**changes):
     """Campaign settings small enough for a test: 4 screened parameters, 3 replicates."""
-    from bo.acquisition import AcquisitionSettings, AdaptiveSettings
-    from bo.calibrate import CalibrationSettings, SurrogateStageSettings
-    from bo.dsd import ParameterTable
-    from bo.ga import GASettings
-    from bo.screen import ScreenSettings
-    from bo.surrogate import SurrogateConfig
+    from bo.surrogate.acquisition import AcquisitionSettings, AdaptiveSettings
+    from bo.calibration.pipeline import CalibrationSettings, SurrogateStageSettings
+    from bo.design.dsd import ParameterTable
+    from bo.surrogate.ga import GASettings
+    from bo.screening.pipeline import ScreenSettings
+    from bo.surrogate.gp import SurrogateConfig
 
     table = ParameterTable(("mu_s_pp", "mu_s_ss", "mu_r_pp", "mu_r_ss"), (0.3, 0.5, 0.04, 0.04),
                            (0.5, 0.7, 0.10, 0.10), (0.7, 0.9, 0.16, 0.16), source="test table")
@@ -114,10 +114,10 @@ def small_settings(**changes):
 
 
 def campaign(db: str, out: str, log: str) -> None:
-    from bo.calibrate import EXTRA_STAGES, run_calibration
-    from bo.calibration_report import write_calibration_report
-    from bo.executor import InProcessExecutor
-    from bo.store import CampaignStore
+    from bo.calibration.pipeline import EXTRA_STAGES, run_calibration
+    from bo.calibration.report import write_calibration_report
+    from bo.campaign.executor import InProcessExecutor
+    from bo.campaign.store import CampaignStore
 
     store = CampaignStore(db, "known-answer", extra_stages=EXTRA_STAGES)
     executor = InProcessExecutor(functools.partial(known_batch, log_path=log, sleep_per_eval=0.01), batch_size=6)

@@ -21,8 +21,8 @@ import zlib
 
 import numpy as np
 
-from bo.executor import EvalOutcome, EvalTask, InProcessExecutor, run_pending
-from bo.store import CampaignStore
+from bo.campaign.executor import EvalOutcome, EvalTask, InProcessExecutor, run_pending
+from bo.campaign.store import CampaignStore
 
 CAMPAIGN_CONDITIONS = ["50-50", "70-30"]
 CAMPAIGN_SEEDS = [1, 2]

@@ -1,4 +1,4 @@
-"""Tests of bo/acquisition.py.
+"""Tests of bo/surrogate/acquisition.py.
 
 BO claim (test_qlogei_finds_branin_minimum): noisy Branin (noise sd 0.1) on
 [-5, 10] x [0, 15], 10-point LHS then rounds of q = 5 qLogEI points, seed 0: within a budget
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from bo.acquisition import (AcquisitionSettings, AdaptiveSettings, SamplingState,
+from bo.surrogate.acquisition import (AcquisitionSettings, AdaptiveSettings, SamplingState,
                             adaptive_sampling, latin_hypercube, next_step,
                             plot_actual_vs_predicted, propose_batch)
-from bo.objective import ObjectiveSpec
-from bo.surrogate import SurrogateConfig, fit_surrogate
+from bo.surrogate.objective import ObjectiveSpec
+from bo.surrogate.gp import SurrogateConfig, fit_surrogate
 from torchdem.errors import ConfigError
 
 torch.set_num_threads(1)

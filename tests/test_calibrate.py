@@ -1,5 +1,5 @@
-"""Tests of the calibration campaign (bo/calibrate.py, bo/calibration_report.py) and the
-torchdem-calibrate app (bo/cli_calibrate.py).
+"""Tests of the calibration campaign (bo/calibration/pipeline.py, bo/calibration/report.py) and the
+torchdem-calibrate app (bo/cli/calibrate.py).
 
 - Pieces: the replicate -> objective reduction, KPI agreement, density parameters of the DEM
   model, parameter and bound choice.
@@ -29,15 +29,15 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from bo.calibrate import (EXTRA_STAGES, KPIAgreement, _objective_data, agreement, choose_parameters,
+from bo.calibration.pipeline import (EXTRA_STAGES, KPIAgreement, _objective_data, agreement, choose_parameters,
                           run_calibration)
-from bo.calibration_report import write_calibration_report
-from bo.cli_calibrate import calibrate, calibration_settings_from
-from bo.cli_screen import plain_config
-from bo.dem import DrawDownModel, split_density
-from bo.executor import InProcessExecutor
-from bo.objective import ObjectiveSpec
-from bo.store import CampaignStore
+from bo.calibration.report import write_calibration_report
+from bo.cli.calibrate import calibrate, calibration_settings_from
+from bo.cli.common import plain_config
+from torchdem.model import DrawDownModel, split_density
+from bo.campaign.executor import InProcessExecutor
+from bo.surrogate.objective import ObjectiveSpec
+from bo.campaign.store import CampaignStore
 from torchdem.cli import CONF_DIR
 from torchdem.contact_params import PAPER_REFERENCE
 from torchdem.errors import ConfigError
@@ -280,7 +280,7 @@ def test_smoke_profile_end_to_end_and_resume(tmp_path):
     store = tmp_path / "smoke.sqlite"
 
     def run(out):
-        proc = subprocess.run([sys.executable, "-m", "bo.cli_calibrate", "profile=smoke", f"store={store}",
+        proc = subprocess.run([sys.executable, "-m", "bo.cli.calibrate", "profile=smoke", f"store={store}",
                                f"hydra.run.dir={out}"], cwd=REPO, capture_output=True, text=True,
                               env={**os.environ, "OMP_NUM_THREADS": "2"}, timeout=1200)
         assert proc.returncode == 0, proc.stderr[-3000:]

@@ -89,11 +89,18 @@ def test_bad_config_values_name_key_value_and_range(override, words):
         assert w in str(err.value), (w, str(err.value))
 
 
+def test_bad_contact_parameter_is_named_by_its_config_key():
+    with pytest.raises(ConfigError, match=r"contact\.mu_s_pp = -0\.2 .*>= 0"):
+        config.contact_from(_compose("contact.mu_s_pp=-0.2")["contact"])
+    with pytest.raises(ConfigError, match=r"contact\.e_ss = 1\.5 .*\(0, 1\]"):
+        config.contact_from(_compose("contact.e_ss=1.5")["contact"])
+
+
 def test_bad_contact_parameter_is_named_when_the_table_is_built():
     from torchdem.drawdown import DrawDownTest, RunSettings
     from torchdem.geometry import DrawDownGeometry
 
-    contact = config.contact_from(_compose("contact.mu_s_pp=-0.2")["contact"])
+    contact = {**config.contact_from(_compose()["contact"]), "mu_s_pp": -0.2}
     with pytest.raises(ConfigError, match="-0.2"):  # up front, before any particle is placed
         DrawDownTest(pellet_sinter_mixture(), DrawDownGeometry(slice_depth=0.04), contact,
                      RunSettings(shear_modulus=1e6))

@@ -1,4 +1,4 @@
-"""Tests of model discovery (bo/discovery.py, bo/mechanisms/, bo/cli_discover.py).
+"""Tests of model discovery (bo/discovery/pipeline.py, torchdem/mechanisms/, bo/cli/discover.py).
 
 - The registry holds the six required mechanisms; a new file in the package is picked up; every
   mechanism applies to the CPU profile's model and builds a DEM ensemble.
@@ -30,13 +30,13 @@ import pytest
 from hydra import compose, initialize_config_dir
 from scipy import stats
 
-from bo.cli_calibrate import calibration_model_from
-from bo.cli_discover import calibrated_from, discover, discovery_settings_from, extension_command
-from bo.cli_screen import plain_config
-from bo.discovery import PARAMETERS, DiscoverySettings, discovery_stages, model_context, run_discovery
-from bo.executor import InProcessExecutor
-from bo.mechanisms import apply_extension, registry
-from bo.store import CampaignStore
+from bo.cli.calibrate import calibration_model_from
+from bo.cli.discover import calibrated_from, discover, discovery_settings_from, extension_command
+from bo.cli.common import plain_config
+from bo.discovery.pipeline import PARAMETERS, DiscoverySettings, discovery_stages, model_context, run_discovery
+from bo.campaign.executor import InProcessExecutor
+from torchdem.mechanisms import apply_extension, registry
+from bo.campaign.store import CampaignStore
 from torchdem.cli import CONF_DIR
 from torchdem.errors import ConfigError
 from torchdem.measured import Condition, KPIValue, MeasuredData, load_measured
@@ -81,10 +81,10 @@ def test_registry_has_the_required_mechanisms_and_each_builds_a_dem_ensemble():
 
 
 def test_a_new_mechanism_is_one_file(tmp_path, monkeypatch):
-    import bo.mechanisms as package
+    import torchdem.mechanisms as package
 
     (tmp_path / "wet_fines.py").write_text(
-        "from bo.mechanisms import Mechanism\n"
+        "from torchdem.mechanisms import Mechanism\n"
         "MECHANISM = Mechanism(name='wet_fines', description='moist fines', parameters=lambda c: {'coh_pp': (0, 1)})\n")
     monkeypatch.setattr(package, "__path__", [*package.__path__, str(tmp_path)])
     assert "wet_fines" in registry()
@@ -273,7 +273,7 @@ def test_no_hidden_effect_invents_no_cause(tmp_path):
     assert {h.name for h in scored.hypotheses} == {PARAMETERS, "density_per_material", "free_interaction",
                                                    "cohesion", "clump_shape"}
     # the report says why no cause: every candidate's gain against its noise, the best one's cells
-    from bo.discovery_report import write_discovery_report
+    from bo.discovery.report import write_discovery_report
 
     files = write_discovery_report(scored, tmp_path / "report")
     payload = json.loads(files["json"].read_text())
@@ -362,7 +362,7 @@ def _dem_discover(tmp_path, model, lab):
     """Density per material against refitting nothing, with 3 replicates per design point.
 
     With 2, the verdict hung on the round-off of the run: three realizations of the same
-    physics (the neighbour lists rebuilt at different steps, eighth sitting) gave a gain of
+    physics (the neighbour lists rebuilt at different steps) gave a gain of
     21.2 against a threshold of 19.9, a pass of unknown margin, and -7.9 against 24.8 (no cause
     named). With 3, all three name the cause: 20.2 against 16.1, 18.8 against 14.9 and 27.5
     against 19.6.
@@ -373,7 +373,7 @@ def _dem_discover(tmp_path, model, lab):
     point, a change of round-off in the kernels (same physics) flipped the verdict to
     clump_shape (scores 31.2 vs 35.2; clump_shape also won with two replicates, 16.1). The identifiability of
     such confounded mechanisms needs KPIs that see shape (segregation, heap profile)."""
-    from bo.dem import evaluate_batch
+    from bo.campaign.dem import evaluate_batch
 
     restricted = dataclasses.replace(model, conditions={c: model.conditions[c] for c in DEM_CONDITIONS})
     settings = DiscoverySettings(kpis=DEM_KPIS, seeds=(0, 1, 2, 3), fit_seeds=(0, 1, 2),
@@ -412,8 +412,8 @@ def test_dem_without_hidden_effect_names_no_cause(tmp_path):
 def test_a_member_that_cannot_be_built_fails_alone():
     """A batch whose ensemble cannot be built (one member's fill overflows the fill column) runs
     its other members as an ensemble of their own; the failed member carries its own error."""
-    from bo.dem import evaluate_batch
-    from bo.executor import EvalTask
+    from bo.campaign.dem import evaluate_batch
+    from bo.campaign.executor import EvalTask
 
     model, _ = _dem_model()
     light = {"density_sinter": 0.1 * model.conditions["50-50"].materials[1].density}

@@ -1,4 +1,4 @@
-"""Tests for bo/dsd.py: conference matrices, DSD construction, scaling, the paper's data and
+"""Tests for bo/design/dsd.py: conference matrices, DSD construction, scaling, the paper's data and
 the property checker.
 
 Properties are checked here with exact integer arithmetic, independently of ``check_dsd``;
@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bo import dsd
-from bo.dsd import (
+from bo.design import dsd
+from bo.design.dsd import (
     PAPER_PARAMETER_NAMES,
     ParameterTable,
     check_dsd,

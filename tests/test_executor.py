@@ -1,4 +1,4 @@
-"""Tests of bo.executor: task/outcome validation, batching, in-process and dask executors."""
+"""Tests of bo.campaign.executor: task/outcome validation, batching, in-process and dask executors."""
 from __future__ import annotations
 
 import functools
@@ -8,9 +8,9 @@ import os
 import pytest
 
 from _campaign_worker import analytic_batch, analytic_kpis
-from bo.executor import (DaskExecutor, EvalOutcome, EvalTask, InProcessExecutor, evaluate_checked,
+from bo.campaign.executor import (DaskExecutor, EvalOutcome, EvalTask, InProcessExecutor, evaluate_checked,
                          make_batches, run_pending)
-from bo.store import CampaignStore
+from bo.campaign.store import CampaignStore
 from torchdem.errors import ConfigError
 
 CONDITIONS = ("50-50", "70-30")

@@ -1,4 +1,4 @@
-"""Tests for bo/extension.py: screening range vs measurement and the proposed bounds.
+"""Tests for bo/screening/bounds.py: screening range vs measurement and the proposed bounds.
 
 The screening results are synthetic (paper-sized DSD on the paper's Table 4 levels, known
 linear effects, small noise), the measurements are the paper's Table 2 (50-50 condition,
@@ -13,14 +13,14 @@ import math
 import numpy as np
 import pytest
 
-from bo.dsd import definitive_screening_design, paper_parameter_table
-from bo.extension import (
+from bo.design.dsd import definitive_screening_design, paper_parameter_table
+from bo.screening.bounds import (
     PhysicalLimit,
     compare_ranges,
     default_physical_limit,
     propose_extension,
 )
-from bo.screening import ScreeningResults, SignificanceTable, analyse_screening
+from bo.screening.stepwise import ScreeningResults, SignificanceTable, analyse_screening
 from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
 

@@ -1,4 +1,4 @@
-"""Tests of bo/ga.py: known minima of shifted quadratics, the 0.9 restriction, vectorised
+"""Tests of bo/surrogate/ga.py: known minima of shifted quadratics, the 0.9 restriction, vectorised
 surrogate evaluation, Table 9 summary, validation. Small GA settings (population 60-80,
 80 generations); the defaults stay the paper's Table A.3."""
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from bo.acquisition import latin_hypercube
-from bo.ga import GASettings, ga_bounds, minimise_surrogate, repeated_ga
-from bo.surrogate import Surrogate
+from bo.surrogate.acquisition import latin_hypercube
+from bo.surrogate.ga import GASettings, ga_bounds, minimise_surrogate, repeated_ga
+from bo.surrogate.gp import Surrogate
 from torchdem.errors import ConfigError
 
 torch.set_num_threads(1)

@@ -1,11 +1,11 @@
-"""Tests of bo/objective.py: Eqs. 7-8 against hand-computed values, vectorisation, validation."""
+"""Tests of bo/surrogate/objective.py: Eqs. 7-8 against hand-computed values, vectorisation, validation."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
 
-from bo.objective import ObjectiveSpec
+from bo.surrogate.objective import ObjectiveSpec
 from torchdem.errors import ConfigError
 
 KPIS = ("angle_of_repose", "shear_angle", "mass_flow_rate", "drawdown_angle")

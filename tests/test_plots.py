@@ -1,4 +1,4 @@
-"""Tests for bo/plots.py: the figures carry the analysis numbers, and the PNG files are real
+"""Tests for bo/report/plots.py: the figures carry the analysis numbers, and the PNG files are real
 images of the expected size.
 
 The data drawn are checked on the returned ``Figure`` objects (error-bar heights, bar heights,
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from bo.dsd import definitive_screening_design, paper_parameter_table
-from bo.plots import (
+from bo.design.dsd import definitive_screening_design, paper_parameter_table
+from bo.report.plots import (
     screening_vs_measured_figure,
     time_step_figure,
     variance_shares_figure,
@@ -19,9 +19,9 @@ from bo.plots import (
     write_time_step_plot,
     write_variance_shares_plot,
 )
-from bo.screening import ScreeningResults
-from bo.timestep import choose_time_step
-from bo.variance import decompose_variance
+from bo.screening.stepwise import ScreeningResults
+from bo.studies.timestep import choose_time_step
+from bo.screening.variance import decompose_variance
 from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
 

@@ -1,4 +1,4 @@
-"""Tests of bo/screen.py and the torchdem-screen app (bo/cli_screen.py).
+"""Tests of bo/screening/pipeline.py and the torchdem-screen app (bo/cli/screen.py).
 
 Fast tests check the store assembly, resume and report logic with a known-answer evaluator
 (a linear KPI model: the answer in every [run, replicate] cell is known) and the config
@@ -20,12 +20,13 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from bo.cli_screen import config_hash, plain_config, screen, screen_settings_from
-from bo.dsd import ParameterTable, definitive_screening_design, paper_parameter_table, scale_design
-from bo.executor import EvalOutcome, InProcessExecutor
-from bo.screen import analyse_and_report, measured_for, run_screening, screening_batch_key
-from bo.screening import ScreeningResults
-from bo.store import CampaignStore
+from bo.cli.common import config_hash, plain_config, screen_settings_from
+from bo.cli.screen import screen
+from bo.design.dsd import ParameterTable, definitive_screening_design, paper_parameter_table, scale_design
+from bo.campaign.executor import EvalOutcome, InProcessExecutor
+from bo.screening.pipeline import analyse_and_report, measured_for, run_screening, screening_batch_key
+from bo.screening.stepwise import ScreeningResults
+from bo.campaign.store import CampaignStore
 from torchdem.cli import CONF_DIR
 from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
@@ -194,7 +195,7 @@ def test_profiles_compose_to_the_documented_designs():
 
 
 def test_cli_reports_a_bad_config_and_exits_nonzero(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "bo.cli_screen", "replicates=0", f"store={tmp_path / 's.sqlite'}",
+    proc = subprocess.run([sys.executable, "-m", "bo.cli.screen", "replicates=0", f"store={tmp_path / 's.sqlite'}",
                            f"hydra.run.dir={tmp_path / 'out'}"], cwd=REPO, capture_output=True, text=True,
                           env={**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "1"}, timeout=300)
     assert proc.returncode != 0
@@ -206,7 +207,7 @@ def test_cli_reports_a_bad_config_and_exits_nonzero(tmp_path):
 
 def _run_app(args, out):
     started = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "bo.cli_screen", *args, f"hydra.run.dir={out}"], cwd=REPO,
+    proc = subprocess.run([sys.executable, "-m", "bo.cli.screen", *args, f"hydra.run.dir={out}"], cwd=REPO,
                           capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
                           timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -1,7 +1,7 @@
-"""Tests for bo/screening.py: stepwise regression on a DSD, Table 5 counting, input checks.
+"""Tests for bo/screening/stepwise.py: stepwise regression on a DSD, Table 5 counting, input checks.
 
 Synthetic data: the paper's design size (12 factors + 2 fake, 29 runs, from
-``bo.dsd.definitive_screening_design``) and a known linear model per KPI with 3-4 active
+``bo.design.dsd.definitive_screening_design``) and a known linear model per KPI with 3-4 active
 factors of known sign plus Gaussian noise (sd 0.4). The smallest effect is 0.7 per coded unit
 and its standard error is 0.4 / sqrt(26) = 0.08 (t ~ 9), so missing an active factor is
 essentially impossible and is asserted for every replicate. False entries are not: with 8-9
@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from bo.dsd import ParameterTable, definitive_screening_design, paper_parameter_table
-from bo.screening import (
+from bo.design.dsd import ParameterTable, definitive_screening_design, paper_parameter_table
+from bo.screening.stepwise import (
     ScreeningResults,
     SignificanceTable,
     StepwiseFit,

@@ -1,4 +1,4 @@
-"""Tests of bo.store: batches, leases, recording, artifacts, queries, kill/resume and two workers."""
+"""Tests of bo.campaign.store: batches, leases, recording, artifacts, queries, kill/resume and two workers."""
 from __future__ import annotations
 
 import collections
@@ -18,8 +18,8 @@ import pytest
 
 from _campaign_worker import (CAMPAIGN_BATCH_SIZE, CAMPAIGN_CONDITIONS, CAMPAIGN_SEEDS, N_INITIAL,
                               N_ROUND, task_key)
-from bo.executor import EvalOutcome, EvalTask, InProcessExecutor, run_pending
-from bo.store import CampaignStore, default_code_version
+from bo.campaign.executor import EvalOutcome, EvalTask, InProcessExecutor, run_pending
+from bo.campaign.store import CampaignStore, default_code_version
 from torchdem.errors import ConfigError
 
 WORKER = str(Path(__file__).with_name("_campaign_worker.py"))

@@ -1,7 +1,7 @@
-"""Tests of bo/studies.py and the torchdem-study app (bo/cli_study.py).
+"""Tests of bo/studies/pipeline.py and the torchdem-study app (bo/cli/study.py).
 
 Fast tests use a known-answer evaluator whose KPIs depend on the run-setting variant in the
-condition name (``bo.dem.split_condition``), so the study's assembly, resume and report are
+condition name (``torchdem.model.split_condition``), so the study's assembly, resume and report are
 checked against exact values; the slow test runs both studies on real mini draw down tests and
 reruns one with the same store.
 """
@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from bo.cli_screen import plain_config
-from bo.cli_study import run_study
-from bo.dem import split_condition
-from bo.executor import EvalOutcome, InProcessExecutor
-from bo.store import CampaignStore
-from bo.studies import (STUDY_STAGES, run_shear_modulus_study, run_time_step_study, shear_modulus_report,
+from bo.cli.common import plain_config
+from bo.cli.study import run_study
+from torchdem.model import split_condition
+from bo.campaign.executor import EvalOutcome, InProcessExecutor
+from bo.campaign.store import CampaignStore
+from bo.studies.pipeline import (STUDY_STAGES, run_shear_modulus_study, run_time_step_study, shear_modulus_report,
                         time_step_report)
 from torchdem.cli import CONF_DIR
 from torchdem.drawdown import RunSettings
@@ -123,7 +123,7 @@ def test_bad_study_config_fails_before_the_store_is_opened(tmp_path, override, m
 
 
 def _run_app(args, out):
-    proc = subprocess.run([sys.executable, "-m", "bo.cli_study", *args, f"hydra.run.dir={out}"], cwd=REPO,
+    proc = subprocess.run([sys.executable, "-m", "bo.cli.study", *args, f"hydra.run.dir={out}"], cwd=REPO,
                           capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
                           timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -165,8 +165,8 @@ def test_both_studies_on_real_runs_and_a_rerun_repeats_nothing(tmp_path):
 
 def test_rayleigh_time_step_of_the_paper_model_gives_the_papers_step():
     """Paper section 3.2.4: 15 % of the Rayleigh time step is 5.91e-6 s (G = 1e8 Pa, full sieve)."""
-    from bo.cli_screen import model_from
-    from bo.studies import smallest_sphere_rayleigh_time_step
+    from bo.cli.common import model_from
+    from bo.studies.pipeline import smallest_sphere_rayleigh_time_step
 
     model = model_from(_plain(["study_profile=paper", "sim.shear_modulus_pa=null", "sim.fines_cut_mm=null"]))
     step = smallest_sphere_rayleigh_time_step(model.conditions["50-50"], model.settings)

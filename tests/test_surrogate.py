@@ -1,4 +1,4 @@
-"""Tests of bo/surrogate.py.
+"""Tests of bo/surrogate/gp.py.
 
 * CV R^2 is recomputed independently: the same folds, each fold's fitted hyperparameters
   read back as plain data, held-out predictions from the exact GP posterior formulas
@@ -17,9 +17,9 @@ import pytest
 import torch
 from scipy.stats import norm
 
-from bo.acquisition import latin_hypercube
-from bo.objective import ObjectiveSpec
-from bo.surrogate import (KERNELS, SurrogateConfig, as_bounds, cross_validate, fit_surrogate,
+from bo.surrogate.acquisition import latin_hypercube
+from bo.surrogate.objective import ObjectiveSpec
+from bo.surrogate.gp import (KERNELS, SurrogateConfig, as_bounds, cross_validate, fit_surrogate,
                           fold_assignment, objective_from_replicates, replicate_mean_and_variance,
                           select_kernel)
 from torchdem.errors import ConfigError

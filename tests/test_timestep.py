@@ -1,4 +1,4 @@
-"""Tests for bo/timestep.py: time-step choice (paper section 3.2.4) and the shear-modulus study.
+"""Tests for bo/studies/timestep.py: time-step choice (paper section 3.2.4) and the shear-modulus study.
 
 Replicate values are built deterministically as ``mean + std * Z`` with a fixed vector ``Z``
 of sample mean 0 and sample standard deviation 1, so every fraction's mean and std are exactly
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from bo.timestep import choose_time_step, mean_change_tolerance, summarise_shear_modulus_study
+from bo.studies.timestep import choose_time_step, mean_change_tolerance, summarise_shear_modulus_study
 from torchdem.errors import ConfigError
 
 Z = np.array([-2.0, -1.0, 0.0, 1.0, 2.0]) / np.std([-2.0, -1.0, 0.0, 1.0, 2.0], ddof=1)

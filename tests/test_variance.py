@@ -1,4 +1,4 @@
-"""Tests for bo/variance.py: the law-of-total-variance split (paper Eqs. 4-6).
+"""Tests for bo/screening/variance.py: the law-of-total-variance split (paper Eqs. 4-6).
 
 Two kinds of check:
 
@@ -21,9 +21,9 @@ import math
 import numpy as np
 import pytest
 
-from bo.dsd import definitive_screening_design, paper_parameter_table
-from bo.screening import ScreeningResults
-from bo.variance import decompose_screening_variance, decompose_variance
+from bo.design.dsd import definitive_screening_design, paper_parameter_table
+from bo.screening.stepwise import ScreeningResults
+from bo.screening.variance import decompose_screening_variance, decompose_variance
 from torchdem.errors import ConfigError
 
 

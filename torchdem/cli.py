@@ -3,20 +3,51 @@ typed objects and call plain library functions; library code never sees a DictCo
 """
 from __future__ import annotations
 
+import functools
 import json
-import time
+import os
+import sys
 from pathlib import Path
+from typing import Callable
 
 import hydra
 import torch
 from omegaconf import DictConfig
 
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, out_of_range
 from torchdem.simulation import GuardSettings
 
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def user_errors() -> tuple[type[BaseException], ...]:
+    """Errors that mean bad input (a config value, a data file, an image), not a bug."""
+    from kpi.errors import KPIInputError
+
+    return (ConfigError, KPIInputError, FileNotFoundError)
+
+
+def one_line_errors(command: str) -> Callable:
+    """Decorate a Hydra task function so that bad input ends the command with one line,
+    ``<command>: error: <message>`` on stderr, and exit status 2 instead of a traceback.
+    ``HYDRA_FULL_ERROR=1`` re-raises (the traceback). Put it under ``@hydra.main``."""
+
+    def wrap(task: Callable) -> Callable:
+        @functools.wraps(task)
+        def run(cfg):
+            try:
+                return task(cfg)
+            except user_errors() as exc:
+                if os.environ.get("HYDRA_FULL_ERROR") == "1":
+                    raise
+                message = " ".join(str(exc).split())
+                print(f"{command}: error: {message}", file=sys.stderr, flush=True)
+                sys.exit(2)
+        return run
+
+    return wrap
 
 
 def dtype_from(name: str, source: str) -> torch.dtype:
@@ -41,24 +72,29 @@ def guards_from(cfg) -> GuardSettings:
 
 
 @hydra.main(config_path=CONF_DIR, config_name="demo", version_base="1.3")
+@one_line_errors("torchdem-demo")
 def demo_main(cfg: DictConfig) -> None:
     """Pour spheres into a box, settle, report what happened (the engine's `make run`)."""
     from hydra.core.hydra_config import HydraConfig
 
     from torchdem.demo import PourSettings, pour_and_settle
 
+    from torchdem import config
+
     out = Path(HydraConfig.get().runtime.output_dir)
+    device = device_from(cfg.sim.device, "sim.device")
+    contact = config.single_contact_from(cfg.contact)
     settings = PourSettings(
         n_side=int(cfg.pour.n_side), layers=int(cfg.pour.layers), radii=tuple(cfg.pour.radii_m),
         box=tuple(cfg.pour.box_m), duration=float(cfg.pour.duration_s), ensemble=int(cfg.ensemble),
         seed=int(cfg.seed), shear_modulus=float(cfg.material.shear_modulus_pa),
         poisson_ratio=float(cfg.material.poisson_ratio), density=float(cfg.material.density_kg_m3),
-        mu_s=float(cfg.contact.mu_s), mu_r=float(cfg.contact.mu_r), restitution=float(cfg.contact.restitution),
-        rolling_damping=float(cfg.contact.rolling_damping),
+        mu_s=contact["mu_s"], mu_r=contact["mu_r"], restitution=contact["restitution"],
+        rolling_damping=contact["rolling_damping"],
         time_step_fraction=float(cfg.sim.time_step_fraction), skin_fraction=float(cfg.sim.skin_fraction),
         rolling_stiffness=str(cfg.sim.rolling_stiffness), vtk_interval=int(cfg.output.vtk_interval),
     )
-    report = pour_and_settle(settings, device=device_from(cfg.sim.device, "sim.device"),
+    report = pour_and_settle(settings, device=device,
                              dtype=dtype_from(cfg.sim.dtype, "sim.dtype"), compile=bool(cfg.sim.compile),
                              guards=guards_from(cfg.sim.guards), output_dir=out)
     (out / "report.json").write_text(json.dumps(report, indent=2))
@@ -67,6 +103,7 @@ def demo_main(cfg: DictConfig) -> None:
 
 
 @hydra.main(config_path=CONF_DIR, config_name="simulate", version_base="1.3")
+@one_line_errors("torchdem-simulate")
 def simulate_main(cfg: DictConfig) -> None:
     """One draw down test (``replicates`` members in one ensemble) -> kpis.json, CSV, PNG."""
     from hydra.core.hydra_config import HydraConfig
@@ -75,24 +112,24 @@ def simulate_main(cfg: DictConfig) -> None:
 
     from torchdem import config
     from torchdem.drawdown import DrawDownTest
+    from torchdem.mechanisms import with_extension
+    from torchdem.model import DrawDownModel
     from torchdem.simulate import format_summary, simulate_drawdown
 
     plain = OmegaConf.to_container(cfg, resolve=True)
     out = Path(HydraConfig.get().runtime.output_dir)
-    test = DrawDownTest(config.mixture_from(plain["mixture"]), config.geometry_from(plain["geometry"]),
-                        config.contact_from(plain["contact"]), config.run_settings_from(plain["sim"], plain["run"]))
-    if (plain.get("extension") or {}).get("name") is not None:
-        # A model extension (conf/extension/) is a mechanism of bo/mechanisms/: this entry point, an
-        # edge of the system, lets bo apply it (torchdem's library code never imports bo).
-        from bo.cli_screen import with_extension
-        from bo.dem import DrawDownModel
-
-        model = with_extension(DrawDownModel({"run": test.mixture}, test.geometry, test.settings,
-                                             fixed=test.parameter_sets[0]), plain)
-        test = model.test_for("run", [{}], isolate=False)
+    # every check that needs no simulation comes before the progress bar and the fill
+    device = device_from(str(plain["sim"]["device"]), "sim.device")
     replicates = int(cfg.replicates)
     if replicates < 1:
-        raise ConfigError(f"replicates = {replicates} is not allowed; expected an integer >= 1")
+        raise out_of_range("replicates", replicates, "an integer >= 1", "config")
+    test = DrawDownTest(config.mixture_from(plain["mixture"]), config.geometry_from(plain["geometry"]),
+                        config.contact_from(plain["contact"]), config.run_settings_from(plain["sim"], plain["run"]))
+    name, values = config.extension_from(plain.get("extension"))
+    if name is not None or values:
+        model = with_extension(DrawDownModel({"run": test.mixture}, test.geometry, test.settings,
+                                             fixed=test.parameter_sets[0], device=str(device)), name, values)
+        test = model.test_for("run", [{}], isolate=False)
     seeds = [int(cfg.seed) + k for k in range(replicates)]
     bar = tqdm(total=round(test.total_time, 3), unit="sim-s", disable=not cfg.output.progress,
                bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} simulated s [{elapsed}<{remaining}, {postfix}]")
@@ -103,7 +140,7 @@ def simulate_main(cfg: DictConfig) -> None:
         bar.refresh()
 
     vtk = cfg.output.vtk_interval_s
-    report = simulate_drawdown(test, seeds, out, device=device_from(cfg.sim.device, "sim.device"),
+    report = simulate_drawdown(test, seeds, out, device=device,
                                images=bool(cfg.output.images), vtk_interval_s=None if vtk is None else float(vtk),
                                checkpoint_every_s=float(cfg.output.checkpoint_every_s), progress=progress)
     bar.close()

@@ -35,11 +35,11 @@ def _number(cfg: Mapping[str, Any], key: str, where: str, low: float = -math.inf
     try:
         x = float(value)
     except (TypeError, ValueError):
-        raise ConfigError(f"{where}.{key} = {value!r} is not a number") from None
+        raise ConfigError(f"config: {where}.{key} = {value!r} is not a number") from None
     ok = math.isfinite(x) and (x > low if open_low else x >= low) and x <= high
     if not ok:
         rng = allowed or f"{'(' if open_low else '['}{low}, {high}]"
-        raise out_of_range(key, value, rng, where)
+        raise out_of_range(f"{where}.{key}", value, rng, "config")
     return x
 
 
@@ -103,15 +103,38 @@ def geometry_from(cfg: Mapping[str, Any], where: str = "geometry") -> DrawDownGe
     return DrawDownGeometry(**values).validate(where)
 
 
+#: Allowed range of a contact parameter by the prefix of its name: (low, high, open low, text).
+CONTACT_RANGES = {"mu_s_": (0.0, math.inf, False, "a sliding friction coefficient >= 0"),
+                  "mu_r_": (0.0, math.inf, False, "a rolling friction coefficient >= 0"),
+                  "e_": (0.0, 1.0, True, "a restitution coefficient in (0, 1]"),
+                  "coh_": (0.0, math.inf, False, "a cohesion energy density >= 0 J/m^3"),
+                  "eta_r": (0.0, 1.0, False, "a rolling damping ratio in [0, 1]")}
+
+
 def contact_from(cfg: Mapping[str, Any], where: str = "contact") -> dict[str, float]:
-    """Named contact parameters (``mu_s_pp: 0.49`` ...); ranges are checked when the
-    interaction table is built, with the parameter's name in the message."""
+    """Named contact parameters (``mu_s_pp: 0.49`` ...), each checked against the range its
+    prefix allows (:data:`CONTACT_RANGES`); the error names the key, e.g. ``contact.mu_s_pp``."""
     out = {}
     for k, v in cfg.items():
-        out[str(k)] = _number(cfg, k, where)
+        prefix = next((p for p in CONTACT_RANGES if str(k).startswith(p)), None)
+        if prefix is None:
+            out[str(k)] = _number(cfg, k, where)
+            continue
+        low, high, open_low, allowed = CONTACT_RANGES[prefix]
+        out[str(k)] = _number(cfg, k, where, low, high, open_low=open_low, allowed=allowed)
     if not out:
         raise ConfigError(f"{where}: no contact parameters given")
     return out
+
+
+def single_contact_from(cfg: Mapping[str, Any], where: str = "contact") -> dict[str, float]:
+    """The one contact law of a single-material config (``torchdem-demo``): ``mu_s``, ``mu_r``,
+    ``restitution``, ``rolling_damping``, each range-checked with its config key in the error."""
+    return {"mu_s": _number(cfg, "mu_s", where, *CONTACT_RANGES["mu_s_"][:2], allowed=CONTACT_RANGES["mu_s_"][3]),
+            "mu_r": _number(cfg, "mu_r", where, *CONTACT_RANGES["mu_r_"][:2], allowed=CONTACT_RANGES["mu_r_"][3]),
+            "restitution": _number(cfg, "restitution", where, 0.0, 1.0, open_low=True,
+                                   allowed=CONTACT_RANGES["e_"][3]),
+            "rolling_damping": _number(cfg, "rolling_damping", where, 0.0, 1.0, allowed=CONTACT_RANGES["eta_r"][3])}
 
 
 def guards_from(cfg: Mapping[str, Any], where: str = "sim.guards") -> GuardSettings:
@@ -147,3 +170,31 @@ def run_settings_from(sim: Mapping[str, Any], run: Mapping[str, Any]) -> RunSett
         skin_fraction=_number(sim, "skin_fraction", "sim", 0.0, 2.0, open_low=True, default=0.2,
                               allowed="(0, 2] of the largest sphere radius"),
     ).validate("sim/run")
+
+
+def extension_from(cfg: Mapping[str, Any] | None, where: str = "extension") -> tuple[str | None, dict[str, float]]:
+    """``(mechanism name or None, values)`` of the ``extension`` block (conf/extension/); apply it
+    with :func:`torchdem.mechanisms.with_extension`."""
+    ext = cfg or {}
+    if not isinstance(ext, Mapping):
+        raise out_of_range(where, ext, "a mapping {name, values} (conf/extension/)", "config")
+    name, values = ext.get("name"), ext.get("values") or {}
+    if name is not None and not isinstance(name, str):
+        raise out_of_range(f"{where}.name", name, "a mechanism name of torchdem/mechanisms/ or null", "config")
+    if not isinstance(values, Mapping):
+        raise out_of_range(f"{where}.values", values, "a mapping parameter -> number", "config")
+    from torchdem.model import MATERIAL_PREFIXES
+
+    out = {}
+    for k, v in values.items():
+        k = str(k)
+        low, high, open_low, allowed = -math.inf, math.inf, False, "a number"
+        contact = next((p for p in CONTACT_RANGES if k.startswith(p)), None)
+        material = next((p for p in MATERIAL_PREFIXES if k.startswith(p)), None)
+        if contact is not None:
+            low, high, open_low, allowed = CONTACT_RANGES[contact]
+        elif material is not None:
+            low, high, allowed = MATERIAL_PREFIXES[material]
+            open_low = True
+        out[k] = _number(values, k, f"{where}.values", low, high, open_low=open_low, allowed=allowed)
+    return name, out

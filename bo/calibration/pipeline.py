@@ -1,0 +1,647 @@
+"""The calibration campaign of Hadi et al. sections 3.3-3.7 as one resumable pipeline.
+
+Contract
+--------
+``run_calibration(store, executor, settings, measured, out_dir)`` runs, in order, every stage
+through the SQLite campaign store (``bo.campaign.store``) and the executor (``bo.campaign.executor``), so a
+campaign killed at any point (SIGKILL included) and started again with the same store loses no
+finished DEM run and repeats none: stored batches are reused, only pending evaluations run,
+and the GA result is kept as a store artifact.
+
+1. ``screening`` (store stage ``screening``): the definitive screening design with replicate
+   seeds and its analysis (``bo.screening.pipeline``): KPIs dominated by DEM noise are excluded (Eqs. 4-6),
+   Table 5 selects the parameters, the Table-6 rule proposes the calibration bounds.
+2. ``surrogate`` (stages ``initial`` and ``round-<k>``): a Latin hypercube of
+   ``points_per_parameter x d`` points, each run with every replicate seed; then rounds of ``q``
+   batch expected-improvement points (qLogEI) until the mean cross-validated R^2 reaches
+   ``target_r2`` or ``budget`` points are spent. The objective is Eq. 7 of the replicate-mean
+   KPIs with the delta-method variance of the replicate mean as GP observation noise
+   (strategy ``scalar``), or one GP per KPI composed by Eq. 7 (``per_kpi``). Optionally the
+   other strategy is cross-validated on the same data after every round, which answers
+   "which strategy reaches R^2 >= 0.95 with fewer DEM runs" on equal data.
+3. ``ga`` (artifact): the GA on the surrogate mean over ``ga_repetitions`` surrogate trainings
+   (Table 9), restricted (parameters <= 0.9) and unrestricted (Table 8); the lowest fitness of
+   the chosen mode is the calibrated set.
+4. ``verification`` (stage ``verification``): the calibrated set with the verification seeds;
+   relative error per KPI (Fig. 14, Table A.4).
+5. ``density`` (stage ``density``): bulk density check (section 3.6): the DEM's maximum heap
+   height in the lower box against the measured one; every particle density is multiplied by
+   the mean ratio H_DEM / H_Exp and the calibrated set is verified again (Figs. 15-16,
+   Table A.5). Skipped, with the reason, when the measured data carry no heap height.
+6. ``validation`` (stage ``validation``): the other measured conditions (mass ratios, reverse
+   layering) with the calibrated set; pellet-sinter interaction parameters stay the average of
+   the pure ones (Fig. 18, Table A.6).
+
+Names: KPIs are DEM names (``torchdem.drawdown.KPI_UNITS``); a DEM ``<x>_full_<unit>`` KPI (a
+slice's mass scaled to the full box) is compared with the measured ``<x>_<unit>``
+(``bo.screening.pipeline.measured_for``). A parameter ``density_<material>`` is a solid density
+(``bo.campaign.dem``). Everything returned is plain data; ``bo.calibration.report`` writes it.
+
+Reference: A. Hadi, Y. Pang, D. Schott, "Systematic DEM calibration of two-component mixtures
+using AI-accelerated surrogate models", sections 3.3-3.7, Tables 5-9, A.4-A.6.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from bo.surrogate.acquisition import (AdaptiveSettings, RoundRecord, SamplingState, best_kernel_cv, latin_hypercube,
+                            propose_batch, record_from_cv)
+from torchdem.model import DENSITY_PREFIX
+from bo.campaign.executor import Executor, run_pending
+from bo.surrogate.ga import GASettings, GASummary, repeated_ga
+from bo.surrogate.objective import ObjectiveSpec
+from bo.screening.pipeline import ScreeningReport, ScreenSettings, analyse_and_report, measured_for, run_screening
+from bo.campaign.store import CampaignStore
+from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2
+from torchdem.errors import ConfigError, out_of_range
+from torchdem.measured import MeasuredData
+
+__all__ = [
+    "EXTRA_STAGES",
+    "HEAP_HEIGHT_KPI",
+    "KPIAgreement",
+    "SurrogateStageSettings",
+    "CalibrationSettings",
+    "SurrogateOutcome",
+    "GAOutcome",
+    "DensityOutcome",
+    "CalibrationResult",
+    "agreement",
+    "run_calibration",
+]
+
+#: Store stages the campaign uses besides ``bo.campaign.store.STAGES`` and ``round-<k>``.
+EXTRA_STAGES = ("density",)
+#: DEM KPI compared with the measured heap height in the bulk density check.
+HEAP_HEIGHT_KPI = "max_heap_height_m"
+_GA_MODES = ("restricted", "unrestricted")
+
+
+# --------------------------------------------------------------------------------------------
+# Settings
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SurrogateStageSettings:
+    """The surrogate stage.
+
+    Attributes:
+        parameters: calibrated parameter names; None: those Table 5 selects (if it selects
+            none, every screened parameter, and the report says so).
+        bounds: name -> (low, high); None: the Table-6 proposal (the screened range for
+            parameters it does not move). Given bounds must cover ``parameters``.
+        seeds: replicate seeds of every point (>= 2 gives the replicate-mean variance).
+        adaptive: LHS size, q, target R^2, budget (points), CV folds and seeds, kernels.
+        config: GP kernel / strategy (``kernel`` is replaced by each round's best kernel).
+        compare_strategies: also cross-validate the other strategy after every round.
+    """
+
+    parameters: tuple[str, ...] | None
+    bounds: Mapping[str, tuple[float, float]] | None
+    seeds: tuple[int, ...]
+    adaptive: AdaptiveSettings
+    config: SurrogateConfig = SurrogateConfig()
+    compare_strategies: bool = True
+
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """Everything a calibration campaign needs besides the store, executor and measured data.
+
+    Attributes:
+        condition: measured condition calibrated (the paper: ``"50-50"``).
+        screening: the screening stage (its ``condition`` must equal ``condition``).
+        objective_kpis: DEM KPI names of Eq. 7; None: the screening's kept KPIs that have a
+            measurement. weights: KPI -> weight (sum 1); None: equal weights.
+        surrogate: the surrogate stage.
+        ga: GA settings (``restricted`` is ignored: both modes run). ga_repetitions: surrogate
+            trainings (Table 9). ga_mode: which mode's optimum is the calibrated set.
+        verification_seeds: seeds of the verification runs (the paper: 5).
+        density_recalibration: run the bulk density check when the data have a heap height.
+        validation_conditions: conditions validated; None: every other measured condition.
+        validation_seeds: seeds of every validation condition.
+        validate_with_density: validate with the recalibrated densities (when recalibrated).
+        seed: seed of the GA repetitions.
+    """
+
+    condition: str
+    screening: ScreenSettings
+    objective_kpis: tuple[str, ...] | None
+    weights: Mapping[str, float] | None
+    surrogate: SurrogateStageSettings
+    ga: GASettings
+    ga_repetitions: int = 10
+    ga_mode: str = "restricted"
+    verification_seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
+    density_recalibration: bool = True
+    validation_conditions: tuple[str, ...] | None = None
+    validation_seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
+    validate_with_density: bool = True
+    seed: int = 0
+
+    def validate(self, source: str = "calibration") -> "CalibrationSettings":
+        if self.screening.condition != self.condition:
+            raise ConfigError(f"{source}: the screening condition {self.screening.condition!r} is not the "
+                              f"calibrated condition {self.condition!r}")
+        if self.ga_mode not in _GA_MODES:
+            raise out_of_range("ga_mode", self.ga_mode, f"one of {list(_GA_MODES)}", source)
+        if isinstance(self.ga_repetitions, bool) or not isinstance(self.ga_repetitions, int) \
+                or self.ga_repetitions < 1:
+            raise out_of_range("ga_repetitions", self.ga_repetitions, "an integer >= 1", source)
+        for name in ("verification_seeds", "validation_seeds"):
+            seeds = getattr(self, name)
+            if not seeds or len(set(seeds)) != len(seeds):
+                raise out_of_range(name, seeds, "a non-empty list of distinct ints", source)
+        s = self.surrogate
+        if not s.seeds or len(set(s.seeds)) != len(s.seeds):
+            raise out_of_range("surrogate.seeds", s.seeds, "a non-empty list of distinct ints", source)
+        if s.config.strategy not in STRATEGIES:
+            raise out_of_range("surrogate.strategy", s.config.strategy, f"one of {list(STRATEGIES)}", source)
+        return self
+
+
+# --------------------------------------------------------------------------------------------
+# Results (plain data)
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class KPIAgreement:
+    """DEM replicates of one KPI against the measurement (a bar of Figs. 14, 16, 18).
+
+    Attributes:
+        kpi: DEM KPI name. dem_mean, dem_std: over the finite replicates (std ddof 1; NaN for
+            one value). n: finite replicates. measured_mean, measured_ci95: the lab's.
+        relative_error_pct: ``(dem_mean - measured_mean) / measured_mean * 100``.
+        within_ci: ``|dem_mean - measured_mean| <= measured_ci95``.
+    """
+
+    kpi: str
+    dem_mean: float
+    dem_std: float
+    n: int
+    measured_mean: float
+    measured_ci95: float
+    relative_error_pct: float
+    within_ci: bool
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class SurrogateOutcome:
+    """What the surrogate stage evaluated and how good the surrogate became.
+
+    Attributes:
+        parameters: names of the ``d`` calibrated parameters; bounds: ``[2, d]``.
+        state: points with a usable objective (``X [n, d]``, ``y``, ``y_var``).
+        kpi_replicates: ``[n, r, M]`` KPI values of those points (objective KPIs).
+        rounds: one ``RoundRecord`` per round (round 0: the LHS). stopped_because:
+            ``"target_r2"`` or ``"budget"``. points_run: design points evaluated (failed ones
+            included). dropped_points: points without a usable objective (fewer than
+            ``min(2, r)`` finite replicates of some KPI).
+        strategy_r2: strategy -> CV R^2 mean per round (the run's strategy and, when compared,
+            the other one on the same data).
+    """
+
+    parameters: tuple[str, ...]
+    bounds: np.ndarray
+    state: SamplingState
+    kpi_replicates: np.ndarray
+    rounds: tuple[RoundRecord, ...]
+    stopped_because: str
+    points_run: int
+    dropped_points: int
+    strategy_r2: Mapping[str, tuple[float, ...]]
+
+
+@dataclass(frozen=True)
+class GAOutcome:
+    """Table 8/9: the GA summaries per mode and the calibrated set."""
+
+    summaries: Mapping[str, GASummary | None]
+    notes: Mapping[str, str]
+    mode: str
+    calibrated: Mapping[str, float]
+
+
+@dataclass(frozen=True)
+class DensityOutcome:
+    """Bulk density check: heap heights, ratio, new densities, re-verification."""
+
+    skipped_because: str | None
+    heap_dem_m: tuple[float, ...] = ()
+    heap_measured_m: float = math.nan
+    ratio: float = math.nan
+    densities: Mapping[str, float] = field(default_factory=dict)
+    agreement: tuple[KPIAgreement, ...] = ()
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Everything the campaign found (``bo.calibration.report`` writes it)."""
+
+    settings: CalibrationSettings
+    screening: ScreeningReport
+    objective: ObjectiveSpec
+    parameter_choice_note: str
+    surrogate: SurrogateOutcome
+    ga: GAOutcome
+    verification: tuple[KPIAgreement, ...]
+    density: DensityOutcome
+    validation: Mapping[str, tuple[KPIAgreement, ...]]
+    final_parameters: Mapping[str, float]
+    evaluations: Mapping[str, int]
+    wall_time_s: Mapping[str, float]
+
+
+# --------------------------------------------------------------------------------------------
+# Helpers
+# --------------------------------------------------------------------------------------------
+
+def _key(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=repr).encode()).hexdigest()[:12]
+
+
+def _replicates(store: CampaignStore, stage: str, key: str, n_points: int, seeds: Sequence[int],
+                condition: str, kpis: Sequence[str]) -> np.ndarray:
+    """``[n_points, r, M]`` KPI values of a stored batch (NaN: failed or unmeasured)."""
+    index = {s: r for r, s in enumerate(seeds)}
+    out = np.full((n_points, len(seeds), len(kpis)), np.nan)
+    for rec in store.records(stage, batch_key=key, condition=condition, status="done"):
+        if rec.seed in index and rec.kpis is not None:
+            out[rec.point_index, index[rec.seed]] = [rec.kpis.get(k, math.nan) for k in kpis]
+    out[~np.isfinite(out)] = np.nan
+    return out
+
+
+def _run_batch(store: CampaignStore, executor: Executor, stage: str, key: str,
+               make_points: Callable[[], Sequence[Mapping[str, float]]], seeds: Sequence[int],
+               conditions: Sequence[str]) -> list[dict[str, float]]:
+    points = store.batch(stage, key, make_points, seeds=list(seeds), conditions=list(conditions))
+    run_pending(store, executor, stage)
+    return points
+
+
+def agreement(replicates: np.ndarray, kpis: Sequence[str], measured: Mapping) -> tuple[KPIAgreement, ...]:
+    """Per KPI with a measurement: DEM mean/std over ``replicates [r, M]`` vs the lab."""
+    lab = measured_for(kpis, measured)
+    out = []
+    for j, kpi in enumerate(kpis):
+        if kpi not in lab:
+            continue
+        v = replicates[:, j]
+        v = v[np.isfinite(v)]
+        mean = float(v.mean()) if v.size else math.nan
+        std = float(v.std(ddof=1)) if v.size > 1 else math.nan
+        m = lab[kpi]
+        mm, ci = float(m.mean), float(m.ci95)
+        out.append(KPIAgreement(kpi=kpi, dem_mean=mean, dem_std=std, n=int(v.size), measured_mean=mm,
+                                measured_ci95=ci, relative_error_pct=(mean - mm) / mm * 100.0,
+                                within_ci=bool(abs(mean - mm) <= ci)))
+    return tuple(out)
+
+
+def _objective_data(kpi_reps: np.ndarray, objective: ObjectiveSpec, strategy: str
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(usable [n] bool, y, y_var)`` from ``[n, r, M]`` replicates (finite ones only)."""
+    n, r, m = kpi_reps.shape
+    need = min(2, r)
+    finite = np.isfinite(kpi_reps)
+    usable = (finite.sum(axis=1) >= need).all(axis=1)
+    ys, vs = [], []
+    for i in np.flatnonzero(usable):
+        rows = kpi_reps[i][finite[i].all(axis=1)]
+        if rows.shape[0] < need:  # every KPI finite somewhere, but not together in need rows
+            usable[i] = False
+            continue
+        mean = rows.mean(axis=0)
+        if strategy == "per_kpi":
+            ys.append(mean)
+            vs.append(rows.var(axis=0, ddof=1) / rows.shape[0] if rows.shape[0] > 1 else None)
+        else:
+            measured, weights = np.asarray(objective.measured), np.asarray(objective.weights)
+            ys.append(float(objective(mean)))
+            if rows.shape[0] > 1:  # delta method, as bo.surrogate.gp.objective_from_replicates
+                grad = weights * np.sign(mean - measured) / np.abs(measured)
+                vs.append(float((rows @ grad).var(ddof=1) / rows.shape[0]))
+            else:
+                vs.append(None)
+    y = np.asarray(ys, dtype=np.float64).reshape((-1,) if strategy == "scalar" else (-1, m))
+    y_var = None if (not vs or any(v is None for v in vs)) else np.asarray(vs, dtype=np.float64).reshape(y.shape)
+    return usable, y, y_var
+
+
+# --------------------------------------------------------------------------------------------
+# Stages
+# --------------------------------------------------------------------------------------------
+
+def screening_stage(store: CampaignStore, executor: Executor, s: ScreenSettings, measured: Mapping,
+                    out_dir: Path) -> ScreeningReport:
+    """Stage 1: DSD runs (resumable) and the section 3.3 / 3.4.1 analysis, written to out_dir."""
+    results = run_screening(store, executor, s.table, n_fake=s.n_fake, seeds=list(s.seeds),
+                            condition=s.condition, kpis=list(s.kpis), stage="screening")
+    return analyse_and_report(results, measured, out_dir, p_threshold=s.p_threshold,
+                              selection_fraction=s.selection_fraction,
+                              stochastic_threshold=s.stochastic_threshold,
+                              extension_factor=s.extension_factor, extension_mode=s.extension_mode,
+                              title=f"Screening of {s.table.k} parameters, condition {s.condition}")
+
+
+def choose_parameters(screening: ScreeningReport, s: SurrogateStageSettings
+                      ) -> tuple[tuple[str, ...], np.ndarray, str]:
+    """Calibrated parameters and their ``[2, d]`` bounds, with a note saying where they came from."""
+    table = screening.results
+    screened = table.levels()
+    if s.parameters is not None:
+        names, note = tuple(s.parameters), "parameters given in the config"
+    elif screening.analysis is not None and screening.analysis.selected_parameters:
+        names = tuple(screening.analysis.selected_parameters)
+        note = f"Table 5 selected {list(names)}"
+    else:
+        names = tuple(table.parameter_names)
+        note = (f"Table 5 selected no parameter (no KPI had a significant effect in enough replicates), so "
+                f"every screened parameter {list(names)} is calibrated")
+    proposed = dict(screening.proposal.proposed_bounds) if screening.proposal is not None else {}
+    rows = []
+    for n in names:
+        if s.bounds is not None:
+            if n not in s.bounds:
+                raise ConfigError(f"surrogate.bounds: no bounds for calibrated parameter {n!r}; given for "
+                                  f"{sorted(s.bounds)}")
+            rows.append(tuple(s.bounds[n]))
+        elif n in proposed:
+            rows.append(tuple(proposed[n]))
+        elif n in screened:
+            rows.append(tuple(screened[n]))
+        else:
+            raise ConfigError(f"surrogate.parameters: {n!r} was not screened, so it needs surrogate.bounds")
+    where = "the config" if s.bounds is not None else (
+        "the Table-6 proposal" if proposed else "the screened ranges (no extension was proposed)")
+    bounds = as_bounds(np.array(rows, dtype=np.float64).T, "surrogate.bounds")
+    return names, bounds, f"{note}; bounds from {where}"
+
+
+def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str, names: Sequence[str],
+                    bounds: np.ndarray, objective: ObjectiveSpec, s: SurrogateStageSettings,
+                    echo: Callable[[str], None] = print) -> SurrogateOutcome:
+    """Stage 2: LHS then qLogEI rounds through the store until the target R^2 or the budget."""
+    names = tuple(names)
+    d = len(names)
+    a, config = s.adaptive, s.config
+    n_initial = a.initial_size(d)
+    kpis = objective.kpi_names
+    key = _key("surrogate", names, bounds.tolist(), list(s.seeds), a.seed, n_initial, a.q, config.strategy,
+               list(kpis), list(objective.measured), list(objective.weights))
+    rows = lambda X: [dict(zip(names, map(float, x))) for x in X]  # noqa: E731
+
+    def evaluated(stage: str, points: Sequence[Mapping[str, float]]) -> tuple[np.ndarray, np.ndarray]:
+        X = np.array([[p[n] for n in names] for p in points], dtype=np.float64).reshape(len(points), d)
+        return X, _replicates(store, stage, f"{key}", len(points), s.seeds, condition, kpis)
+
+    points = _run_batch(store, executor, "initial", key,
+                        lambda: rows(latin_hypercube(bounds, n_initial, seed=a.seed)), s.seeds, [condition])
+    X_all, reps_all = evaluated("initial", points)
+    other = [t for t in STRATEGIES if t != config.strategy] if s.compare_strategies else []
+    r2: dict[str, list[float]] = {config.strategy: [], **{t: [] for t in other}}
+    rounds: list[RoundRecord] = []
+    k = 0
+    while True:
+        usable, y, y_var = _objective_data(reps_all, objective, config.strategy)
+        state = SamplingState(X_all[usable], y, y_var)
+        if state.n < max(a.n_folds, 2):
+            raise ConfigError(f"surrogate stage: only {state.n} of {X_all.shape[0]} points have usable KPIs "
+                              f"{list(kpis)} (the rest failed or could not be measured); the GP needs at least "
+                              f"{max(a.n_folds, 2)}. Check the DEM runs in {store.path}")
+        start = n_initial + (k - 1) * a.q if k else 0  # the round's first point
+        best = best_kernel_cv(state, bounds, a, config, objective)
+        record = record_from_cv(best, k, state.n, X_all[start:][usable[start:]], y[int(usable[:start].sum()):])
+        rounds.append(record)
+        r2[config.strategy].append(record.r2_mean)
+        for t in other:
+            u, yy, vv = _objective_data(reps_all, objective, t)
+            summary = cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, strategy=t,
+                                         kernel=record.kernel), y_var=vv, objective=objective,
+                                         n_folds=a.n_folds, seeds=a.cv_seeds)
+            r2[t].append(summary.mean)
+        extra = "".join(f", {t} {r2[t][-1]:.3f}" for t in other)
+        echo(f"surrogate round {k}: {X_all.shape[0]} points ({state.n} usable), CV R^2 {record.r2_mean:.3f} "
+             f"+/- {record.r2_std:.3f} ({record.kernel}, {config.strategy}{extra})")
+        if record.r2_mean >= a.target_r2:
+            reason = "target_r2"
+            break
+        if X_all.shape[0] >= a.budget:
+            reason = "budget"
+            break
+        k += 1
+        q = min(a.q, a.budget - X_all.shape[0])
+        seed = a.seed + X_all.shape[0]
+        stage = f"round-{k}"
+        batch = _run_batch(store, executor, stage, key, lambda: rows(propose_batch(
+            dataclasses.replace(config, kernel=record.kernel), state.X, state.y, bounds, q=q, seed=seed,
+            y_var=state.y_var, objective=objective, settings=a.acquisition)), s.seeds, [condition])
+        X_new, reps_new = evaluated(stage, batch)
+        X_all = np.concatenate([X_all, X_new])
+        reps_all = np.concatenate([reps_all, reps_new])
+    usable, _, _ = _objective_data(reps_all, objective, config.strategy)
+    return SurrogateOutcome(parameters=names, bounds=bounds, state=state, kpi_replicates=reps_all[usable],
+                            rounds=tuple(rounds), stopped_because=reason, points_run=int(X_all.shape[0]),
+                            dropped_points=int((~usable).sum()),
+                            strategy_r2={t: tuple(v) for t, v in r2.items()})
+
+
+def _summary_to_json(summary: GASummary) -> dict:
+    return {"best_index": summary.best_index, "restricted": summary.restricted,
+            "repetitions": [{"index": r.index, "seed": r.seed, "x": [float(v) for v in r.x],
+                             "fitness": float(r.fitness), "n_generations": int(r.n_generations)}
+                            for r in summary.repetitions]}
+
+
+def _summary_from_json(data: Mapping) -> GASummary:
+    from bo.surrogate.ga import GARepetition
+
+    reps = tuple(GARepetition(index=int(r["index"]), seed=int(r["seed"]), x=np.asarray(r["x"], dtype=np.float64),
+                              fitness=float(r["fitness"]), n_generations=int(r["n_generations"]))
+                 for r in data["repetitions"])
+    return GASummary(repetitions=reps, best_index=int(data["best_index"]), restricted=bool(data["restricted"]))
+
+
+def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: ObjectiveSpec,
+             settings: CalibrationSettings, echo: Callable[[str], None] = print) -> GAOutcome:
+    """Stage 3: repeated GA on the final surrogate, both modes; cached as a store artifact."""
+    st = surrogate.state
+    config = dataclasses.replace(settings.surrogate.config, kernel=surrogate.rounds[-1].kernel)
+    name = "ga/" + _key(st.X.tolist(), np.asarray(st.y).tolist(), None if st.y_var is None else
+                        np.asarray(st.y_var).tolist(), dataclasses.asdict(settings.ga), settings.ga_repetitions,
+                        settings.seed, config.kernel, config.strategy)
+    cached = store.get_artifact(name, None)
+    summaries: dict[str, GASummary | None] = {}
+    notes: dict[str, str] = {}
+    if cached is not None:
+        for mode in _GA_MODES:
+            summaries[mode] = _summary_from_json(cached[mode]) if cached[mode] is not None else None
+        notes = dict(cached["notes"])
+    else:
+        for mode in _GA_MODES:
+            ga = dataclasses.replace(settings.ga, restricted=(mode == "restricted"))
+            try:
+                summaries[mode] = repeated_ga(st.X, st.y, surrogate.bounds, config,
+                                              n_repetitions=settings.ga_repetitions, settings=ga,
+                                              seed=settings.seed, y_var=st.y_var, objective=objective)
+            except ConfigError as exc:  # e.g. a lower bound above the restriction limit
+                summaries[mode] = None
+                notes[mode] = str(exc)
+        store.put_artifact(name, {m: (_summary_to_json(v) if v is not None else None) for m, v in summaries.items()}
+                           | {"notes": notes})
+    mode = settings.ga_mode if summaries.get(settings.ga_mode) is not None else next(
+        (m for m in _GA_MODES if summaries[m] is not None), None)
+    if mode is None:
+        raise ConfigError(f"GA: no mode could run: {notes}")
+    if mode != settings.ga_mode:
+        notes["choice"] = f"ga_mode {settings.ga_mode!r} could not run ({notes.get(settings.ga_mode)}); used {mode!r}"
+    best = summaries[mode].best
+    calibrated = {n: float(v) for n, v in zip(surrogate.parameters, best.x)}
+    echo(f"GA ({mode}, {settings.ga_repetitions} surrogate trainings): fitness {best.fitness:.4f} at "
+         + ", ".join(f"{n} = {v:.4g}" for n, v in calibrated.items()))
+    return GAOutcome(summaries=summaries, notes=notes, mode=mode, calibrated=calibrated)
+
+
+def verify(store: CampaignStore, executor: Executor, stage: str, params: Mapping[str, float],
+           seeds: Sequence[int], conditions: Sequence[str], kpis: Sequence[str]) -> dict[str, np.ndarray]:
+    """Run one parameter set on conditions with seeds (resumable); ``{condition: [r, M]}``."""
+    key = "set/" + _key(sorted(params.items()))
+    _run_batch(store, executor, stage, key, lambda: [dict(params)], seeds, conditions)
+    return {c: _replicates(store, stage, key, 1, seeds, c, kpis)[0] for c in conditions}
+
+
+def density_stage(store: CampaignStore, executor: Executor, settings: CalibrationSettings,
+                  params: Mapping[str, float], verification: np.ndarray, kpis: Sequence[str],
+                  measured: MeasuredData, densities: Mapping[str, float]) -> DensityOutcome:
+    """Stage 5: heap height ratio, densities times the ratio, re-verification."""
+    if not settings.density_recalibration:
+        return DensityOutcome(skipped_because="density_recalibration is off in the config")
+    lab = measured.condition(settings.condition).kpis
+    if HEAP_HEIGHT_KPI not in lab:
+        return DensityOutcome(skipped_because=(
+            f"the measured data have no {HEAP_HEIGHT_KPI!r} for condition {settings.condition!r} (the paper "
+            f"reports only the ratio H_DEM/H_Exp = 0.93 of its own DEM, Fig. 15)"))
+    heights = verification[:, list(kpis).index(HEAP_HEIGHT_KPI)]
+    heights = heights[np.isfinite(heights)]
+    if heights.size == 0:
+        return DensityOutcome(skipped_because="no verification run measured a heap height")
+    h_exp = float(lab[HEAP_HEIGHT_KPI].mean)
+    ratio = float(np.mean(heights / h_exp))
+    new = {m: rho * ratio for m, rho in densities.items()}
+    reps = verify(store, executor, "density", {**params, **{DENSITY_PREFIX + m: v for m, v in new.items()}},
+                  settings.verification_seeds, [settings.condition], kpis)[settings.condition]
+    return DensityOutcome(skipped_because=None, heap_dem_m=tuple(float(h) for h in heights), heap_measured_m=h_exp,
+                          ratio=ratio, densities=new, agreement=agreement(reps, kpis, lab))
+
+
+# --------------------------------------------------------------------------------------------
+# The campaign
+# --------------------------------------------------------------------------------------------
+
+def objective_for(settings: CalibrationSettings, screening: ScreeningReport, measured: Mapping) -> ObjectiveSpec:
+    """Eq. 7 over the configured KPIs, or over the screening's kept KPIs that have a measurement."""
+    lab = measured_for(settings.screening.kpis if settings.objective_kpis is None else settings.objective_kpis,
+                       measured)
+    if settings.objective_kpis is None:
+        kpis = [k for k in screening.calibration_kpis if k in lab]
+        if not kpis:
+            raise ConfigError(f"objective.kpis = null: the screening kept {list(screening.calibration_kpis)}, none of "
+                              f"which has a measurement; set objective.kpis")
+    else:
+        kpis = list(settings.objective_kpis)
+        missing = [k for k in kpis if k not in lab]
+        if missing:
+            raise ConfigError(f"objective.kpis: {missing} have no measurement for condition {settings.condition!r} "
+                              f"(measured: {sorted(measured)}; a DEM '<x>_full_<unit>' KPI compares with '<x>_<unit>')")
+    weights = None if settings.weights is None else {k: settings.weights.get(k) for k in kpis}
+    if weights is not None and (set(settings.weights) - set(kpis) or any(w is None for w in weights.values())):
+        raise ConfigError(f"objective.weights: {dict(settings.weights)} must give a weight to exactly the KPIs {kpis}")
+    return ObjectiveSpec.from_measured({k: float(lab[k].mean) for k in kpis}, weights, source="objective")
+
+
+def validation_conditions(settings: CalibrationSettings, measured: MeasuredData) -> tuple[str, ...]:
+    """The conditions validated; checks every condition name against the measured data."""
+    if settings.condition not in measured.names:
+        raise out_of_range("condition", settings.condition, f"a condition of the measured data {list(measured.names)}",
+                           f"config (measured data {measured.origin})")
+    validation = (tuple(c for c in measured.names if c != settings.condition)
+                  if settings.validation_conditions is None else tuple(settings.validation_conditions))
+    unknown = [c for c in validation if c not in measured.names]
+    if unknown:
+        raise ConfigError(f"validation.conditions: {unknown} are not in the measured data {list(measured.names)} "
+                          f"({measured.origin})")
+    return validation
+
+
+def run_calibration(store: CampaignStore, executor: Executor, settings: CalibrationSettings,
+                    measured: MeasuredData, out_dir: str | Path, densities: Mapping[str, float],
+                    echo: Callable[[str], None] = print) -> CalibrationResult:
+    """Run (or resume) every stage; see the module docstring. ``densities`` are the model's
+    material densities (kg/m^3), which the bulk density check rescales."""
+    settings = settings.validate()
+    validation = validation_conditions(settings, measured)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    lab = measured.condition(settings.condition).kpis
+    walls: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        walls[stage] = round(now - clock, 3)
+        clock = now
+
+    echo(f"[1/6] screening: {settings.screening.table.k} parameters, {len(settings.screening.seeds)} replicates")
+    screening = screening_stage(store, executor, settings.screening, lab, out / "screening")
+    lap("screening")
+    objective = objective_for(settings, screening, lab)
+    names, bounds, note = choose_parameters(screening, settings.surrogate)
+    echo(f"[2/6] surrogate: {note}; objective KPIs {list(objective.kpi_names)}")
+    surrogate = surrogate_stage(store, executor, condition=settings.condition, names=names, bounds=bounds,
+                                objective=objective, s=settings.surrogate, echo=echo)
+    lap("surrogate")
+    echo("[3/6] genetic algorithm on the surrogate")
+    ga = ga_stage(store, surrogate, objective, settings, echo)
+    lap("ga")
+    kpis = tuple(dict.fromkeys(list(objective.kpi_names) + [HEAP_HEIGHT_KPI]
+                               + [k for k in settings.screening.kpis if k in measured_for(settings.screening.kpis, lab)]))
+    echo(f"[4/6] verification: {len(settings.verification_seeds)} replicates of the calibrated set")
+    ver = verify(store, executor, "verification", ga.calibrated, settings.verification_seeds, [settings.condition],
+                 kpis)[settings.condition]
+    verification = agreement(ver, kpis, lab)
+    lap("verification")
+    echo("[5/6] bulk density check")
+    density = density_stage(store, executor, settings, ga.calibrated, ver, kpis, measured, densities)
+    lap("density")
+    final = dict(ga.calibrated)
+    if density.skipped_because is None and settings.validate_with_density:
+        final.update({DENSITY_PREFIX + m: v for m, v in density.densities.items()})
+    echo(f"[6/6] validation on {list(validation)}")
+    val = {}
+    if validation:
+        runs = verify(store, executor, "validation", final, settings.validation_seeds, validation, kpis)
+        val = {c: agreement(runs[c], kpis, measured.condition(c).kpis) for c in validation}
+    lap("validation")
+    evaluations = {}
+    for rec_stage in ["screening", "initial"] + [f"round-{k}" for k in range(1, len(surrogate.rounds))] \
+            + ["verification", "density", "validation"]:
+        c = store.counts(rec_stage)
+        evaluations[rec_stage] = c["done"] + c["failed"]
+    evaluations["total"] = sum(evaluations.values())
+    return CalibrationResult(settings=settings, screening=screening, objective=objective, parameter_choice_note=note,
+                             surrogate=surrogate, ga=ga, verification=verification, density=density,
+                             validation=val, final_parameters=final, evaluations=evaluations, wall_time_s=walls)

@@ -1,0 +1,201 @@
+"""Write a calibration campaign's result: ``report.md``, ``calibration.json`` and the figures.
+
+Contract
+--------
+``write_calibration_report(result, out_dir)`` writes into ``out_dir`` (the screening stage has
+already written its own files into ``out_dir/screening/``):
+
+* ``calibration.json`` (strict JSON, NaN as null): ``calibrated_parameters`` (the GA optimum,
+  plus ``density_<material>`` when the bulk density check rescaled them: the final model),
+  ``objective`` (KPIs, measured values, weights), ``screening`` (kept KPIs, selected parameters,
+  bounds), ``surrogate`` (CV R^2 per round and per strategy, stop reason, points run),
+  ``ga`` (Tables 8 and 9 per mode), ``verification`` / ``density`` / ``validation`` (per KPI: DEM
+  mean, std, n, measured mean and CI, relative error in percent), ``dem_evaluations`` (per stage
+  and total) and ``wall_time_s`` (per stage, of the process that wrote the report);
+* ``report.md``: the same as tables, with the figures linked;
+* ``fig13_actual_vs_predicted.png``, ``fig14_verification.png``, ``fig16_density.png`` (when the
+  density check ran), ``fig18_validation.png`` (when validation conditions exist).
+
+Returns ``{name: path}`` of every file written.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from bo.surrogate.acquisition import plot_actual_vs_predicted
+from bo.calibration.pipeline import CalibrationResult, KPIAgreement
+from bo.report.plots import write_relative_error_plot
+from bo.screening.pipeline import json_ready
+
+__all__ = ["write_calibration_report", "calibration_payload", "agreement_table"]
+
+
+def agreement_table(rows: Sequence[KPIAgreement]) -> list[str]:
+    """Markdown rows: KPI, measured mean +- CI, DEM mean +- std (n), relative error, in CI."""
+    lines = ["| KPI | measured (95 % CI) | DEM mean +- std (n) | relative error | within CI |",
+             "| --- | --- | --- | ---: | :---: |"]
+    for a in rows:
+        lines.append(f"| {a.kpi} | {a.measured_mean:.4g} +- {a.measured_ci95:.3g} | {a.dem_mean:.4g} +- "
+                     f"{a.dem_std:.2g} ({a.n}) | {a.relative_error_pct:+.2f} % | {'yes' if a.within_ci else 'no'} |")
+    return lines
+
+
+def _ga_json(result: CalibrationResult) -> dict:
+    names = list(result.surrogate.parameters)
+    out = {"mode": result.ga.mode, "notes": dict(result.ga.notes), "calibrated": dict(result.ga.calibrated)}
+    for mode, summary in result.ga.summaries.items():
+        out[mode] = None if summary is None else {
+            "best_repetition": summary.best_index + 1,
+            "repetitions": [{"repetition": r.index + 1, **{n: float(v) for n, v in zip(names, r.x)},
+                             "fitness": r.fitness, "generations": r.n_generations} for r in summary.repetitions]}
+    return out
+
+
+def calibration_payload(result: CalibrationResult) -> dict:
+    """The content of ``calibration.json``."""
+    s, sur, scr = result.settings, result.surrogate, result.screening
+    dens = result.density
+    return json_ready({
+        "condition": s.condition,
+        "calibrated_parameters": dict(result.final_parameters),
+        "objective": {"kpis": list(result.objective.kpi_names), "measured": list(result.objective.measured),
+                      "weights": list(result.objective.weights)},
+        "screening": {"kept_kpis": list(scr.calibration_kpis),
+                      "excluded_kpis": [k for k in scr.results.kpi_names if k not in scr.calibration_kpis],
+                      "selected_parameters": list(scr.analysis.selected_parameters) if scr.analysis else [],
+                      "proposal": scr.proposal.to_dict() if scr.proposal is not None else None},
+        "surrogate": {"parameters": list(sur.parameters),
+                      "bounds": {n: [float(sur.bounds[0, j]), float(sur.bounds[1, j])]
+                                 for j, n in enumerate(sur.parameters)},
+                      "choice": result.parameter_choice_note,
+                      "strategy": s.surrogate.config.strategy,
+                      "replicates_per_point": len(s.surrogate.seeds),
+                      "points_run": sur.points_run, "dropped_points": sur.dropped_points,
+                      "stopped_because": sur.stopped_because, "target_r2": s.surrogate.adaptive.target_r2,
+                      "rounds": [{"round": r.index, "n_points": r.n_points, "kernel": r.kernel,
+                                  "r2_mean": r.r2_mean, "r2_std": r.r2_std} for r in sur.rounds],
+                      "strategy_r2": {k: list(v) for k, v in sur.strategy_r2.items()},
+                      "strategy_comparison": strategy_comparison(result)},
+        "ga": _ga_json(result),
+        "verification": [a.to_dict() for a in result.verification],
+        "density": {"skipped_because": dens.skipped_because, "heap_dem_m": list(dens.heap_dem_m),
+                    "heap_measured_m": dens.heap_measured_m, "ratio": dens.ratio, "densities": dict(dens.densities),
+                    "verification": [a.to_dict() for a in dens.agreement]},
+        "validation": {c: [a.to_dict() for a in rows] for c, rows in result.validation.items()},
+        "dem_evaluations": dict(result.evaluations),
+        "wall_time_s": dict(result.wall_time_s),
+    })
+
+
+def strategy_comparison(result: CalibrationResult) -> dict:
+    """Per strategy: the CV R^2 after every round and the DEM runs (points x replicates) it took
+    to first reach the target (None if it never did), on the same sampled data."""
+    sur, s = result.surrogate, result.settings.surrogate
+    r = len(s.seeds)
+    out = {}
+    for strategy, values in sur.strategy_r2.items():
+        reached = next((rec.n_points for rec, v in zip(sur.rounds, values) if v >= s.adaptive.target_r2), None)
+        out[strategy] = {"r2_per_round": list(values), "points_to_target": reached,
+                         "dem_runs_to_target": None if reached is None else reached * r}
+    return out
+
+
+def write_calibration_report(result: CalibrationResult, out_dir: str | Path) -> dict[str, Path]:
+    """Write the report files (see the module docstring)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files: dict[str, Path] = {}
+    sur, dens = result.surrogate, result.density
+    files["fig13"] = plot_actual_vs_predicted(sur.rounds, out / "fig13_actual_vs_predicted.png")
+    if result.verification:
+        files["fig14"] = write_relative_error_plot({result.settings.condition: result.verification},
+                                                   out / "fig14_verification.png",
+                                                   "Verification of the calibrated set (Fig. 14)")
+    if dens.agreement:
+        files["fig16"] = write_relative_error_plot({result.settings.condition: dens.agreement},
+                                                   out / "fig16_density.png",
+                                                   "With recalibrated particle densities (Fig. 16)")
+    if any(result.validation.values()):
+        files["fig18"] = write_relative_error_plot({c: rows for c, rows in result.validation.items() if rows},
+                                                   out / "fig18_validation.png", "Validation (Fig. 18)")
+    payload = calibration_payload(result)
+    files["json"] = out / "calibration.json"
+    files["json"].write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
+    files["md"] = out / "report.md"
+    files["md"].write_text(_markdown(result, payload, files))
+    return files
+
+
+def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, Path]) -> str:
+    s, sur, ga, dens = result.settings, result.surrogate, result.ga, result.density
+    obj = result.objective
+    lines = [f"# DEM calibration, condition {s.condition}", ""]
+    lines += ["## Calibrated parameters", "", "| parameter | value |", "| --- | ---: |"]
+    lines += [f"| {k} | {v:.4g} |" for k, v in result.final_parameters.items()]
+    lines += ["", f"Objective (Eq. 7): KPIs {list(obj.kpi_names)}, measured {list(obj.measured)}, "
+              f"weights {[round(w, 4) for w in obj.weights]}.", ""]
+    lines += ["## 1. Screening", "", f"See [screening/screening.md](screening/screening.md). Kept KPIs: "
+              f"{list(result.screening.calibration_kpis)}. {result.parameter_choice_note}.", ""]
+    lines += ["## 2. Surrogate (Table 7, Fig. 13)", "",
+              f"{len(sur.parameters)} parameters, {len(s.surrogate.seeds)} replicates per point, strategy "
+              f"`{s.surrogate.config.strategy}`; {sur.points_run} points run ({sur.dropped_points} without usable "
+              f"KPIs); stopped because: {sur.stopped_because}.", "",
+              "| parameter | low | high |", "| --- | ---: | ---: |"]
+    lines += [f"| {n} | {sur.bounds[0, j]:.4g} | {sur.bounds[1, j]:.4g} |" for j, n in enumerate(sur.parameters)]
+    strategies = list(sur.strategy_r2)
+    lines += ["", "| round | points | kernel | " + " | ".join(f"CV R^2 {t}" for t in strategies) + " |",
+              "| --- | ---: | --- | " + " | ".join("---:" for _ in strategies) + " |"]
+    for i, rec in enumerate(sur.rounds):
+        cells = [f"{sur.strategy_r2[t][i]:.3f}" + (f" +- {rec.r2_std:.3f}" if t == s.surrogate.config.strategy else "")
+                 for t in strategies]
+        lines.append(f"| {rec.index} | {rec.n_points} | {rec.kernel} | " + " | ".join(cells) + " |")
+    comp = payload["surrogate"]["strategy_comparison"]
+    lines += [""] + [f"- `{t}`: reached R^2 >= {s.surrogate.adaptive.target_r2} "
+                     + (f"after {c['points_to_target']} points ({c['dem_runs_to_target']} DEM runs)"
+                        if c["points_to_target"] is not None else "in no round") for t, c in comp.items()]
+    if len(strategies) > 1:
+        lines.append("  (both strategies cross-validated on the points the run's strategy sampled)")
+    lines += ["", f"![Fig. 13]({files['fig13'].name})", "", "## 3. Genetic algorithm (Tables 8, 9)", ""]
+    for mode, summary in ga.summaries.items():
+        if summary is None:
+            lines.append(f"- {mode}: not run ({ga.notes.get(mode, '')})")
+            continue
+        lines += [f"### {mode}" + (" (calibrated set)" if mode == ga.mode else ""), "",
+                  "| repetition | " + " | ".join(sur.parameters) + " | fitness |",
+                  "| ---: | " + " | ".join("---:" for _ in sur.parameters) + " | ---: |"]
+        for r in summary.repetitions:
+            mark = " **best**" if r.index == summary.best_index else ""
+            lines.append(f"| {r.index + 1}{mark} | " + " | ".join(f"{v:.3f}" for v in r.x) + f" | {r.fitness:.4f} |")
+        lines.append("")
+    if "choice" in ga.notes:
+        lines += [ga.notes["choice"], ""]
+    lines += ["## 4. Verification (Fig. 14, Table A.4)", ""] + agreement_table(result.verification)
+    if "fig14" in files:
+        lines += ["", f"![Fig. 14]({files['fig14'].name})"]
+    lines += ["", "## 5. Bulk density (Figs. 15-16, Table A.5)", ""]
+    if dens.skipped_because is not None:
+        lines.append(f"Skipped: {dens.skipped_because}.")
+    else:
+        lines += [f"Heap height: DEM {np.mean(dens.heap_dem_m):.4g} m (mean of {len(dens.heap_dem_m)}), measured "
+                  f"{dens.heap_measured_m:.4g} m; ratio H_DEM/H_Exp = {dens.ratio:.4f}. Densities: "
+                  + ", ".join(f"{m} {v:.1f} kg/m^3" for m, v in dens.densities.items()), ""]
+        lines += agreement_table(dens.agreement) + ["", f"![Fig. 16]({files['fig16'].name})"]
+    lines += ["", "## 6. Validation (Fig. 18, Table A.6)", ""]
+    if not result.validation:
+        lines.append("No other measured condition to validate on.")
+    for c, rows in result.validation.items():
+        lines += [f"### {c}", ""] + agreement_table(rows) + [""]
+    if "fig18" in files:
+        lines += [f"![Fig. 18]({files['fig18'].name})", ""]
+    ev, wall = result.evaluations, result.wall_time_s
+    lines += ["## Cost", "", "| stage | DEM evaluations |", "| --- | ---: |"]
+    lines += [f"| {k} | {v} |" for k, v in ev.items()]
+    lines += ["", "| stage | wall time (this process) |", "| --- | ---: |"]
+    lines += [f"| {k} | {v:.1f} s |" for k, v in wall.items()]
+    lines.append(f"| total | {math.fsum(wall.values()):.1f} s |")
+    return "\n".join(lines) + "\n"

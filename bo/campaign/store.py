@@ -1,0 +1,711 @@
+"""Campaign store: every DEM evaluation, batch proposal and stage output of a calibration.
+
+Contract
+--------
+``CampaignStore(path, config_hash, code_version=None)`` opens (or creates) one SQLite file in
+WAL mode. It is safe for several processes at once on one machine (WAL needs shared memory,
+so the file must be on a local disk, not NFS/Lustre shared between hosts): every write is one
+``BEGIN IMMEDIATE`` transaction, waits up to ``busy_timeout`` seconds for the write lock, and
+a connection is opened per operation (so a store object may be used from threads and
+survives ``fork``). A SIGKILL at any point leaves the file consistent; it loses at most the
+evaluations in flight.
+
+Evaluations (table ``evaluations``), one row per ``(stage, batch key, point, seed,
+condition)``, with:
+
+* ``stage``: ``"screening"``, ``"initial"``, ``"round-<n>"``, ``"verification"``,
+  ``"validation"``, or one of the constructor's ``extra_stages``; anything else is refused, so
+  a typo cannot silently start a new batch;
+* ``batch_key``, ``point_index``, ``params`` (canonical JSON: sorted keys, floats as ``repr``,
+  so they read back bit-identical), ``seed``, ``condition``;
+* ``config_hash`` and ``code_version`` of the process that *finished* the evaluation (at
+  creation: of the proposer). The default code version is the repo's git commit, with
+  ``+dirty`` when tracked files differ from it, else the installed package version;
+* ``status``: ``pending`` -> ``running`` -> ``done`` | ``failed``;
+* ``kpis`` (JSON; non-finite KPI values are stored as ``null`` and read back as NaN),
+  ``error`` (message), ``wall_time`` [s];
+* ``claimed_by`` (``"host:pid"``), ``claimed_at``, ``attempts``, ``created_at``,
+  ``finished_at`` (Unix seconds).
+
+Batches: ``batch(stage, key, make_points, seeds=..., conditions=...)`` (seeds and conditions
+are required keywords: the tasks of a point are its seeds x conditions) returns the stored
+points of that batch if it exists; otherwise it calls ``make_points()`` once, stores the
+points (and one pending task per point x seed x condition, condition-major) in one
+transaction and returns them. A resumed campaign therefore re-uses the proposals made before
+a kill. If two processes race to create the same batch, the first commit wins and both
+return its points. Asking for a stored batch with other seeds or conditions is an error.
+
+Claiming: ``claim(limit, stage)`` marks up to ``limit`` claimable tasks ``running`` under a
+lease (``claimed_by``, ``claimed_at``) inside one IMMEDIATE transaction, so two processes
+never claim the same task. Claimable = ``pending``, or ``running`` with a stale lease: the
+owner is on this host and its process is gone (or a zombie), or the lease is older than
+``lease_seconds`` (owners renew their leases every ``lease_seconds / 3`` while they work, see
+``bo.campaign.executor.run_pending``; clocks of hosts sharing a store must agree to well within
+``lease_seconds``). One claim holds tasks of a single condition (that of the oldest claimable
+task), so it cuts into full single-condition ensemble batches. ``record`` writes finished
+outcomes (one transaction per call) and never overwrites a ``done`` or ``failed`` row, so a
+task that was re-claimed after a stale lease is stored once. ``release`` gives unfinished
+claims back, ``reset_failed`` re-queues failures.
+
+Artifacts: ``put_artifact(name, value)`` stores a JSON-able stage output (GA result, fitted
+choices; strict JSON, no NaN/inf) and ``get_artifact(name)`` returns it, so finished stages are
+not redone.
+
+Queries return plain data: ``records(...)`` a list of frozen ``EvaluationRecord``,
+``arrays(...)`` a ``ResultArrays`` with ``X [n, d]``, ``kpis [n, n_kpi]`` (NaN where missing),
+``seeds [n]`` and the names of the columns.
+
+The store remembers the config hash it was created with; opening it with another hash raises
+``ConfigError`` naming both hashes and the path unless ``allow_config_mismatch=True``.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import re
+import socket
+import sqlite3
+import subprocess
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from numbers import Integral, Real
+from pathlib import Path
+
+import numpy as np
+
+from bo.campaign.executor import EvalOutcome, EvalTask, canonical_params
+from torchdem.errors import ConfigError, out_of_range
+
+__all__ = [
+    "STAGES",
+    "STATUSES",
+    "CampaignStore",
+    "EvaluationRecord",
+    "ResultArrays",
+    "default_code_version",
+]
+
+STAGES = ("screening", "initial", "verification", "validation")
+"""Stage names always accepted; ``round-<n>`` (n >= 1) is accepted too."""
+_ROUND = re.compile(r"round-[1-9][0-9]*")
+STATUSES = ("pending", "running", "done", "failed")
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS batches (
+    stage TEXT NOT NULL,
+    batch_key TEXT NOT NULL,
+    points TEXT NOT NULL,
+    seeds TEXT NOT NULL,
+    conditions TEXT NOT NULL,
+    config_hash TEXT NOT NULL,
+    code_version TEXT NOT NULL,
+    created_at REAL NOT NULL,
+    PRIMARY KEY (stage, batch_key)
+);
+CREATE TABLE IF NOT EXISTS evaluations (
+    task_id INTEGER PRIMARY KEY AUTOINCREMENT,
+    stage TEXT NOT NULL,
+    batch_key TEXT NOT NULL,
+    point_index INTEGER NOT NULL,
+    params TEXT NOT NULL,
+    seed INTEGER NOT NULL,
+    condition TEXT NOT NULL,
+    config_hash TEXT NOT NULL,
+    status TEXT NOT NULL CHECK (status IN ('pending', 'running', 'done', 'failed')),
+    kpis TEXT,
+    error TEXT,
+    wall_time REAL,
+    code_version TEXT NOT NULL,
+    created_at REAL NOT NULL,
+    claimed_by TEXT,
+    claimed_at REAL,
+    finished_at REAL,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    UNIQUE (stage, batch_key, point_index, seed, condition),
+    FOREIGN KEY (stage, batch_key) REFERENCES batches (stage, batch_key)
+);
+CREATE INDEX IF NOT EXISTS evaluations_by_status ON evaluations (status, stage);
+CREATE TABLE IF NOT EXISTS artifacts (
+    name TEXT PRIMARY KEY,
+    value TEXT NOT NULL,
+    config_hash TEXT NOT NULL,
+    code_version TEXT NOT NULL,
+    updated_at REAL NOT NULL
+);
+"""
+
+_MISSING = object()
+
+
+@functools.lru_cache(maxsize=1)
+def default_code_version() -> str:
+    """The git commit of the repo holding this package (``+dirty`` if tracked files changed),
+    else the installed torchdem version, else ``"unknown"``."""
+    repo = Path(__file__).resolve().parent
+    env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}  # never touch the index
+    try:
+        commit = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], env=env,
+                                capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+        status = subprocess.run(["git", "-C", str(repo), "status", "--porcelain",
+                                 "--untracked-files=no"], env=env, capture_output=True, text=True,
+                                timeout=10, check=True).stdout.strip()
+        if commit:
+            return commit + ("+dirty" if status else "")
+    except (OSError, subprocess.SubprocessError):
+        pass
+    try:
+        from importlib.metadata import version
+        return "torchdem " + version("torchdem")
+    except Exception:
+        return "unknown"
+
+
+def _owner() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _owner_is_gone(owner: str | None) -> bool:
+    """True when ``owner`` ("host:pid") is a process on this host that no longer runs."""
+    if not owner or os.name != "posix":
+        return False
+    host, _, pid_text = owner.rpartition(":")
+    if host != socket.gethostname() or not pid_text.isdigit():
+        return False  # another host: only the lease timeout can tell
+    pid = int(pid_text)
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False  # alive, owned by another user
+    try:  # a killed child its parent has not reaped yet still answers kill(pid, 0)
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except (OSError, IndexError):
+        return False
+
+
+def _dumps(value) -> str:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def _kpis_json(kpis: Mapping[str, float]) -> str:
+    return _dumps({k: (v if math.isfinite(v) else None) for k, v in kpis.items()})
+
+
+def _kpis_from_json(text: str | None) -> dict[str, float] | None:
+    if text is None:
+        return None
+    return {k: (math.nan if v is None else float(v)) for k, v in json.loads(text).items()}
+
+
+@dataclass(frozen=True)
+class EvaluationRecord:
+    """One row of the ``evaluations`` table (times in Unix seconds, wall time in seconds)."""
+
+    task_id: int
+    stage: str
+    batch_key: str
+    point_index: int
+    params: dict[str, float]
+    seed: int
+    condition: str
+    config_hash: str
+    status: str
+    kpis: dict[str, float] | None
+    error: str | None
+    wall_time: float | None
+    code_version: str
+    created_at: float
+    claimed_by: str | None
+    claimed_at: float | None
+    finished_at: float | None
+    attempts: int
+
+    def __hash__(self) -> int:
+        return hash(self.task_id)
+
+    @property
+    def task(self) -> EvalTask:
+        return EvalTask(self.params, self.seed, self.condition, self.task_id)
+
+
+@dataclass(frozen=True)
+class ResultArrays:
+    """Finished evaluations as arrays, row ``i`` of every array is one evaluation.
+
+    Attributes:
+        X: [n, d] float64 parameters, columns ``param_names`` (NaN where a row lacks one).
+        kpis: [n, n_kpi] float64 KPIs, columns ``kpi_names`` (NaN where missing / non-finite).
+        seeds: [n] int64.
+        conditions: [n] str.
+        stages: [n] str.
+        task_ids: [n] int64 store row ids.
+        param_names, kpi_names: column names, sorted unless the caller chose them.
+    """
+
+    X: np.ndarray
+    kpis: np.ndarray
+    seeds: np.ndarray
+    conditions: np.ndarray
+    stages: np.ndarray
+    task_ids: np.ndarray
+    param_names: tuple[str, ...]
+    kpi_names: tuple[str, ...]
+
+
+def _check_name(name, what: str, source: str) -> str:
+    if not isinstance(name, str) or not name:
+        raise out_of_range(what, name, "a non-empty str", source)
+    return name
+
+
+class CampaignStore:
+    """SQLite store of a calibration campaign; see the module docstring for the contract.
+
+    Args:
+        path: the database file (created with its parent directory if missing).
+        config_hash: hash of the campaign config; must match the one the store was created with.
+        code_version: recorded with every write; default ``default_code_version()``.
+        allow_config_mismatch: open a store created with another config hash anyway.
+        lease_seconds: age after which a claim of a live-looking owner counts as stale.
+        busy_timeout: seconds to wait for another process's write transaction.
+        extra_stages: stage names accepted besides ``STAGES`` and ``round-<n>``.
+    """
+
+    def __init__(self, path: str | os.PathLike, config_hash: str, code_version: str | None = None,
+                 *, allow_config_mismatch: bool = False, lease_seconds: float = 900.0,
+                 busy_timeout: float = 60.0, extra_stages: Iterable[str] = ()):
+        source = "CampaignStore"
+        if not isinstance(path, (str, os.PathLike)) or str(path) in ("", ":memory:"):
+            raise out_of_range("path", path, "a database file path (not ':memory:')", source)
+        self.path = Path(path)
+        self.config_hash = _check_name(config_hash, "config_hash", source)
+        self.code_version = (default_code_version() if code_version is None
+                             else _check_name(code_version, "code_version", source))
+        for name, value in (("lease_seconds", lease_seconds), ("busy_timeout", busy_timeout)):
+            if isinstance(value, bool) or not isinstance(value, Real) or not value > 0 \
+                    or not math.isfinite(value):
+                raise out_of_range(name, value, "a finite number of seconds > 0", source)
+        self.lease_seconds = float(lease_seconds)
+        self.busy_timeout = float(busy_timeout)
+        self.extra_stages = tuple(_check_name(s, "extra_stages entry", source) for s in extra_stages)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._init_db()
+        self.stored_config_hash = self._meta("config_hash")
+        if self.stored_config_hash != self.config_hash and not allow_config_mismatch:
+            raise ConfigError(
+                f"{self.path}: campaign store was created with config hash "
+                f"{self.stored_config_hash!r} but this run has config hash {self.config_hash!r}; "
+                "use a new store path for the new config, or pass allow_config_mismatch=True to "
+                "continue this campaign anyway")
+
+    # -- connections -------------------------------------------------------------------------
+
+    def _connect(self) -> sqlite3.Connection:
+        conn = sqlite3.connect(self.path, timeout=self.busy_timeout, isolation_level=None)
+        conn.execute(f"PRAGMA busy_timeout = {int(self.busy_timeout * 1000)}")
+        conn.execute("PRAGMA synchronous = FULL")
+        conn.execute("PRAGMA foreign_keys = ON")
+        return conn
+
+    @contextmanager
+    def _write(self):
+        """One IMMEDIATE transaction: the write lock is taken at BEGIN, so reads inside it
+        see the state no other writer can change until COMMIT."""
+        conn = self._connect()
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            yield conn
+            conn.execute("COMMIT")
+        except BaseException:
+            if conn.in_transaction:
+                conn.execute("ROLLBACK")
+            raise
+        finally:
+            conn.close()
+
+    def _init_db(self) -> None:
+        try:
+            conn = self._connect()
+        except sqlite3.DatabaseError as exc:
+            raise ConfigError(f"{self.path}: not a usable SQLite database ({exc})") from exc
+        try:
+            deadline = time.monotonic() + self.busy_timeout
+            while True:  # switching to WAL needs a moment without other writers
+                try:
+                    mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+                    break
+                except sqlite3.OperationalError:
+                    if time.monotonic() > deadline:
+                        raise
+                    time.sleep(0.05)
+            if mode.lower() != "wal":
+                raise ConfigError(f"{self.path}: SQLite refused WAL journal mode (got {mode!r}); "
+                                  "put the campaign store on a local file system")
+        except sqlite3.DatabaseError as exc:
+            raise ConfigError(f"{self.path}: not a usable SQLite database ({exc})") from exc
+        finally:
+            conn.close()
+        with self._write() as conn:
+            for statement in _SCHEMA.split(";"):  # not executescript: it would COMMIT early
+                if statement.strip():
+                    conn.execute(statement)
+            now = time.time()
+            for key, value in (("schema_version", str(SCHEMA_VERSION)),
+                               ("config_hash", self.config_hash),
+                               ("created_at", repr(now)),
+                               ("created_by_code_version", self.code_version)):
+                conn.execute("INSERT OR IGNORE INTO meta (key, value) VALUES (?, ?)", (key, value))
+            stored = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0]
+        if stored != str(SCHEMA_VERSION):
+            raise ConfigError(f"{self.path}: campaign store schema version {stored} is not the "
+                              f"supported version {SCHEMA_VERSION}")
+
+    def _meta(self, key: str) -> str | None:
+        conn = self._connect()
+        try:
+            row = conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        finally:
+            conn.close()
+        return None if row is None else row[0]
+
+    # -- validation --------------------------------------------------------------------------
+
+    @property
+    def renew_period(self) -> float:
+        """How often a worker renews its leases (a third of ``lease_seconds``)."""
+        return self.lease_seconds / 3.0
+
+    def check_stage(self, stage, source: str = "CampaignStore") -> str:
+        """Return ``stage`` if it is an accepted stage name, else raise ``ConfigError``."""
+        if isinstance(stage, str) and (stage in STAGES or stage in self.extra_stages
+                                       or _ROUND.fullmatch(stage)):
+            return stage
+        allowed = ", ".join(repr(s) for s in STAGES + self.extra_stages)
+        raise out_of_range("stage", stage, f"one of {allowed} or 'round-<n>' with n >= 1 "
+                           "(more via CampaignStore(extra_stages=...))", source)
+
+    # -- batches -----------------------------------------------------------------------------
+
+    def batch(self, stage: str, key: str, make_points: Callable[[], Sequence[Mapping[str, float]]],
+              *, seeds: Sequence[int], conditions: Sequence[str]) -> list[dict[str, float]]:
+        """Points of batch ``(stage, key)``: the stored ones, else ``make_points()`` stored.
+
+        New points are stored with one pending task per point x seed x condition. Every point
+        must have the same parameter names and finite values.
+        """
+        source = f"CampaignStore.batch({stage!r}, {key!r})"
+        self.check_stage(stage, source)
+        _check_name(key, "batch key", source)
+        seeds = self._check_seeds(seeds, source)
+        conditions = self._check_conditions(conditions, source)
+        stored = self._stored_batch(stage, key)
+        if stored is None:
+            points = self._check_points(make_points(), f"{source}: make_points()")
+            with self._write() as conn:
+                stored = self._stored_batch(stage, key, conn)  # another process may have won
+                if stored is None:
+                    self._insert_batch(conn, stage, key, points, seeds, conditions)
+                    return [dict(p) for p in points]
+        points, stored_seeds, stored_conditions = stored
+        if stored_seeds != seeds or stored_conditions != conditions:
+            raise ConfigError(
+                f"{self.path}: {source} is stored with seeds={stored_seeds} and "
+                f"conditions={stored_conditions}, but seeds={seeds} and conditions={conditions} "
+                "were asked for; use a new batch key for a different design")
+        return points
+
+    def _stored_batch(self, stage: str, key: str, conn: sqlite3.Connection | None = None):
+        own = conn is None
+        conn = self._connect() if own else conn
+        try:
+            row = conn.execute("SELECT points, seeds, conditions FROM batches "
+                               "WHERE stage = ? AND batch_key = ?", (stage, key)).fetchone()
+        finally:
+            if own:
+                conn.close()
+        if row is None:
+            return None
+        return json.loads(row[0]), json.loads(row[1]), json.loads(row[2])
+
+    def _insert_batch(self, conn, stage, key, points, seeds, conditions) -> None:
+        now = time.time()
+        conn.execute("INSERT INTO batches (stage, batch_key, points, seeds, conditions, config_hash, "
+                     "code_version, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                     (stage, key, json.dumps(points, separators=(",", ":"), allow_nan=False),
+                      _dumps(seeds), _dumps(conditions), self.config_hash, self.code_version, now))
+        conn.executemany(
+            "INSERT INTO evaluations (stage, batch_key, point_index, params, seed, condition, "
+            "config_hash, status, code_version, created_at) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?)",
+            [(stage, key, i, _dumps(point), seed, condition, self.config_hash, self.code_version, now)
+             for condition in conditions for i, point in enumerate(points) for seed in seeds])
+
+    @staticmethod
+    def _check_seeds(seeds, source: str) -> list[int]:
+        if isinstance(seeds, (str, bytes)) or not isinstance(seeds, Iterable):
+            raise out_of_range("seeds", seeds, "a non-empty sequence of distinct ints", source)
+        seeds = list(seeds)
+        if not seeds or any(isinstance(s, bool) or not isinstance(s, Integral) for s in seeds) \
+                or len(set(seeds)) != len(seeds):
+            raise out_of_range("seeds", seeds, "a non-empty sequence of distinct ints", source)
+        return [int(s) for s in seeds]
+
+    @staticmethod
+    def _check_conditions(conditions, source: str) -> list[str]:
+        allowed = "a non-empty sequence of distinct non-empty str, e.g. ['50-50']"
+        if isinstance(conditions, (str, bytes)) or not isinstance(conditions, Iterable):
+            raise out_of_range("conditions", conditions, allowed, source)
+        conditions = list(conditions)
+        if not conditions or any(not isinstance(c, str) or not c for c in conditions) \
+                or len(set(conditions)) != len(conditions):
+            raise out_of_range("conditions", conditions, allowed, source)
+        return conditions
+
+    @staticmethod
+    def _check_points(points, source: str) -> list[dict[str, float]]:
+        if isinstance(points, (str, bytes, Mapping)) or not isinstance(points, Iterable):
+            raise out_of_range("points", points, "a sequence of parameter dicts", source)
+        out = [canonical_params(p, f"{source} point {i}") for i, p in enumerate(points)]
+        for i, point in enumerate(out[1:], start=1):
+            if point.keys() != out[0].keys():
+                raise out_of_range(f"point {i} parameter names", sorted(point),
+                                   f"the names of point 0, {sorted(out[0])}", source)
+        return out
+
+    # -- claiming and recording --------------------------------------------------------------
+
+    def claim(self, limit: int, stage: str | None = None, batch_size: int = 1) -> list[EvalTask]:
+        """Lease up to ``limit`` claimable tasks to this process, grouped by condition: the
+        claimable tasks of the condition of the oldest one first, then those of the condition of
+        the oldest remaining one, and so on (task order kept within a condition). A later
+        condition contributes whole batches of ``batch_size`` (or all its tasks, if they fit), so
+        every claim splits into single-condition batches no smaller than a condition's last one,
+        and when one condition has fewer tasks than the executor's workers can take, the other
+        conditions' tasks keep them busy."""
+        if isinstance(limit, bool) or not isinstance(limit, Integral) or limit < 1:
+            raise out_of_range("limit", limit, "an int >= 1", "CampaignStore.claim")
+        if isinstance(batch_size, bool) or not isinstance(batch_size, Integral) or batch_size < 1:
+            raise out_of_range("batch_size", batch_size, "an int >= 1", "CampaignStore.claim")
+        where_stage, args = ("", []) if stage is None else (" AND stage = ?", [self.check_stage(stage)])
+        owner, now = _owner(), time.time()
+        with self._write() as conn:
+            owners = [row[0] for row in conn.execute(
+                "SELECT DISTINCT claimed_by FROM evaluations WHERE status = 'running'" + where_stage,
+                args)]
+            gone = [o for o in owners if _owner_is_gone(o)]
+            marks = ", ".join("?" * len(gone))
+            stale = f" OR claimed_by IN ({marks})" if gone else ""
+            claimable = ("FROM evaluations WHERE (status = 'pending' OR (status = 'running' AND "
+                         f"(claimed_at < ?{stale})))" + where_stage)
+            claimable_args = [now - self.lease_seconds, *gone, *args]
+            by_condition: dict[str, list] = {}
+            for row in conn.execute("SELECT task_id, params, seed, condition " + claimable + " ORDER BY task_id",
+                                    claimable_args):
+                by_condition.setdefault(row[3], []).append(row)
+            rows: list = []
+            for group in by_condition.values():
+                room = int(limit) - len(rows)
+                if room <= 0:
+                    break
+                take = len(group) if len(group) <= room else (room if not rows else room - room % batch_size)
+                rows += group[:take]
+            conn.executemany(
+                "UPDATE evaluations SET status = 'running', claimed_by = ?, claimed_at = ?, "
+                "attempts = attempts + 1 WHERE task_id = ?", [(owner, now, r[0]) for r in rows])
+        return [EvalTask(json.loads(params), seed, condition, task_id)
+                for task_id, params, seed, condition in rows]
+
+    def record(self, finished: Iterable[tuple[EvalTask, EvalOutcome]]) -> int:
+        """Write outcomes in one transaction; returns how many rows were written.
+
+        Rows already ``done``/``failed`` are left alone (a task re-claimed after a stale
+        lease is stored once). Raises ``ConfigError`` if a task does not match its row.
+        """
+        finished = list(finished)
+        owner, now, written = _owner(), time.time(), 0
+        with self._write() as conn:
+            for task, outcome in finished:
+                if not isinstance(task, EvalTask) or not isinstance(outcome, EvalOutcome):
+                    raise out_of_range("finished item", (task, outcome),
+                                       "(EvalTask, EvalOutcome) pairs", "CampaignStore.record")
+                row = conn.execute("SELECT params, seed, condition, status FROM evaluations "
+                                   "WHERE task_id = ?", (task.task_id,)).fetchone()
+                if row is None or (json.loads(row[0]), row[1], row[2]) != \
+                        (task.params, task.seed, task.condition):
+                    raise ConfigError(f"{self.path}: task {task} does not match store row "
+                                      f"{task.task_id} ({row and row[:3]}); tasks must come "
+                                      "from claim() of this store")
+                if row[3] in ("done", "failed"):
+                    continue
+                conn.execute(
+                    "UPDATE evaluations SET status = ?, kpis = ?, error = ?, wall_time = ?, "
+                    "code_version = ?, config_hash = ?, claimed_by = ?, finished_at = ? "
+                    "WHERE task_id = ?",
+                    ("done" if outcome.ok else "failed",
+                     None if outcome.kpis is None else _kpis_json(outcome.kpis), outcome.error,
+                     outcome.wall_time, self.code_version, self.config_hash, owner, now,
+                     task.task_id))
+                written += 1
+        return written
+
+    def _update_own_running(self, sql: str, task_ids: Iterable[int], first: tuple = ()) -> int:
+        ids = [int(i) for i in task_ids]
+        if not ids:
+            return 0
+        with self._write() as conn:
+            cur = conn.executemany(
+                sql + " WHERE task_id = ? AND status = 'running' AND claimed_by = ?",
+                [(*first, i, _owner()) for i in ids])
+            return cur.rowcount
+
+    def renew(self, task_ids: Iterable[int]) -> int:
+        """Refresh this process's leases on ``task_ids``; returns how many were renewed."""
+        return self._update_own_running("UPDATE evaluations SET claimed_at = ?", task_ids,
+                                        (time.time(),))
+
+    def release(self, task_ids: Iterable[int]) -> int:
+        """Give this process's unfinished claims on ``task_ids`` back (status ``pending``)."""
+        return self._update_own_running(
+            "UPDATE evaluations SET status = 'pending', claimed_by = NULL, claimed_at = NULL",
+            task_ids)
+
+    def reset_failed(self, stage: str | None = None) -> int:
+        """Put failed tasks (of ``stage``, or all) back to pending; returns how many."""
+        where_stage, args = ("", []) if stage is None else (" AND stage = ?", [self.check_stage(stage)])
+        with self._write() as conn:
+            return conn.execute(
+                "UPDATE evaluations SET status = 'pending', error = NULL, kpis = NULL, "
+                "wall_time = NULL, finished_at = NULL, claimed_by = NULL, claimed_at = NULL "
+                "WHERE status = 'failed'" + where_stage, args).rowcount
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def counts(self, stage: str | None = None) -> dict[str, int]:
+        """Number of tasks per status (all four statuses present)."""
+        where_stage, args = ("", []) if stage is None else (" WHERE stage = ?", [self.check_stage(stage)])
+        out = dict.fromkeys(STATUSES, 0)
+        conn = self._connect()
+        try:
+            for status, n in conn.execute(
+                    "SELECT status, COUNT(*) FROM evaluations" + where_stage + " GROUP BY status", args):
+                out[status] = n
+        finally:
+            conn.close()
+        return out
+
+    def records(self, stage: str | None = None, *, batch_key: str | None = None,
+                condition: str | None = None, status: str | None = None) -> list[EvaluationRecord]:
+        """Evaluation rows matching all given filters, in task id order."""
+        clauses, args = [], []
+        if stage is not None:
+            clauses.append("stage = ?")
+            args.append(self.check_stage(stage, "CampaignStore.records"))
+        if status is not None:
+            if status not in STATUSES:
+                raise out_of_range("status", status, f"one of {STATUSES}", "CampaignStore.records")
+            clauses.append("status = ?")
+            args.append(status)
+        for column, value in (("batch_key", batch_key), ("condition", condition)):
+            if value is not None:
+                clauses.append(f"{column} = ?")
+                args.append(value)
+        where = (" WHERE " + " AND ".join(clauses)) if clauses else ""
+        conn = self._connect()
+        try:
+            rows = conn.execute(
+                "SELECT task_id, stage, batch_key, point_index, params, seed, condition, "
+                "config_hash, status, kpis, error, wall_time, code_version, created_at, "
+                "claimed_by, claimed_at, finished_at, attempts FROM evaluations" + where +
+                " ORDER BY task_id", args).fetchall()
+        finally:
+            conn.close()
+        return [EvaluationRecord(r[0], r[1], r[2], r[3], json.loads(r[4]), r[5], r[6], r[7], r[8],
+                                 _kpis_from_json(r[9]), *r[10:]) for r in rows]
+
+    def arrays(self, stage: str | None = None, *, batch_key: str | None = None,
+               condition: str | None = None, param_names: Sequence[str] | None = None,
+               kpi_names: Sequence[str] | None = None) -> ResultArrays:
+        """Done evaluations as arrays (see ``ResultArrays``); columns default to sorted names."""
+        recs = self.records(stage, batch_key=batch_key, condition=condition, status="done")
+        if param_names is None:
+            param_names = sorted({n for r in recs for n in r.params})
+        if kpi_names is None:
+            kpi_names = sorted({n for r in recs for n in r.kpis})
+        X = np.array([[r.params.get(n, math.nan) for n in param_names] for r in recs],
+                     dtype=np.float64).reshape(len(recs), len(param_names))
+        Y = np.array([[r.kpis.get(n, math.nan) for n in kpi_names] for r in recs],
+                     dtype=np.float64).reshape(len(recs), len(kpi_names))
+        return ResultArrays(
+            X=X, kpis=Y,
+            seeds=np.array([r.seed for r in recs], dtype=np.int64),
+            conditions=np.array([r.condition for r in recs], dtype=str),
+            stages=np.array([r.stage for r in recs], dtype=str),
+            task_ids=np.array([r.task_id for r in recs], dtype=np.int64),
+            param_names=tuple(param_names), kpi_names=tuple(kpi_names))
+
+    def batch_keys(self, stage: str | None = None) -> list[tuple[str, str]]:
+        """``(stage, key)`` of every stored batch, oldest first."""
+        where_stage, args = ("", []) if stage is None else (" WHERE stage = ?", [self.check_stage(stage)])
+        conn = self._connect()
+        try:
+            return [tuple(r) for r in conn.execute(
+                "SELECT stage, batch_key FROM batches" + where_stage + " ORDER BY created_at, rowid",
+                args)]
+        finally:
+            conn.close()
+
+    # -- artifacts ---------------------------------------------------------------------------
+
+    def put_artifact(self, name: str, value) -> None:
+        """Store (or replace) a JSON-able stage output under ``name`` (strict JSON, no NaN)."""
+        _check_name(name, "artifact name", "CampaignStore.put_artifact")
+        try:
+            text = _dumps(value)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{self.path}: artifact {name!r} is not strict JSON ({exc}); convert "
+                              "arrays with .tolist() and non-finite floats to None") from exc
+        with self._write() as conn:
+            conn.execute("INSERT OR REPLACE INTO artifacts (name, value, config_hash, code_version, "
+                         "updated_at) VALUES (?, ?, ?, ?, ?)",
+                         (name, text, self.config_hash, self.code_version, time.time()))
+
+    def get_artifact(self, name: str, default=_MISSING):
+        """The artifact stored under ``name``; ``default`` if absent, or ``KeyError`` if no default."""
+        conn = self._connect()
+        try:
+            row = conn.execute("SELECT value FROM artifacts WHERE name = ?", (name,)).fetchone()
+        finally:
+            conn.close()
+        if row is not None:
+            return json.loads(row[0])
+        if default is not _MISSING:
+            return default
+        raise KeyError(f"{self.path}: no artifact {name!r}; stored: {self.artifact_names()}")
+
+    def artifact_names(self) -> list[str]:
+        conn = self._connect()
+        try:
+            return [r[0] for r in conn.execute("SELECT name FROM artifacts ORDER BY name")]
+        finally:
+            conn.close()
+
+    def integrity_check(self) -> str:
+        """``PRAGMA integrity_check`` of the file: ``"ok"`` when intact."""
+        conn = self._connect()
+        try:
+            return "; ".join(r[0] for r in conn.execute("PRAGMA integrity_check"))
+        finally:
+            conn.close()
+
+    def __repr__(self) -> str:
+        return f"CampaignStore({str(self.path)!r}, config_hash={self.config_hash!r})"

@@ -1,0 +1,222 @@
+"""``torchdem-calibrate``: screening -> surrogate -> GA -> verification -> bulk density ->
+validation as one resumable campaign (Hadi et al. sections 3.3-3.7).
+
+Usage::
+
+    torchdem-calibrate                                    # profile=cpu (what `make run` runs)
+    torchdem-calibrate profile=smoke                      # the whole pipeline in under 3 minutes
+    torchdem-calibrate store=/tmp/cal.sqlite              # rerun with the same store: resumes
+    torchdem-calibrate profile=paper sim=gpu store=paper.sqlite
+    torchdem-calibrate surrogate.strategy=per_kpi surrogate.budget=80 measured=my_lab.json
+
+Writes to the Hydra run directory: ``report.md``, ``calibration.json``, the figures, and the
+screening's own report in ``screening/`` (``bo.calibration.report``). Every DEM evaluation goes
+through the SQLite store (``store``, default ``campaign.sqlite`` in the run directory), so a
+killed campaign started again with the same ``store=`` loses nothing and repeats no DEM run.
+
+``main()`` only turns the config into typed objects (``calibration_settings_from``, and the
+helpers shared with ``torchdem-screen``) and calls ``bo.calibration.pipeline.run_calibration``; config
+errors are raised before the store is opened or any DEM run starts, naming the key and the
+allowed range.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import hydra
+from omegaconf import DictConfig
+
+from bo.cli.common import (MODEL_KEYS, _int, check_kpis, config_hash, executor_from, executor_settings_from, plain_config,
+                           replicate_seeds, screen_settings_from, store_path_from)
+from torchdem.cli import CONF_DIR, one_line_errors
+from torchdem.errors import ConfigError, out_of_range
+
+
+def _seeds(block: Mapping[str, Any], where: str, base: int) -> tuple[int, ...]:
+    n = _int(block.get("replicates"), "replicates", where, 1, "an int >= 1")
+    return tuple(base + k for k in range(n))
+
+
+def _floats(value, key: str, where: str, allowed: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise out_of_range(key, value, allowed, where) from None
+    if not all(math.isfinite(v) for v in out):
+        raise out_of_range(key, value, allowed, where)
+    return out
+
+
+def _wrap(where: str, build):
+    """Build a typed settings object; its ConfigError names the config block."""
+    try:
+        return build()
+    except ConfigError as exc:
+        raise ConfigError(f"config {where}: {exc}") from None
+    except TypeError as exc:
+        raise ConfigError(f"config {where}: {exc}") from None
+
+
+def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
+    from bo.surrogate.acquisition import AcquisitionSettings, AdaptiveSettings
+    from bo.calibration.pipeline import SurrogateStageSettings
+    from bo.surrogate.gp import KERNELS, STRATEGIES, SurrogateConfig
+
+    where = "surrogate"
+    if not isinstance(cfg, Mapping):
+        raise ConfigError("config: 'surrogate' block is missing")
+    names = cfg.get("parameters")
+    if names is not None:
+        if isinstance(names, (str, bytes)) or not isinstance(names, (list, tuple)) or not names \
+                or len(set(names)) != len(names):
+            raise out_of_range("parameters", names, "a list of distinct parameter names or null (Table 5's)", where)
+        names = tuple(str(n) for n in names)
+    bounds = cfg.get("bounds")
+    if bounds is not None:
+        if not isinstance(bounds, Mapping) or not bounds:
+            raise out_of_range("bounds", bounds, "a mapping name -> [low, high] or null (Table 6 proposal)", where)
+        checked = {}
+        for n, b in bounds.items():
+            lo_hi = _floats(b, f"bounds.{n}", where, "[low, high] with low < high")
+            if len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
+                raise out_of_range(f"bounds.{n}", list(b), "[low, high] with low < high", where)
+            checked[str(n)] = lo_hi
+        bounds = checked
+        if names is not None and [n for n in names if n not in bounds]:
+            raise out_of_range("bounds", dict(bounds), f"bounds for every parameter {list(names)}", where)
+    strategy = cfg.get("strategy")
+    if strategy not in STRATEGIES:
+        raise out_of_range("strategy", strategy, f"one of {list(STRATEGIES)}", where)
+    kernels = cfg.get("kernels")
+    if isinstance(kernels, str):
+        kernels = [kernels]
+    if not isinstance(kernels, (list, tuple)) or not kernels or [k for k in kernels if k not in KERNELS]:
+        raise out_of_range("kernels", kernels, f"a non-empty list from {list(KERNELS)}", where)
+    acq = cfg.get("acquisition") or {}
+    acquisition = _wrap(f"{where}.acquisition", lambda: AcquisitionSettings(**acq))
+    adaptive = _wrap(where, lambda: AdaptiveSettings(
+        budget=cfg.get("budget"), points_per_parameter=cfg.get("points_per_parameter"), q=cfg.get("q"),
+        target_r2=cfg.get("target_r2"), n_folds=cfg.get("n_folds"), cv_seeds=tuple(cfg.get("cv_seeds") or ()),
+        kernels=tuple(kernels), seed=base_seed, acquisition=acquisition))
+    if names is not None:
+        _wrap(where, lambda: adaptive.initial_size(len(names)))  # budget vs initial design, up front
+    config = _wrap(where, lambda: SurrogateConfig(kernel=kernels[0], strategy=strategy))
+    return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=_seeds(cfg, where, base_seed),
+                                  adaptive=adaptive, config=config,
+                                  compare_strategies=bool(cfg.get("compare_strategies")))
+
+
+def calibration_settings_from(plain: Mapping[str, Any]):
+    """Checked ``bo.calibration.pipeline.CalibrationSettings``; every error names the key and the allowed range."""
+    from bo.calibration.pipeline import CalibrationSettings
+    from bo.surrogate.ga import GASettings
+
+    screening = screen_settings_from(plain)
+    base = replicate_seeds(plain)[0]
+    obj = plain.get("objective") or {}
+    kpis = obj.get("kpis")
+    kpis = None if kpis is None else check_kpis(kpis, "objective")
+    weights = obj.get("weights")
+    if weights is not None:
+        if not isinstance(weights, Mapping) or not weights:
+            raise out_of_range("weights", weights, "a mapping KPI -> weight summing to 1, or null (equal)",
+                               "objective")
+        if kpis is None or set(weights) != set(kpis):
+            raise out_of_range("weights", dict(weights), f"one weight for each KPI of objective.kpis ({kpis})",
+                               "objective")
+        w = _floats(weights.values(), "weights", "objective", "weights >= 0 summing to 1")
+        if any(x < 0 for x in w) or abs(math.fsum(w) - 1.0) > 1e-9:
+            raise out_of_range("weights", dict(weights), f"weights >= 0 summing to 1 (they sum to {math.fsum(w)!r})",
+                               "objective")
+        weights = dict(zip(weights, w))
+    ga_cfg = dict(plain.get("ga") or {})
+    reps = _int(ga_cfg.pop("repetitions", None), "repetitions", "ga", 1, "an int >= 1 (surrogate trainings)")
+    mode = ga_cfg.pop("mode", None)
+    if mode not in ("restricted", "unrestricted"):
+        raise out_of_range("mode", mode, "'restricted' or 'unrestricted'", "ga")
+    ga = _wrap("ga", lambda: GASettings(**ga_cfg))
+    ver = plain.get("verification") or {}
+    val = plain.get("validation") or {}
+    conditions = val.get("conditions")
+    if conditions is not None:
+        if isinstance(conditions, (str, bytes)) or not isinstance(conditions, (list, tuple)):
+            raise out_of_range("conditions", conditions, "a list of measured condition names or null (all others)",
+                               "validation")
+        conditions = tuple(str(c) for c in conditions)
+    settings = CalibrationSettings(
+        condition=str(plain.get("condition")), screening=screening, objective_kpis=kpis, weights=weights,
+        surrogate=surrogate_settings_from(plain.get("surrogate"), base), ga=ga, ga_repetitions=reps, ga_mode=mode,
+        verification_seeds=_seeds(ver, "verification", base),
+        density_recalibration=bool((plain.get("density") or {}).get("recalibrate", True)),
+        validation_conditions=conditions, validation_seeds=_seeds(val, "validation", base),
+        validate_with_density=bool(val.get("with_density", True)), seed=base)
+    return _wrap("", settings.validate)
+
+
+def calibration_model_from(plain: Mapping[str, Any], measured):
+    """``torchdem.model.DrawDownModel`` with every measured condition's mixture built from the config's
+    materials and fill mass (fractions and layering from the measured data)."""
+    from torchdem import config
+    from torchdem.cli import device_from
+    from torchdem.mechanisms import with_extension
+    from torchdem.model import DrawDownModel, mixtures_from_measured
+
+    mixture = config.mixture_from(plain["mixture"])
+    conditions = mixtures_from_measured(measured, {m.name: m for m in mixture.materials},
+                                        total_mass=mixture.total_mass,
+                                        layers_source=f"measured data ({plain.get('measured') or 'shipped Table 2'})")
+    device = device_from(str(plain["sim"]["device"]), "sim.device")
+    model = with_extension(DrawDownModel(conditions=conditions, geometry=config.geometry_from(plain["geometry"]),
+                                         settings=config.run_settings_from(plain["sim"], plain["run"]),
+                                         fixed=config.contact_from(plain["contact"]), device=str(device)),
+                           *config.extension_from(plain.get("extension")))
+    return model, {m.name: m.density for m in mixture.materials}
+
+
+def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
+    """The whole app on a plain config: check, run (resume), report. Returns a summary."""
+    from bo.calibration.pipeline import EXTRA_STAGES, run_calibration, validation_conditions
+    from bo.calibration.report import write_calibration_report
+    from bo.campaign.store import CampaignStore
+    from torchdem.measured import load_measured
+
+    settings = calibration_settings_from(plain)
+    executor_settings = executor_settings_from(plain.get("executor") or {})
+    measured = load_measured(plain.get("measured"))
+    validation_conditions(settings, measured)
+    model, densities = calibration_model_from(plain, measured)
+    path = store_path_from(plain, out)
+    # the measured data decide the conditions' mixtures, so they are part of the model
+    store = CampaignStore(path, config_hash(plain, MODEL_KEYS + ("measured",)),
+                          allow_config_mismatch=bool(plain.get("allow_config_mismatch")), extra_stages=EXTRA_STAGES)
+    started = time.perf_counter()
+    echo(f"torchdem-calibrate: store {path}, output {out}")
+    with executor_from(executor_settings, model) as executor:
+        result = run_calibration(store, executor, settings, measured, out, densities, echo=echo)
+    files = write_calibration_report(result, out)
+    wall = time.perf_counter() - started
+    echo(f"calibrated: " + ", ".join(f"{k} = {v:.4g}" for k, v in result.final_parameters.items()))
+    for a in result.verification:
+        echo(f"  verification {a.kpi:28s} DEM {a.dem_mean:.4g} vs lab {a.measured_mean:.4g}: "
+             f"{a.relative_error_pct:+.2f} %")
+    echo(f"DEM evaluations {result.evaluations['total']}; wall {wall:.1f} s; wrote "
+         f"{', '.join(sorted(p.name for p in files.values()))} to {out}")
+    return {"store": str(path), "out_dir": str(out), "wall_time_s": round(wall, 2),
+            "dem_evaluations": dict(result.evaluations), "files": {k: str(v) for k, v in files.items()},
+            "calibrated_parameters": dict(result.final_parameters)}
+
+
+@hydra.main(config_path=CONF_DIR, config_name="calibrate", version_base="1.3")
+@one_line_errors("torchdem-calibrate")
+def main(cfg: DictConfig) -> None:
+    """Screening -> surrogate -> GA -> verification -> density -> validation."""
+    from hydra.core.hydra_config import HydraConfig
+
+    calibrate(plain_config(cfg), Path(HydraConfig.get().runtime.output_dir))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

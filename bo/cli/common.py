@@ -1,0 +1,217 @@
+"""What the campaign commands (screen, study, calibrate, discover) share: typed settings from the
+plain config (executor, seeds, KPIs, screening design), the model of a one-condition config, the
+store's config hash and path. Every bad value raises ``ConfigError`` naming its key.
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+from omegaconf import DictConfig, OmegaConf
+
+from torchdem.errors import ConfigError, out_of_range
+
+#: Config blocks that decide DEM results; the store's config hash covers exactly these.
+MODEL_KEYS = ("sim", "geometry", "mixture", "contact", "run", "condition", "extension")
+
+
+# --------------------------------------------------------------------------------------------
+# Typed settings from the plain config (shared with bo.cli.study)
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ExecutorSettings:
+    """``conf/executor``: kind ``inprocess`` | ``dask``, ensemble size, dask options."""
+
+    kind: str
+    batch_size: int
+    n_workers: int | None = None
+    address: str | None = None
+    max_in_flight: int | None = None
+
+
+def _int(value, key: str, where: str, low: int, allowed: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise out_of_range(key, value, allowed, where)
+    return int(value)
+
+
+def _fraction(value, key: str, where: str, allowed: str, include_one: bool = False) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise out_of_range(key, value, allowed, where) from None
+    if not (0.0 < x < 1.0 or (include_one and x == 1.0)):
+        raise out_of_range(key, value, allowed, where)
+    return x
+
+
+def executor_settings_from(cfg: Mapping[str, Any], where: str = "executor") -> ExecutorSettings:
+    kind = cfg.get("kind")
+    if kind not in ("inprocess", "dask"):
+        raise out_of_range("kind", kind, "'inprocess' or 'dask' (executor=inprocess|dask)", where)
+    opt = lambda key: None if cfg.get(key) is None else _int(cfg[key], key, where, 1, "an int >= 1 or null")  # noqa: E731
+    return ExecutorSettings(kind=kind, batch_size=_int(cfg.get("batch_size"), "batch_size", where, 1,
+                                                       "an int >= 1 (ensemble members per DEM batch)"),
+                            n_workers=opt("n_workers"), max_in_flight=opt("max_in_flight"),
+                            address=None if cfg.get("address") is None else str(cfg["address"]))
+
+
+def replicate_seeds(plain: Mapping[str, Any]) -> list[int]:
+    """``seed, seed + 1, ..., seed + replicates - 1`` from the top-level keys."""
+    replicates = _int(plain.get("replicates"), "replicates", "config", 1,
+                      "an int >= 1 (replicates of the design, the paper uses 5)")
+    seed = _int(plain.get("seed"), "seed", "config", 0, "an int >= 0 (seed of the first replicate)")
+    return [seed + k for k in range(replicates)]
+
+
+def check_kpis(kpis, where: str) -> tuple[str, ...]:
+    """KPI names the draw down test reports (``torchdem.drawdown.KPI_UNITS``)."""
+    from torchdem.drawdown import KPI_UNITS
+
+    if isinstance(kpis, (str, bytes)) or not isinstance(kpis, (list, tuple)) or not kpis:
+        raise out_of_range("kpis", kpis, f"a non-empty list of KPI names from {sorted(KPI_UNITS)}", where)
+    unknown = [k for k in kpis if k not in KPI_UNITS]
+    if unknown or len(set(kpis)) != len(kpis):
+        raise out_of_range("kpis", list(kpis), f"distinct KPI names from {sorted(KPI_UNITS)}"
+                           + (f" (unknown: {unknown})" if unknown else ""), where)
+    return tuple(kpis)
+
+
+def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> str:
+    """Hash of the result-deciding blocks (default ``MODEL_KEYS``) of the resolved config."""
+    part = {k: plain.get(k) for k in keys}
+    return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def measured_kpis_from(plain: Mapping[str, Any]):
+    """Measured KPIs of ``condition`` from ``measured`` (null: the paper's Table 2)."""
+    from torchdem.measured import load_measured
+
+    data = load_measured(plain.get("measured"))
+    condition = plain.get("condition")
+    if condition not in data.names:
+        raise out_of_range("condition", condition, f"a condition of the measured data {list(data.names)}",
+                           f"config (measured = {plain.get('measured') or 'shipped Table 2'})")
+    return data.condition(condition).kpis
+
+
+def model_from(plain: Mapping[str, Any]):
+    """``torchdem.model.DrawDownModel`` with the config's mixture as the one condition ``condition``."""
+    from torchdem import config
+    from torchdem.cli import device_from
+    from torchdem.mechanisms import with_extension
+    from torchdem.model import DrawDownModel
+
+    condition = plain.get("condition")
+    if not isinstance(condition, str) or not condition or "|" in condition:
+        raise out_of_range("condition", condition, "a condition name such as '50-50'", "config")
+    device = device_from(str(plain["sim"]["device"]), "sim.device")
+    return with_extension(DrawDownModel(conditions={condition: config.mixture_from(plain["mixture"])},
+                                        geometry=config.geometry_from(plain["geometry"]),
+                                        settings=config.run_settings_from(plain["sim"], plain["run"]),
+                                        fixed=config.contact_from(plain["contact"]), device=str(device)),
+                          *config.extension_from(plain.get("extension")))
+
+
+def executor_from(settings: ExecutorSettings, model):
+    """The executor running ``bo.campaign.dem.evaluate_batch`` on ``model``."""
+    from bo.campaign.dem import evaluate_batch
+    from bo.campaign.executor import DaskExecutor, InProcessExecutor
+
+    evaluate = functools.partial(evaluate_batch, model)
+    if settings.kind == "inprocess":
+        return InProcessExecutor(evaluate, settings.batch_size)
+    return DaskExecutor(evaluate, settings.batch_size, address=settings.address,
+                        n_workers=settings.n_workers, max_in_flight=settings.max_in_flight)
+
+
+def store_path_from(plain: Mapping[str, Any], out: Path) -> Path:
+    """``store`` if given, else ``campaign.sqlite`` in the run directory."""
+    store = plain.get("store")
+    return Path(store).expanduser().resolve() if store else out / "campaign.sqlite"
+
+
+def plain_config(cfg: DictConfig) -> dict:
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Screening settings
+# --------------------------------------------------------------------------------------------
+
+def parameter_table_from(cfg: Mapping[str, Any], where: str = "screening"):
+    """Table 4 restricted to ``parameters`` (null: all 12), levels overridable by ``levels``
+    (``{name: [low, mid, high]}``)."""
+    from bo.design.dsd import ParameterTable, paper_parameter_table
+
+    paper = paper_parameter_table()
+    names = cfg.get("parameters")
+    if names is None:
+        names = list(paper.names)
+    levels = cfg.get("levels") or {}
+    if isinstance(names, (str, bytes)) or not isinstance(names, (list, tuple)) or len(names) < 2:
+        raise out_of_range("parameters", names, f"a list of >= 2 names from {list(paper.names)} or null "
+                           "(all 12)", where)
+    if not isinstance(levels, Mapping):
+        raise out_of_range("levels", levels, "a mapping name -> [low, mid, high] or null (Table 4)", where)
+    unknown = [n for n in names if n not in paper.names and n not in levels]
+    if unknown:
+        raise out_of_range("parameters", list(names), f"names from Table 4 {list(paper.names)} (unknown: "
+                           f"{unknown}; give their levels in {where}.levels)", where)
+    if len(set(names)) != len(names):
+        raise out_of_range("parameters", list(names), "distinct parameter names", where)
+    stray = [n for n in levels if n not in names]
+    if stray:
+        raise out_of_range("levels", dict(levels), f"levels of parameters in {where}.parameters (not {stray})",
+                           where)
+    rows = []
+    for n in names:
+        if n in levels:
+            lv = levels[n]
+            if not isinstance(lv, (list, tuple)) or len(lv) != 3:
+                raise out_of_range(f"levels.{n}", lv, "[low, mid, high]", where)
+            rows.append((n, *lv))
+        else:
+            i = paper.names.index(n)
+            rows.append((n, paper.low[i], paper.mid[i], paper.high[i]))
+    src = f"{where}.parameters/levels (Table 4 unless given)"
+    return ParameterTable(names=tuple(r[0] for r in rows), low=tuple(r[1] for r in rows),
+                          mid=tuple(r[2] for r in rows), high=tuple(r[3] for r in rows), source=src)
+
+
+def screen_settings_from(plain: Mapping[str, Any]):
+    """Checked ``bo.screening.pipeline.ScreenSettings``; every error names the config key and the allowed range."""
+    from bo.design.dsd import conference_order
+    from bo.screening.pipeline import ScreenSettings
+
+    where = "screening"
+    cfg = plain.get(where)
+    if not isinstance(cfg, Mapping):
+        raise ConfigError(f"config: '{where}' block is missing")
+    seeds = replicate_seeds(plain)
+    table = parameter_table_from(cfg, where)
+    n_fake = _int(cfg.get("n_fake"), "n_fake", where, 0, "an int >= 0 (fake factors of the DSD)")
+    conference_order(table.k, n_fake)  # unsupported sizes fail here, with the allowed totals
+    mode = cfg.get("extension_mode")
+    if mode not in ("extend", "shift"):
+        raise out_of_range("extension_mode", mode, "'extend' or 'shift'", where)
+    try:
+        factor = float(cfg.get("extension_factor"))
+    except (TypeError, ValueError):
+        factor = float("nan")
+    if not factor > 0 or factor == float("inf"):
+        raise out_of_range("extension_factor", cfg.get("extension_factor"), "a number > 0", where)
+    return ScreenSettings(
+        table=table, n_fake=n_fake, seeds=tuple(seeds), condition=str(plain.get("condition")),
+        kpis=check_kpis(cfg.get("kpis"), where),
+        p_threshold=_fraction(cfg.get("p_threshold"), "p_threshold", where, "a p-value in (0, 1), e.g. 0.01"),
+        selection_fraction=_fraction(cfg.get("selection_fraction"), "selection_fraction", where,
+                                     "a fraction in (0, 1], e.g. 0.8", include_one=True),
+        stochastic_threshold=_fraction(cfg.get("stochastic_threshold"), "stochastic_threshold", where,
+                                       "a share in (0, 1), e.g. 0.5"),
+        extension_factor=factor, extension_mode=mode)

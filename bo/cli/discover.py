@@ -1,0 +1,161 @@
+"""``torchdem-discover``: what the calibrated model gets wrong, the likely cause, the gain of the
+extension (bo/discovery/pipeline.py), as a Hydra app.
+
+Usage::
+
+    torchdem-discover                                   # profile=cpu: the mini box against its twin data
+    torchdem-discover data=lab.json calibration=outputs/2026-11-23/12-00-00/calibration.json
+    torchdem-discover store=/tmp/discover.sqlite        # rerun with the same store: resumes
+
+Writes ``discovery.json``, ``discovery.md``, ``discrepancy.png`` and ``gain.png`` to the Hydra run
+directory (``bo.discovery.report``), and prints the override that makes the found mechanism part
+of any command's model (``extension=<name> extension.values.<p>=<v>``, conf/extension/).
+``main()`` only turns the config into typed objects and calls ``bo.discovery.pipeline.run_discovery``;
+config errors are raised before the store is opened or any DEM run starts.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import hydra
+from omegaconf import DictConfig
+
+from bo.cli.common import (MODEL_KEYS, _int, check_kpis, config_hash, executor_settings_from, plain_config,
+                           replicate_seeds, store_path_from)
+from torchdem.cli import CONF_DIR, one_line_errors
+from torchdem.errors import ConfigError, out_of_range
+
+
+def discovery_settings_from(plain: Mapping[str, Any]):
+    from bo.discovery.pipeline import DiscoverySettings
+    from bo.surrogate.ga import GASettings
+    from torchdem.mechanisms import registry
+
+    where = "discovery"
+    cfg = plain.get(where)
+    if not isinstance(cfg, Mapping):
+        raise ConfigError("config: 'discovery' block is missing")
+    base = replicate_seeds({**plain, "replicates": 1})[0]
+    seeds = tuple(base + k for k in range(_int(cfg.get("replicates"), "replicates", where, 2, "an int >= 2")))
+    fit = tuple(base + k for k in range(_int(cfg.get("fit_replicates"), "fit_replicates", where, 1, "an int >= 1")))
+    candidates = cfg.get("candidates")
+    if candidates is not None:
+        known = registry()
+        if isinstance(candidates, str) or not isinstance(candidates, (list, tuple)) \
+                or [c for c in candidates if c not in known]:
+            raise out_of_range("candidates", candidates, f"a list of mechanisms of torchdem/mechanisms/ {sorted(known)}, "
+                               "[] (the discrepancy only) or null (all)", where)
+        candidates = tuple(candidates)
+    refit = cfg.get("refit") or []
+    if isinstance(refit, str) or not isinstance(refit, (list, tuple)):
+        raise out_of_range("refit", refit, "a list of calibrated parameter names", where)
+    try:
+        ga = GASettings(**(cfg.get("ga") or {}))
+        settings = DiscoverySettings(
+            kpis=check_kpis(cfg.get("kpis"), where), seeds=seeds, fit_seeds=fit, candidates=candidates,
+            refit=tuple(refit), refit_fraction=float(cfg.get("refit_fraction")),
+            points_per_parameter=cfg.get("points_per_parameter"), min_points=cfg.get("min_points"),
+            alpha=float(cfg.get("alpha")), penalty=float(cfg.get("penalty")), margin=float(cfg.get("margin")),
+            always_score=bool(cfg.get("always_score")), ga=ga, kernel=str(cfg.get("kernel")), seed=base)
+        return settings.validate(where)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"config {where}: {exc}") from None
+
+
+PAPER_DATA = "hadi2025_pellet_sinter.json"
+
+
+def calibrated_from(plain: Mapping[str, Any], fixed: Mapping[str, float]) -> tuple[dict[str, float], str]:
+    """The calibrated parameters: ``calibration.json``'s ``calibrated_parameters`` over the
+    config's contact parameters, the paper's own calibrated set (``calibration=paper``: Table 8,
+    the mode it selected, from the shipped data file), or the contact parameters alone."""
+    path = plain.get("calibration")
+    if path is None:
+        return dict(fixed), "the config's contact parameters (no calibration= given)"
+    if path == "paper":
+        from torchdem.measured import shipped_file
+        table = json.loads(shipped_file(PAPER_DATA).read_text())["dem_reported"]["ga_calibration"]
+        values = table[table["selected"]]
+        return ({**fixed, **{k: float(v) for k, v in values.items()}},
+                f"the paper's calibrated set ({table['table']}, {table['selected']} GA, in {PAPER_DATA})")
+    try:
+        doc = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ConfigError(f"calibration = {path!r}: cannot read it ({exc.strerror})") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"calibration = {path!r}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    values = doc.get("calibrated_parameters") if isinstance(doc, dict) else None
+    if not isinstance(values, dict) or not values:
+        raise ConfigError(f"calibration = {path!r}: no 'calibrated_parameters' object (expected a calibration.json "
+                          "of torchdem-calibrate)")
+    return {**fixed, **{k: float(v) for k, v in values.items()}}, f"{path}"
+
+
+def extension_command(name: str | None, values: Mapping[str, float]) -> str | None:
+    """The Hydra overrides that switch mechanism ``name`` on at ``values`` in any command."""
+    if name is None:
+        return None
+    shipped = (Path(CONF_DIR) / "extension" / f"{name}.yaml").is_file()
+    head = f"extension={name}" if shipped else f"extension.name={name}"
+    plus = "" if shipped else "+"
+    return " ".join([head, *(f"{plus}extension.values.{k}={v:.6g}" for k, v in values.items())])
+
+
+def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
+    """The whole app on a plain config: check, run (resume), report. Returns a summary."""
+    from bo.cli.calibrate import calibration_model_from
+    from bo.cli.common import executor_from
+    from bo.discovery.pipeline import discovery_stages, run_discovery
+    from bo.discovery.report import write_discovery_report
+    from bo.campaign.store import CampaignStore
+    from torchdem.measured import load_measured
+
+    settings = discovery_settings_from(plain)
+    executor_settings = executor_settings_from(plain.get("executor") or {})
+    data = plain.get("data") if plain.get("data") is not None else plain.get("measured")
+    measured = load_measured(data)
+    subset = (plain.get("discovery") or {}).get("conditions")
+    if subset is not None:
+        if isinstance(subset, str) or not isinstance(subset, (list, tuple)):
+            raise out_of_range("conditions", subset, f"a list of conditions of the data {list(measured.names)}, "
+                               "or null (all)", "config discovery")
+        measured = measured.subset(subset, "config discovery")
+    model, _ = calibration_model_from({**plain, "measured": data}, measured)
+    calibrated, source = calibrated_from(plain, model.fixed)
+    path = store_path_from(plain, out)
+    # the store is for this data file and, when given, this choice of its conditions
+    hashed = {**plain, "measured": data if subset is None else [data, list(measured.names)]}
+    store = CampaignStore(path, config_hash(hashed, MODEL_KEYS + ("measured", "calibration")),
+                          allow_config_mismatch=bool(plain.get("allow_config_mismatch")),
+                          extra_stages=discovery_stages())
+    echo(f"torchdem-discover: {len(measured.names)} conditions of {measured.origin}; calibrated set from {source}; "
+         f"store {path}")
+    started = time.perf_counter()
+    result = run_discovery(store, functools.partial(executor_from, executor_settings), model, calibrated, measured,
+                           settings, echo=echo)
+    command = extension_command(result.cause, result.extension)
+    files = write_discovery_report(result, out, command)
+    wall = time.perf_counter() - started
+    if command:
+        echo(f"use it: torchdem-calibrate {command}")
+    echo(f"DEM evaluations {result.evaluations.get('total', 0)}; wall {wall:.1f} s; wrote "
+         f"{', '.join(sorted(p.name for p in files.values()))} to {out}")
+    return {"cause": result.cause, "store": str(path), "out_dir": str(out), "wall_time_s": round(wall, 2),
+            "files": {k: str(v) for k, v in files.items()}}
+
+
+@hydra.main(config_path=CONF_DIR, config_name="discover", version_base="1.3")
+@one_line_errors("torchdem-discover")
+def main(cfg: DictConfig) -> None:
+    """Discrepancy -> candidate causes -> extension -> gain."""
+    from hydra.core.hydra_config import HydraConfig
+
+    discover(plain_config(cfg), Path(HydraConfig.get().runtime.output_dir))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,153 @@
+"""``torchdem-study``: the time-step study (Hadi et al. section 3.2.4, Fig. 9) and the
+reduced-shear-modulus study as a Hydra app.
+
+Usage::
+
+    torchdem-study study=timestep                       # study_profile=mini: a few minutes
+    torchdem-study study=shear_modulus store=/tmp/study.sqlite
+    torchdem-study study=timestep study_profile=paper store=ts.sqlite   # 5 % .. 40 %, 5 replicates
+
+Config: ``conf/study.yaml``; the model is that of ``conf/simulate.yaml``, sized by
+``conf/study_profile/``. Every studied value is one store batch of a variant condition
+(``torchdem.model.variant``), so a rerun with the same ``store=PATH`` evaluates nothing that finished
+and adding a value runs only that value. Writes ``timestep.md``, ``timestep.json`` and
+``fig9_time_step.png`` or ``shear_modulus.md`` and ``shear_modulus.json`` to the Hydra run
+directory. ``main()`` only builds typed objects and calls ``bo.studies.pipeline``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import hydra
+from omegaconf import DictConfig
+
+from bo.cli.common import (check_kpis, config_hash, executor_from, executor_settings_from, model_from,
+                           plain_config, replicate_seeds, store_path_from)
+from torchdem.cli import CONF_DIR, one_line_errors
+from torchdem.errors import ConfigError, out_of_range
+
+STUDIES = ("timestep", "shear_modulus")
+
+
+@dataclass(frozen=True)
+class StudySettings:
+    """Checked settings of one study run."""
+
+    study: str
+    values: tuple[float, ...]
+    seeds: tuple[int, ...]
+    condition: str
+    kpis: tuple[str, ...]
+    deciding_kpis: tuple[str, ...] | None
+    relative_tolerance: float
+    std_growth_factor: float
+
+
+def _numbers(values, key: str, where: str, allowed: str) -> tuple[float, ...]:
+    if isinstance(values, (str, bytes)) or not isinstance(values, (list, tuple)):
+        raise out_of_range(key, values, allowed, where)
+    try:
+        return tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        raise out_of_range(key, values, allowed, where) from None
+
+
+def study_settings_from(plain: Mapping[str, Any]) -> StudySettings:
+    """Checked study settings; errors name the key and the allowed range."""
+    study = plain.get("study")
+    if study not in STUDIES:
+        raise out_of_range("study", study, f"one of {list(STUDIES)} (study=timestep|shear_modulus)", "config")
+    seeds = replicate_seeds(plain)
+    if len(seeds) < 2:
+        raise out_of_range("replicates", len(seeds), "an int >= 2 (the criteria compare standard deviations)",
+                           "config")
+    if study == "timestep":
+        values = _numbers(plain.get("fractions"), "fractions", "config",
+                          "a list of >= 2 distinct fractions of the Rayleigh time step in (0, 1]")
+        ok = len(values) >= 2 and len(set(values)) == len(values) and all(0 < v <= 1 for v in values)
+        if not ok:
+            raise out_of_range("fractions", list(values), "a list of >= 2 distinct fractions in (0, 1]", "config")
+    else:
+        values = _numbers(plain.get("shear_moduli_pa"), "shear_moduli_pa", "config",
+                          "a list of >= 2 distinct shear moduli > 0 Pa")
+        if len(values) < 2 or len(set(values)) != len(values) or not all(v > 0 for v in values):
+            raise out_of_range("shear_moduli_pa", list(values), "a list of >= 2 distinct shear moduli > 0 Pa",
+                               "config")
+    kpis = check_kpis(plain.get("kpis"), "config")
+    deciding = plain.get("deciding_kpis")
+    if deciding is not None:
+        deciding = tuple(deciding)
+        unknown = [k for k in deciding if k not in kpis]
+        if unknown or not deciding:
+            raise out_of_range("deciding_kpis", list(deciding), f"a non-empty subset of kpis {list(kpis)} or null",
+                               "config")
+    try:
+        rel, growth = float(plain.get("relative_tolerance")), float(plain.get("std_growth_factor"))
+    except (TypeError, ValueError):
+        raise ConfigError("config: relative_tolerance and std_growth_factor must be numbers") from None
+    if not rel > 0:
+        raise out_of_range("relative_tolerance", rel, "a number > 0, e.g. 0.02", "config")
+    if not growth >= 1:
+        raise out_of_range("std_growth_factor", growth, "a number >= 1, e.g. 2.0", "config")
+    return StudySettings(study=study, values=values, seeds=tuple(seeds), condition=str(plain.get("condition")),
+                         kpis=kpis, deciding_kpis=deciding, relative_tolerance=rel, std_growth_factor=growth)
+
+
+def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
+    """The whole app on a plain config: check, run (resume), analyse, write. Returns a summary."""
+    from bo.campaign.store import CampaignStore
+    from bo.studies.pipeline import (STUDY_STAGES, run_shear_modulus_study, run_time_step_study, shear_modulus_report,
+                            smallest_sphere_rayleigh_time_step, time_step_report)
+
+    s = study_settings_from(plain)
+    executor_settings = executor_settings_from(plain.get("executor") or {})
+    model = model_from(plain)
+    params = dict(model.fixed)
+    path = store_path_from(plain, out)
+    store = CampaignStore(path, config_hash(plain), extra_stages=STUDY_STAGES,
+                          allow_config_mismatch=bool(plain.get("allow_config_mismatch")))
+    stage = s.study
+    counts = store.counts(stage)
+    before = counts["done"] + counts["failed"]
+    started = time.perf_counter()
+    with executor_from(executor_settings, model) as executor:
+        if s.study == "timestep":
+            runs = run_time_step_study(store, executor, condition=s.condition, params=params, fractions=s.values,
+                                       seeds=list(s.seeds), kpis=list(s.kpis), stage=stage)
+        else:
+            runs = run_shear_modulus_study(store, executor, condition=s.condition, params=params,
+                                           shear_moduli_pa=s.values, seeds=list(s.seeds), kpis=list(s.kpis),
+                                           stage=stage)
+    wall = time.perf_counter() - started
+    counts = store.counts(stage)
+    evaluated = counts["done"] + counts["failed"] - before
+    if s.study == "timestep":
+        rayleigh = smallest_sphere_rayleigh_time_step(model.conditions[s.condition], model.settings)
+        result, files = time_step_report(runs, out, rayleigh_time_step_s=rayleigh, deciding_kpis=s.deciding_kpis,
+                                         relative_tolerance=s.relative_tolerance,
+                                         std_growth_factor=s.std_growth_factor)
+    else:
+        result, files = shear_modulus_report(runs, out, deciding_kpis=s.deciding_kpis,
+                                             relative_tolerance=s.relative_tolerance)
+    echo(result.to_text())
+    echo(f"store {path}: {counts['done']} done, {counts['failed']} failed; DEM evaluations run now: "
+         f"{evaluated} in {wall:.1f} s")
+    echo(f"wrote {', '.join(sorted(p.name for p in files.values()))} to {out}")
+    return {"store": str(path), "evaluations_run_now": evaluated, "dem_wall_time_s": round(wall, 2),
+            "files": {k: str(v) for k, v in files.items()}}
+
+
+@hydra.main(config_path=CONF_DIR, config_name="study", version_base="1.3")
+@one_line_errors("torchdem-study")
+def main(cfg: DictConfig) -> None:
+    """Time-step or shear-modulus study through the store -> report and figure."""
+    from hydra.core.hydra_config import HydraConfig
+
+    run_study(plain_config(cfg), Path(HydraConfig.get().runtime.output_dir))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

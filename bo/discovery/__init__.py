@@ -1,0 +1,1 @@
+"""Model discovery: the discrepancy test and candidate scoring (``pipeline``), pooled DEM replicate noise (``replicate_noise``), the report (``report``). The candidate mechanisms live with the model, in ``torchdem.mechanisms``."""

@@ -1,0 +1,636 @@
+"""Model discovery: where a calibrated model disagrees with the measurements, which candidate
+mechanism explains it, and what that mechanism gains on conditions it was not fitted on.
+
+Contract
+--------
+``run_discovery(store, executor_for, model, calibrated, measured, settings)`` works through the
+campaign store (``bo.campaign.store``; resumable, nothing repeated) in four steps; ``executor_for(model)``
+returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model.DrawDownModel``.
+
+1. Discrepancy (stage ``discrepancy``): the calibrated model on every measured condition with
+   ``settings.seeds``. For every condition c and KPI k: DEM mean and its standard error
+   ``se = s_k / sqrt(r)``, the measured mean and its standard uncertainty ``u = ci95 / 1.96``, and
+   ``z = (DEM - lab) / sqrt(se^2 + u^2)``. ``chi2 = sum z^2`` over the cells, compared with a
+   chi^2 distribution of as many degrees of freedom, is the probability that measurement
+   uncertainty and DEM stochasticity alone explain the disagreement; the discrepancy is
+   ``significant`` when that probability is below ``settings.alpha``. ``s_k`` is the DEM
+   replicate scatter of KPI k pooled over groups of replicates (``bo.discovery.replicate_noise``; a cell's
+   own 2 or 3 runs give a standard error too noisy to divide by): for this test, over the
+   discrepancy runs of every condition.
+2. Hypotheses (stage ``discovery-<name>``): ``parameters`` (the calibrated parameters named in
+   ``settings.refit`` free within ``+- refit_fraction`` of their value; no new physics) and every
+   candidate of the registry (``torchdem.mechanisms``; ``settings.candidates`` or all available), each
+   with its extra parameters and prior ranges plus the refit ones. Per hypothesis: a Latin
+   hypercube of ``max(min_points, points_per_parameter x d)`` points, each run on every condition
+   with ``fit_seeds``, and one GP per (condition, KPI) (``bo.surrogate.gp``, per-output strategy).
+   Leave-one-condition-out: for each condition c, the parameters that minimise the chi^2 of the
+   other conditions (GP means, GA of ``bo.surrogate.ga``) are run with the DEM on c (``settings.seeds``); the
+   held-out chi^2 of c is that of these runs against the measurement (as in step 1). The surrogate
+   only fits; it never scores (a poor GP's wide predictive variance would flatter its hypothesis;
+   its prediction is reported as ``predicted_chi2``). A hypothesis with no free parameter
+   (``parameters`` with ``refit`` empty) is the calibrated model itself, scored on the
+   discrepancy runs. Score = sum of held-out chi^2 + ``penalty`` x (parameters it adds beyond the
+   ``parameters`` hypothesis) (an AIC-like penalty). Every held-out chi^2, and the discrepancy
+   reported, use one noise estimate ``s_k`` pooled over every run of the discovery (discrepancy,
+   design points, held-out runs of every hypothesis), so no hypothesis is scored with a luckier
+   noise estimate than another. The GP's noise is the design's pooled ``s_k^2 / fit replicates``.
+3. Cause: the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
+   than ``max(margin, 2 x gain_noise_sd)``; else none: no candidate explains the discrepancy
+   better than the parameters and noise. ``gain_noise_sd`` is the standard deviation the score
+   difference would have from DEM noise alone if both hypotheses predicted the same means: per
+   cell, z = (m + e) / s with e ~ N(0, se^2) has Var(z^2) = 4 (m/s)^2 (se/s)^2 + 2 (se/s)^4; the
+   two hypotheses' held-out runs are independent, so their variances add, with m the mean of the
+   two offsets (the measurement is common to both and cancels). Where the model misses a cell by
+   many standard errors, noise alone moves that cell's z^2 by tens, and a fixed margin would
+   name whichever candidate's runs happened to land closer. If the discrepancy is not
+   significant, no hypothesis is fitted (unless ``always_score``) and the cause is none.
+4. Gain: the chosen mechanism's held-out runs of step 2 next to the calibrated model's runs of
+   step 1: error per KPI and condition before and after, each with its uncertainty. The
+   mechanism's values fitted on all conditions are the extension (``DiscoveryResult.extension``).
+
+Everything returned is plain data; ``bo.discovery.report`` writes ``discovery.json`` and figures.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+from scipy import stats
+
+from bo.surrogate.acquisition import latin_hypercube
+from torchdem.model import DrawDownModel
+from bo.campaign.executor import Executor, run_pending
+from bo.surrogate.ga import GASettings, minimise_surrogate
+from torchdem.mechanisms import Mechanism, ModelContext, model_context, registry
+from bo.surrogate.objective import ObjectiveSpec
+from bo.discovery.replicate_noise import ReplicateNoise
+from bo.screening.pipeline import measured_for
+from bo.campaign.store import CampaignStore
+from bo.surrogate.gp import SurrogateConfig, fit_surrogate
+from torchdem.errors import ConfigError, out_of_range
+from torchdem.measured import MeasuredData
+
+__all__ = ["PARAMETERS", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore", "GainRow",
+           "DiscoveryResult", "discovery_stages", "gain_noise_sd", "gain_rows", "measure_discrepancy", "run_discovery"]
+
+#: Name of the no-new-physics hypothesis (the calibrated parameters refitted).
+PARAMETERS = "parameters"
+
+
+def discovery_stages(names: Sequence[str] | None = None) -> tuple[str, ...]:
+    """Store stages discovery uses (for ``CampaignStore(extra_stages=...)``)."""
+    names = sorted(registry()) if names is None else list(names)
+    return ("discrepancy", f"discovery-{PARAMETERS}", *(f"discovery-{n}" for n in names))
+
+
+@dataclass(frozen=True)
+class DiscoverySettings:
+    """Settings of ``run_discovery`` (see the module docstring).
+
+    Attributes:
+        kpis: DEM KPI names compared (each needs a measurement in some condition).
+        seeds: replicates of the discrepancy and gain runs. fit_seeds: replicates of every
+            hypothesis design point.
+        candidates: registry names tried; None: every mechanism available for the model; ():
+            the discrepancy only.
+        refit: calibrated parameters free in every hypothesis; refit_fraction: their range,
+            ``value x (1 +- fraction)`` (friction >= 0, restitution in (0, 1]).
+        points_per_parameter, min_points: design size per hypothesis.
+        alpha: significance of the discrepancy test. penalty: held-out chi^2 per added
+            parameter. margin: held-out chi^2 a cause must gain over the parameters hypothesis.
+        always_score: fit the hypotheses even without a significant discrepancy.
+        ga: GA on the surrogate means. kernel: GP kernel. seed: LHS and GA seed.
+    """
+
+    kpis: tuple[str, ...]
+    seeds: tuple[int, ...] = (0, 1, 2)
+    fit_seeds: tuple[int, ...] = (0, 1)
+    candidates: tuple[str, ...] | None = None
+    refit: tuple[str, ...] = ()
+    refit_fraction: float = 0.2
+    points_per_parameter: int = 5
+    min_points: int = 6
+    alpha: float = 0.05
+    penalty: float = 2.0
+    margin: float = 4.0
+    always_score: bool = False
+    ga: GASettings = GASettings(pop_size=200, n_generations=200, stall_generations=30)
+    kernel: str = "matern52"
+    seed: int = 0
+
+    def validate(self, source: str = "discovery") -> "DiscoverySettings":
+        if not self.kpis or len(set(self.kpis)) != len(self.kpis):
+            raise out_of_range("kpis", self.kpis, "a non-empty list of distinct DEM KPI names", source)
+        for name in ("seeds", "fit_seeds"):
+            s = getattr(self, name)
+            if not s or len(set(s)) != len(s):
+                raise out_of_range(name, s, "a non-empty list of distinct seeds", source)
+        if not 0 < self.refit_fraction < 1:
+            raise out_of_range("refit_fraction", self.refit_fraction, "a fraction in (0, 1)", source)
+        if not 0 < self.alpha < 1:
+            raise out_of_range("alpha", self.alpha, "a probability in (0, 1)", source)
+        for name in ("penalty", "margin"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise out_of_range(name, getattr(self, name), "a finite number >= 0", source)
+        for name in ("points_per_parameter", "min_points"):
+            if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), int) \
+                    or getattr(self, name) < 2:
+                raise out_of_range(name, getattr(self, name), "an integer >= 2", source)
+        return self
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One KPI of one condition: DEM against the measurement (``se``, ``u``: standard
+    uncertainties of the DEM mean and of the measured mean; ``z`` their normalised difference)."""
+
+    condition: str
+    kpi: str
+    dem_mean: float
+    dem_se: float
+    n: int
+    measured_mean: float
+    measured_u: float
+    z: float
+    relative_error_pct: float
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class Discrepancy:
+    """Step 1: every cell, chi^2 over them, its degrees of freedom and p-value; ``noise``: the
+    pooled DEM replicate noise the cells' standard errors come from."""
+
+    cells: tuple[Cell, ...]
+    chi2: float
+    dof: int
+    p_value: float
+    significant: bool
+    noise: ReplicateNoise
+
+
+@dataclass(frozen=True)
+class HypothesisScore:
+    """Step 2 for one hypothesis.
+
+    Attributes:
+        name: ``"parameters"`` or a registry name. description: the mechanism in words.
+        parameters: free parameter names; bounds: name -> (low, high); added: how many are new
+            physics (beyond the refit ones).
+        held_out_chi2: condition -> chi^2 of the DEM runs on that condition with the parameters
+            fitted without it (``held_out_cells``: those runs' cells).
+        predicted_chi2: condition -> the same chi^2 as the surrogate predicted it (for reference;
+            a poor surrogate's wide predictive variance would flatter it, so it does not score).
+        fitted_without: condition -> parameters fitted without that condition.
+        fitted_all: parameters fitted on every condition; in_sample_chi2: their surrogate chi^2.
+        score: sum of held-out chi^2 + penalty x added. points: design points run.
+        skipped: why the hypothesis was not fitted (unavailable for this model), else None.
+        gain_noise_sd: standard deviation of (score of ``parameters`` - this score) from DEM noise
+            alone (step 3); NaN for ``parameters`` itself.
+        held_out_failures: condition -> why its held-out runs gave no value for some measured KPI
+            (the fitted parameters could not be simulated there, e.g. a fill that does not fit the
+            box); that condition's held-out chi^2, hence the score, is then infinite: a hypothesis
+            that cannot predict a condition does not explain it.
+    """
+
+    name: str
+    description: str
+    parameters: tuple[str, ...]
+    bounds: Mapping[str, tuple[float, float]]
+    added: int
+    held_out_chi2: Mapping[str, float]
+    fitted_without: Mapping[str, Mapping[str, float]]
+    fitted_all: Mapping[str, float]
+    in_sample_chi2: float
+    score: float
+    points: int
+    skipped: str | None = None
+    held_out_cells: tuple[Cell, ...] = ()
+    predicted_chi2: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    held_out_failures: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    gain_noise_sd: float = math.nan
+
+
+@dataclass(frozen=True)
+class GainRow:
+    """Step 4: one KPI of one held-out condition, before and after the extension."""
+
+    condition: str
+    kpi: str
+    measured_mean: float
+    measured_u: float
+    before_mean: float
+    before_se: float
+    after_mean: float
+    after_se: float
+    before_error_pct: float
+    after_error_pct: float
+    before_z: float
+    after_z: float
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class DiscoveryResult:
+    """Everything ``run_discovery`` found (plain data)."""
+
+    discrepancy: Discrepancy
+    hypotheses: tuple[HypothesisScore, ...]
+    cause: str | None
+    explanation: str
+    gain: tuple[GainRow, ...]
+    extension: Mapping[str, float]
+    evaluations: Mapping[str, int]
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+
+def _key(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=repr).encode()).hexdigest()[:12]
+
+
+def _lab(measured: MeasuredData, kpis: Sequence[str]) -> dict[tuple[str, str], tuple[float, float]]:
+    """(condition, DEM KPI) -> (measured mean, standard uncertainty ci95 / 1.96), measured cells only."""
+    out = {}
+    for c in measured.names:
+        for kpi, value in measured_for(kpis, measured.condition(c).kpis).items():
+            out[(c, kpi)] = (float(value.mean), float(value.ci95) / 1.96)
+    return out
+
+
+def _run(store: CampaignStore, executor: Executor, stage: str, key: str, points: Sequence[Mapping[str, float]],
+         seeds: Sequence[int], conditions: Sequence[str], kpis: Sequence[str]) -> np.ndarray:
+    """Run (resume) a batch; ``[n_points, n_conditions, r, K]`` KPI values (NaN: failed/unmeasured)."""
+    stored = store.batch(stage, key, lambda: [dict(p) for p in points], seeds=list(seeds),
+                         conditions=list(conditions))
+    run_pending(store, executor, stage)
+    out = np.full((len(stored), len(conditions), len(seeds), len(kpis)), np.nan)
+    ci = {c: i for i, c in enumerate(conditions)}
+    si = {s: i for i, s in enumerate(seeds)}
+    for rec in store.records(stage, batch_key=key, status="done"):
+        if rec.condition in ci and rec.seed in si and rec.kpis is not None:
+            out[rec.point_index, ci[rec.condition], si[rec.seed]] = [rec.kpis.get(k, math.nan) for k in kpis]
+    out[~np.isfinite(out)] = np.nan
+    return out
+
+
+def _cells(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str],
+           lab: Mapping[tuple[str, str], tuple[float, float]], noise: ReplicateNoise) -> list[Cell]:
+    """Cells of ``reps [C, r, K]`` against the lab (only measured cells); the DEM mean's standard
+    error from the pooled replicate noise (``bo.discovery.replicate_noise``), not from the cell's own runs."""
+    cells = []
+    for i, c in enumerate(conditions):
+        for j, k in enumerate(kpis):
+            if (c, k) not in lab:
+                continue
+            v = reps[i, :, j][np.isfinite(reps[i, :, j])]
+            n = int(v.size)
+            mean = float(v.mean()) if n else math.nan
+            se = noise.se(k, n)
+            m, u = lab[(c, k)]
+            var = (se if math.isfinite(se) else 0.0) ** 2 + u ** 2
+            z = (mean - m) / math.sqrt(var) if n and var > 0 else math.nan
+            cells.append(Cell(c, k, mean, se, n, m, u, z, (mean - m) / m * 100 if m else math.nan))
+    return cells
+
+
+def _unmeasured(reps: np.ndarray, condition: str, kpis: Sequence[str],
+                lab: Mapping[tuple[str, str], tuple[float, float]]) -> list[str]:
+    """Measured KPIs of ``condition`` that no run of ``reps [r, K]`` gave."""
+    return [k for j, k in enumerate(kpis) if (condition, k) in lab and not np.isfinite(reps[:, j]).any()]
+
+
+def _discrepancy(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str],
+                 lab: Mapping[tuple[str, str], tuple[float, float]], noise: ReplicateNoise,
+                 alpha: float) -> Discrepancy:
+    cells = _cells(reps, conditions, kpis, lab, noise)
+    finite = [c for c in cells if math.isfinite(c.z)]
+    chi2 = float(sum(c.z ** 2 for c in finite))
+    p = float(stats.chi2.sf(chi2, len(finite))) if finite else math.nan
+    return Discrepancy(tuple(cells), chi2, len(finite), p, bool(finite) and p < alpha, noise)
+
+
+# --------------------------------------------------------------------------------------------
+# step 1
+# --------------------------------------------------------------------------------------------
+
+def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Mapping[str, float],
+                        measured: MeasuredData, settings: DiscoverySettings) -> tuple[Discrepancy, np.ndarray]:
+    """Step 1 (see the module docstring), with the replicate noise pooled over these runs; also
+    returns the replicates ``[C, r, K]``."""
+    conditions = list(measured.names)
+    key = "calibrated/" + _key(sorted(calibrated.items()))
+    reps = _run(store, executor, "discrepancy", key, [dict(calibrated)], settings.seeds, conditions,
+                settings.kpis)[0]
+    discrepancy = _discrepancy(reps, conditions, settings.kpis, _lab(measured, settings.kpis),
+                               ReplicateNoise.of(settings.kpis, [reps]), settings.alpha)
+    if not discrepancy.dof:
+        failed = store.records("discrepancy", batch_key=key, status="failed")
+        if failed:  # the runs failed: say so (and why), not that the KPIs do not match
+            raise RuntimeError(f"discrepancy: {len(failed)} DEM run(s) of the calibrated model failed and none gave "
+                               f"a KPI; the first ({failed[0].condition}, seed {failed[0].seed}): {failed[0].error} "
+                               f"(all errors in {store.path}, table evaluations)")
+        raise ConfigError(f"discrepancy: no KPI of {list(settings.kpis)} was both simulated and measured; measured "
+                          f"KPIs: {sorted({k for c in measured.names for k in measured.condition(c).kpis})}")
+    return discrepancy, reps
+
+
+# --------------------------------------------------------------------------------------------
+# step 2
+# --------------------------------------------------------------------------------------------
+
+def _refit_bounds(calibrated: Mapping[str, float], names: Sequence[str], fraction: float) -> dict[str, tuple]:
+    out = {}
+    for n in names:
+        if n not in calibrated:
+            raise ConfigError(f"discovery.refit: {n!r} is not a calibrated parameter; calibrated: {sorted(calibrated)}")
+        v = float(calibrated[n])
+        lo, hi = v * (1 - fraction), v * (1 + fraction)
+        if n.startswith("e_"):
+            hi = min(hi, 1.0)
+        out[n] = (max(lo, 0.0), hi) if hi > max(lo, 0.0) else (0.0, max(fraction, 1e-6))
+    return out
+
+
+def _expected_chi2_terms(mean: np.ndarray, gp_var: np.ndarray, dem_var: np.ndarray, lab_mean: np.ndarray,
+                         lab_var: np.ndarray) -> np.ndarray:
+    """chi^2 terms expected under the GP posterior, E[(f - y)^2] / (u^2 + s^2) with
+    E[(f - y)^2] = (mu - y)^2 + sigma_GP^2: the GP's uncertainty adds to the misfit (putting it in
+    the denominator instead would reward the least known corners of the parameter box)."""
+    return ((mean - lab_mean) ** 2 + gp_var) / (dem_var + lab_var)
+
+
+@dataclass(frozen=True)
+class _Fitted:
+    """Step 2 for one hypothesis before it is scored: ``hypothesis`` without its held-out chi^2
+    and score (those need the noise pooled over every hypothesis), ``held_reps`` condition ->
+    ``[r, K]`` held-out replicates (the discrepancy runs for a hypothesis without free
+    parameters), and ``groups``, replicate groups ``[..., r, K]`` of its runs for the pooled noise."""
+
+    hypothesis: HypothesisScore
+    held_reps: Mapping[str, np.ndarray]
+    groups: tuple[np.ndarray, ...]
+
+
+def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel, context: ModelContext,
+                    store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor],
+                    calibrated: Mapping[str, float], measured: MeasuredData, settings: DiscoverySettings,
+                    baseline_reps: np.ndarray, echo: Callable[[str], None]) -> _Fitted:
+    conditions = list(measured.names)
+    kpis = list(settings.kpis)
+    lab = _lab(measured, kpis)
+    bounds = _refit_bounds(calibrated, settings.refit, settings.refit_fraction)
+    extra = {} if mechanism is None else dict(mechanism.parameters(context))
+    bounds.update(extra)
+    names = tuple(bounds)
+    description = "the calibrated parameters refitted, no new physics" if mechanism is None else mechanism.description
+    if not names:  # the calibrated model as is: its held-out runs are the discrepancy runs
+        return _Fitted(HypothesisScore(name, description, (), {}, 0, {}, {c: {} for c in conditions}, {}, math.nan,
+                                       math.nan, 0), {c: baseline_reps[i] for i, c in enumerate(conditions)}, ())
+    b = np.array([[bounds[n][0] for n in names], [bounds[n][1] for n in names]], dtype=np.float64)
+    n_points = max(settings.min_points, settings.points_per_parameter * len(names))
+    X = latin_hypercube(b, n_points, seed=settings.seed)
+    points = [{**calibrated, **dict(zip(names, map(float, x)))} for x in X]
+    hyp_model = model if mechanism is None else mechanism.apply(model)
+    design_key = f"lhs/{_key(names, b.tolist(), n_points, settings.seed)}"
+    with executor_for(hyp_model) as executor:
+        reps = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, kpis)
+    # outputs: measured (condition, KPI) cells; y = replicate means, y_var = variance of the mean
+    cells = [(i, c, j, k) for i, c in enumerate(conditions) for j, k in enumerate(kpis) if (c, k) in lab]
+    counts = np.stack([np.isfinite(reps[:, i, :, j]).sum(axis=1) for i, _, j, _ in cells], axis=1)
+    with warnings.catch_warnings():  # a point with no finite replicate: NaN, not usable
+        warnings.simplefilter("ignore", RuntimeWarning)
+        Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i, _, j, _ in cells], axis=1)
+    usable = (counts >= min(2, len(settings.fit_seeds))).all(axis=1) & np.isfinite(Y).all(axis=1)
+    if usable.sum() < max(4, len(names) + 2):
+        failed = store.records(f"discovery-{name}", batch_key=design_key, status="failed")
+        first = (f"; {len(failed)} run(s) failed, the first ({failed[0].condition}, seed {failed[0].seed}, "
+                 + ", ".join(f"{n} = {failed[0].params[n]:.4g}" for n in names if n in failed[0].params)
+                 + f"): {failed[0].error}") if failed else ""
+        raise ConfigError(f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points have "
+                          f"every KPI measured on every condition{first} (all runs in {store.path})")
+    V = None
+    if len(settings.fit_seeds) > 1:  # variance of each design point's mean, from the design's pooled noise
+        design_noise = ReplicateNoise.of(kpis, [reps[usable]])
+        V = np.array([[design_noise.variance(k) for _, _, _, k in cells]]) / np.maximum(counts, 1)
+        V = np.where(np.isfinite(V), V, 0.0)
+    lab_mean = np.array([lab[(c, k)][0] for _, c, _, k in cells])
+    lab_var = np.array([lab[(c, k)][1] ** 2 for _, c, _, k in cells])
+    output_names = tuple(f"{c}|{k}" for _, c, _, k in cells)
+    spec = ObjectiveSpec(output_names, tuple(np.where(lab_mean == 0, 1.0, lab_mean)), source=f"hypothesis {name}")
+    surrogate = fit_surrogate(X[usable], Y[usable], b, SurrogateConfig(kernel=settings.kernel, strategy="per_kpi"),
+                              y_var=None if V is None else V[usable], objective=spec)
+    dem_var = V[usable].mean(axis=0) if V is not None else np.zeros(len(cells))
+    cond_of = np.array([c for _, c, _, _ in cells])
+
+    def fit(mask: np.ndarray) -> dict[str, float]:
+        def chi2(x: np.ndarray) -> np.ndarray:
+            mean, var = surrogate.predict_outputs(x)
+            return _expected_chi2_terms(mean[:, mask], var[:, mask], dem_var[mask], lab_mean[mask],
+                                        lab_var[mask]).sum(-1)
+        res = minimise_surrogate(chi2, b, settings.ga, seed=settings.seed)
+        return dict(zip(names, map(float, res.x)))
+
+    predicted, without = {}, {}
+    for c in conditions:
+        train = cond_of != c
+        if not train.any() or not (~train).any():
+            continue
+        x = fit(train)
+        mean, var = surrogate.predict_outputs(np.array([[x[n] for n in names]]))
+        test = ~train
+        predicted[c] = float(_expected_chi2_terms(mean[0, test], var[0, test], dem_var[test], lab_mean[test],
+                                                  lab_var[test]).sum())
+        without[c] = x
+    every = fit(np.ones(len(cells), dtype=bool))
+    mean, var = surrogate.predict_outputs(np.array([[every[n] for n in names]]))
+    in_sample = float(_expected_chi2_terms(mean[0], var[0], dem_var, lab_mean, lab_var).sum())
+    # the held-out predictions checked with the DEM: each condition run with the parameters
+    # fitted without it
+    held: dict[str, np.ndarray] = {}
+    failures: dict[str, str] = {}
+    with executor_for(hyp_model) as executor:
+        for c, x in without.items():
+            params = {**calibrated, **x}
+            key = f"held-out/{c}/" + _key(sorted(params.items()))
+            held[c] = _run(store, executor, f"discovery-{name}", key, [params], settings.seeds, [c], kpis)[0, 0]
+            missing = _unmeasured(held[c], c, kpis, lab)
+            if missing:  # the fitted parameters could not be simulated here: no prediction, no score
+                failed = store.records(f"discovery-{name}", batch_key=key, status="failed")
+                failures[c] = (f"{', '.join(missing)} not measured in any run"
+                               + (f"; first error: {failed[0].error}" if failed else ""))
+    echo(f"  {name}: {len(names)} parameters, {n_points} points fitted; surrogate held-out chi^2 "
+         + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items()))
+    hypothesis = HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names},
+                                 len(extra), {}, without, every, in_sample, math.nan, n_points,
+                                 predicted_chi2=predicted, held_out_failures=failures)
+    return _Fitted(hypothesis, held, (reps, *(r[None] for r in held.values())))
+
+
+def _score(f: _Fitted, kpis: Sequence[str], lab: Mapping[tuple[str, str], tuple[float, float]],
+           noise: ReplicateNoise, penalty: float) -> HypothesisScore:
+    """Held-out chi^2 of ``f``'s DEM runs against the measurements with the pooled ``noise``."""
+    h = f.hypothesis
+    cells: list[Cell] = []
+    held: dict[str, float] = {}
+    for c, reps in f.held_reps.items():
+        c_cells = _cells(reps[None], [c], kpis, lab, noise)
+        cells += c_cells
+        held[c] = math.inf if c in h.held_out_failures else float(sum(x.z ** 2 for x in c_cells
+                                                                       if math.isfinite(x.z)))
+    score = float(sum(held.values()) + penalty * h.added)
+    if not h.parameters:  # the calibrated model as is: nothing was predicted, its runs are the fit
+        h = dataclasses.replace(h, predicted_chi2=dict(held), in_sample_chi2=score)
+    return dataclasses.replace(h, held_out_chi2=held, score=score, held_out_cells=tuple(cells))
+
+
+# --------------------------------------------------------------------------------------------
+# steps 3 and 4
+# --------------------------------------------------------------------------------------------
+
+def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor], model: DrawDownModel,
+                  calibrated: Mapping[str, float], measured: MeasuredData, settings: DiscoverySettings,
+                  echo: Callable[[str], None] = print) -> DiscoveryResult:
+    """Steps 1-4 (see the module docstring)."""
+    settings = settings.validate()
+    missing = [c for c in measured.names if c not in model.conditions]
+    if missing:
+        raise ConfigError(f"discovery: conditions {missing} of the measured data have no mixture in the model "
+                          f"(model conditions: {sorted(model.conditions)})")
+    if len(measured.names) < 2:
+        raise ConfigError(f"discovery: {len(measured.names)} condition(s) in the measured data; leave-one-condition-out "
+                          "needs at least 2")
+    context = model_context(model, calibrated)
+    mechanisms = registry()
+    names = list(settings.candidates) if settings.candidates is not None else sorted(mechanisms)
+    unknown = [n for n in names if n not in mechanisms]
+    if unknown:
+        raise ConfigError(f"discovery.candidates: {unknown} are not in the registry (torchdem/mechanisms/); known: "
+                          f"{sorted(mechanisms)}")
+    conditions = list(measured.names)
+    kpis = list(settings.kpis)
+    lab = _lab(measured, kpis)
+    with executor_for(model) as executor:
+        discrepancy, reps = measure_discrepancy(store, executor, calibrated, measured, settings)
+    echo(f"discrepancy: chi^2 {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} "
+         f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise; noise pooled "
+         f"over these runs)")
+    hypotheses: list[HypothesisScore] = []
+    cause, explanation = None, ""
+    if not names:
+        explanation = (f"discovery.candidates = []: only the discrepancy was measured (chi^2 = {discrepancy.chi2:.1f} "
+                       f"on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g}); no candidate was scored.")
+    elif not discrepancy.significant and not settings.always_score:
+        explanation = (f"The model agrees with the measurements within their uncertainty and the DEM's stochasticity "
+                       f"(chi^2 = {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} >= "
+                       f"{settings.alpha}): there is nothing to explain, so no candidate was fitted.")
+    else:
+        echo(f"fitting hypotheses: {PARAMETERS}, " + ", ".join(names))
+        fitted = [_fit_hypothesis(PARAMETERS, None, model, context, store, executor_for, calibrated, measured,
+                                  settings, reps, echo)]
+        skipped: list[HypothesisScore] = []
+        for n in names:
+            why = mechanisms[n].available(context)
+            if why is not None:
+                skipped.append(HypothesisScore(n, mechanisms[n].description, (), {}, 0, {}, {}, {}, math.nan,
+                                               math.inf, 0, skipped=why))
+                echo(f"  {n}: skipped ({why})")
+                continue
+            fitted.append(_fit_hypothesis(n, mechanisms[n], model, context, store, executor_for, calibrated,
+                                          measured, settings, reps, echo))
+        # every chi^2 with one noise estimate: pooled over all runs of the discovery
+        noise = discrepancy.noise
+        for f in fitted:
+            noise = noise.pooled(ReplicateNoise.of(kpis, f.groups))
+        discrepancy = _discrepancy(reps, conditions, kpis, lab, noise, settings.alpha)
+        echo("DEM replicate noise pooled over every run (sd, dof): "
+             + ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in noise.to_dict().items())
+             + f"; discrepancy chi^2 {discrepancy.chi2:.1f}, p = {discrepancy.p_value:.3g}")
+        scored = {f.hypothesis.name: _score(f, kpis, lab, noise, settings.penalty) for f in fitted}
+        scored.update({h.name: h for h in skipped})
+        hypotheses = [scored[PARAMETERS]] + [scored[n] for n in names]
+        for h in hypotheses:
+            if h.skipped is None:
+                echo(f"  {h.name}: held-out chi^2 (DEM) " + ", ".join(f"{c} {v:.1f}" for c, v in h.held_out_chi2.items())
+                     + f"; score {h.score:.1f}"
+                     + "".join(f"; held-out runs on {c} failed: {why}" for c, why in h.held_out_failures.items()))
+        reference = hypotheses[0]
+        hypotheses = [reference] + [h if h.skipped else dataclasses.replace(
+            h, gain_noise_sd=gain_noise_sd(reference.held_out_cells, h.held_out_cells)) for h in hypotheses[1:]]
+        candidates = [h for h in hypotheses[1:] if h.skipped is None]
+        best = min(candidates, key=lambda h: h.score) if candidates else None
+        need = max(settings.margin, 2 * best.gain_noise_sd) if best is not None else math.nan
+        rule = (f"held-out chi^2 + {settings.penalty:g} per added parameter; a cause must gain more than "
+                f"max(margin {settings.margin:g}, 2 x the gain's DEM-noise sd) = {need:.1f}")
+        if best is not None and best.score < reference.score - need:
+            cause = best.name
+            explanation = (f"{best.name} ({best.description}) predicts the held-out conditions best: score "
+                           f"{best.score:.1f} against {reference.score:.1f} for refitting the calibrated parameters "
+                           f"alone ({rule}).")
+        else:
+            explanation = ("No candidate explains the discrepancy better than the calibrated parameters and noise: "
+                           + (f"the best, {best.name}, scores {best.score:.1f} against {reference.score:.1f} "
+                              f"({rule})." if best is not None else "no candidate could be fitted."))
+        if not discrepancy.significant:
+            explanation += (f" With the DEM noise pooled over every run of the discovery, the calibrated model "
+                            f"agrees with the measurements within noise (chi^2 = {discrepancy.chi2:.1f} on "
+                            f"{discrepancy.dof} cells, p = {discrepancy.p_value:.3g}); the discrepancy runs' own "
+                            f"noise estimate had called it significant.")
+    echo(f"cause: {cause}. {explanation}")
+    gain: list[GainRow] = []
+    extension: dict[str, float] = {}
+    if cause is not None:
+        chosen = next(h for h in hypotheses if h.name == cause)
+        extension = {n: v for n, v in chosen.fitted_all.items() if n in chosen.parameters}
+        gain = gain_rows(chosen, discrepancy)
+    evaluations = {}
+    for stage in discovery_stages(names):
+        c = store.counts(stage)
+        if c["done"] + c["failed"]:
+            evaluations[stage] = c["done"] + c["failed"]
+    evaluations["total"] = sum(evaluations.values())
+    return DiscoveryResult(discrepancy, tuple(hypotheses), cause, explanation, tuple(gain), extension, evaluations)
+
+
+def gain_noise_sd(reference: Sequence[Cell], candidate: Sequence[Cell]) -> float:
+    """Standard deviation of ``sum z_ref^2 - sum z_cand^2`` over the cells both have, from DEM
+    noise alone when both predict the same means (module docstring, step 3); inf when a cell's
+    DEM standard error is unknown while the cells differ."""
+    ref = {(c.condition, c.kpi): c for c in reference}
+    var = 0.0
+    for b in candidate:
+        a = ref.get((b.condition, b.kpi))
+        if a is None or not (math.isfinite(a.z) and math.isfinite(b.z)):
+            continue
+        m = 0.5 * ((a.dem_mean - a.measured_mean) + (b.dem_mean - b.measured_mean))
+        for c in (a, b):
+            se = c.dem_se if math.isfinite(c.dem_se) else 0.0
+            s2 = se ** 2 + c.measured_u ** 2
+            if s2 > 0:
+                var += 4 * m ** 2 * se ** 2 / s2 ** 2 + 2 * se ** 4 / s2 ** 2
+    return math.sqrt(var)
+
+
+def gain_rows(chosen: HypothesisScore, baseline: Discrepancy) -> list[GainRow]:
+    """Step 4: every held-out cell of ``chosen`` next to the calibrated model's cell."""
+    before = {(c.condition, c.kpi): c for c in baseline.cells}
+    rows = []
+    for a in chosen.held_out_cells:
+        b = before.get((a.condition, a.kpi))
+        if b is None:
+            continue
+        rows.append(GainRow(a.condition, a.kpi, a.measured_mean, a.measured_u, b.dem_mean, b.dem_se, a.dem_mean,
+                            a.dem_se, b.relative_error_pct, a.relative_error_pct, b.z, a.z))
+    return rows

@@ -1,0 +1,176 @@
+"""Write a model-discovery result: ``discovery.json``, ``discovery.md`` and the figures.
+
+Contract
+--------
+``write_discovery_report(result, out_dir, extension_command=None)`` writes into ``out_dir``:
+
+* ``discovery.json`` (strict JSON, NaN as null): ``cause`` (a registry name or null),
+  ``explanation``, ``discrepancy`` (chi^2, degrees of freedom, p-value, significant,
+  ``dem_noise``: the pooled DEM replicate standard deviation per KPI and its degrees of
+  freedom, and every cell: condition, KPI, DEM mean and standard error, measured mean and
+  standard uncertainty, z, relative error), ``candidates`` (every hypothesis: name,
+  description, parameters, bounds, parameters added, held-out chi^2 per condition of the DEM
+  runs and as the surrogate predicted it, score, ``gain_noise_sd`` (the sd of its gain over
+  ``parameters`` from DEM noise alone), in-sample chi^2, fitted values, the cells of its held-out
+  runs, or why it was skipped),
+  ``errors`` (per held-out condition and KPI: measured, before and after with standard errors,
+  relative errors and z), ``extension`` (the chosen mechanism's values fitted on every
+  condition) and ``dem_evaluations`` (per stage and total);
+* ``discovery.md``: the same as tables, with the command that uses the extension (when no
+  cause is named, the best candidate's held-out errors next to the calibrated model's);
+* ``discrepancy.png``: z per KPI and condition (|z| > 2 marked), and, when a cause was named,
+  ``gain.png``: relative error per KPI and held-out condition before and after.
+
+Returns ``{name: path}``.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from bo.discovery.pipeline import DiscoveryResult, gain_rows
+from bo.report.plots import save_png
+from bo.screening.pipeline import json_ready
+
+__all__ = ["write_discovery_report", "discovery_payload"]
+
+
+def discovery_payload(result: DiscoveryResult) -> dict:
+    d = result.discrepancy
+    return json_ready({
+        "cause": result.cause,
+        "explanation": result.explanation,
+        "discrepancy": {"chi2": d.chi2, "dof": d.dof, "p_value": d.p_value, "significant": d.significant,
+                        "dem_noise": d.noise.to_dict(), "cells": [c.to_dict() for c in d.cells]},
+        "candidates": [{"name": h.name, "description": h.description, "parameters": list(h.parameters),
+                        "bounds": {k: list(v) for k, v in h.bounds.items()}, "added_parameters": h.added,
+                        "held_out_chi2": dict(h.held_out_chi2), "predicted_held_out_chi2": dict(h.predicted_chi2),
+                        "score": h.score, "gain_noise_sd": h.gain_noise_sd, "in_sample_chi2": h.in_sample_chi2,
+                        "fitted_all": dict(h.fitted_all), "fitted_without": {c: dict(v) for c, v in
+                                                                             h.fitted_without.items()},
+                        "design_points": h.points, "skipped": h.skipped,
+                        "held_out_failures": dict(h.held_out_failures),
+                        "held_out_cells": [c.to_dict() for c in h.held_out_cells]} for h in result.hypotheses],
+        "errors": [g.to_dict() for g in result.gain],
+        "extension": {"name": result.cause, "values": dict(result.extension)},
+        "dem_evaluations": dict(result.evaluations),
+    })
+
+
+def _discrepancy_figure(result: DiscoveryResult) -> Figure:
+    cells = [c for c in result.discrepancy.cells if math.isfinite(c.z)]
+    conditions = list(dict.fromkeys(c.condition for c in cells))
+    kpis = list(dict.fromkeys(c.kpi for c in cells))
+    z = np.full((len(kpis), len(conditions)), np.nan)
+    for c in cells:
+        z[kpis.index(c.kpi), conditions.index(c.condition)] = c.z
+    fig = Figure(figsize=(1.6 + 1.3 * len(conditions), 1.2 + 0.45 * len(kpis)), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    lim = max(3.0, float(np.nanmax(np.abs(z))) if np.isfinite(z).any() else 3.0)
+    im = ax.imshow(z, cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
+    for (i, j), v in np.ndenumerate(z):
+        if np.isfinite(v):
+            ax.text(j, i, f"{v:+.1f}" + ("*" if abs(v) > 2 else ""), ha="center", va="center", fontsize=7)
+    ax.set_xticks(range(len(conditions)), conditions, fontsize=7)
+    ax.set_yticks(range(len(kpis)), [k.replace("_", " ") for k in kpis], fontsize=7)
+    d = result.discrepancy
+    ax.set_title(f"z = (DEM - lab) / u; chi2 {d.chi2:.1f} on {d.dof}, p = {d.p_value:.2g} (* |z| > 2)", fontsize=8)
+    fig.colorbar(im, ax=ax, shrink=0.8)
+    return fig
+
+
+def _gain_figure(result: DiscoveryResult) -> Figure:
+    rows = list(result.gain)
+    labels = [f"{g.condition}\n{g.kpi.replace('_', ' ')}" for g in rows]
+    fig = Figure(figsize=(min(11.0, 1.5 + 0.9 * len(rows)), 3.4), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    x = np.arange(len(rows))
+    err = lambda se, m: 0.0 if not math.isfinite(se) else se / abs(m) * 100  # noqa: E731
+    ax.bar(x - 0.2, [g.before_error_pct for g in rows], 0.4, yerr=[err(g.before_se, g.measured_mean) for g in rows],
+           label="calibrated model", capsize=2)
+    ax.bar(x + 0.2, [g.after_error_pct for g in rows], 0.4, yerr=[err(g.after_se, g.measured_mean) for g in rows],
+           label=f"with {result.cause} (fitted without the condition)", capsize=2)
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_xticks(x, labels, fontsize=6, rotation=30)
+    ax.set_ylabel("relative error (%)")
+    ax.legend(fontsize=7)
+    ax.set_title("Held-out conditions: error before and after the extension", fontsize=9)
+    return fig
+
+
+def _gain_line(g) -> str:
+    return (f"| {g.condition} | {g.kpi} | {g.measured_mean:.4g} +- {g.measured_u:.2g} | {g.before_mean:.4g} +- "
+            f"{g.before_se:.2g} | {g.after_mean:.4g} +- {g.after_se:.2g} | {g.before_error_pct:+.1f} % | "
+            f"{g.after_error_pct:+.1f} % |")
+
+
+def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: str | None = None) -> dict[str, Path]:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"discrepancy_png": save_png(_discrepancy_figure(result), out / "discrepancy.png")}
+    if result.gain:
+        files["gain_png"] = save_png(_gain_figure(result), out / "gain.png")
+    payload = discovery_payload(result)
+    if extension_command:
+        payload["extension"]["command"] = extension_command
+    files["json"] = out / "discovery.json"
+    files["json"].write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
+    d = result.discrepancy
+    lines = ["# Model discovery", "", f"**Cause: {result.cause or 'none'}.** {result.explanation}", "",
+             "## 1. Discrepancy of the calibrated model", "",
+             f"chi^2 = {d.chi2:.2f} on {d.dof} cells, p = {d.p_value:.3g}: "
+             f"{'beyond' if d.significant else 'within'} measurement uncertainty and DEM stochasticity.", "",
+             "DEM replicate scatter per KPI, pooled over every run of the discovery (sd, degrees of freedom): "
+             + ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in d.noise.to_dict().items())
+             + "; a cell's se = sd / sqrt(n).", "",
+             "| condition | KPI | measured +- u | DEM +- se (n) | error | z |", "| --- | --- | --- | --- | ---: | ---: |"]
+    for c in d.cells:
+        lines.append(f"| {c.condition} | {c.kpi} | {c.measured_mean:.4g} +- {c.measured_u:.2g} | {c.dem_mean:.4g} +- "
+                     f"{c.dem_se:.2g} ({c.n}) | {c.relative_error_pct:+.1f} % | {c.z:+.2f}{' *' if abs(c.z) > 2 else ''} |")
+    lines += ["", "![discrepancy](discrepancy.png)", "", "## 2. Candidate causes (leave-one-condition-out)", ""]
+    if not result.hypotheses:
+        lines.append("None fitted: " + ("no candidate was asked for (discovery.candidates = [])."
+                                        if d.significant else "no significant discrepancy."))
+    else:
+        conds = list(dict.fromkeys(c for h in result.hypotheses for c in h.held_out_chi2))
+        lines += ["| hypothesis | added parameters | " + " | ".join(f"held-out chi^2 {c}" for c in conds)
+                  + " | score | gain's noise sd |", "| --- | ---: | " + " | ".join("---:" for _ in conds)
+                  + " | ---: | ---: |"]
+        for h in result.hypotheses:
+            if h.skipped:
+                lines.append(f"| {h.name} | - | " + " | ".join("-" for _ in conds) + f" | skipped: {h.skipped} | - |")
+                continue
+            lines.append(f"| {h.name}{' **cause**' if h.name == result.cause else ''} | {h.added} | "
+                         + " | ".join(f"{h.held_out_chi2.get(c, float('nan')):.1f}" for c in conds)
+                         + f" | {h.score:.1f} | {'-' if math.isnan(h.gain_noise_sd) else f'{h.gain_noise_sd:.1f}'} |")
+        failed = [f"- {h.name}: the held-out runs on {c} failed ({why})"
+                  for h in result.hypotheses for c, why in h.held_out_failures.items()]
+        lines += [""] + failed if failed else []
+        scored = [h for h in result.hypotheses[1:] if h.skipped is None and h.held_out_cells]
+        best = min(scored, key=lambda h: h.score) if scored else None
+        if result.cause is None and best is not None:  # what the best candidate did, though not a cause
+            lines += ["", f"The best candidate, {best.name}, on held-out conditions (not named a cause):", "",
+                      "| condition | KPI | measured | calibrated model | with " + best.name + " | error before | "
+                      "error after |", "| --- | --- | --- | --- | --- | ---: | ---: |"]
+            lines += [_gain_line(g) for g in gain_rows(best, d)]
+    if result.gain:
+        lines += ["", "## 3. Extension", "", "Values fitted on every condition: "
+                  + ", ".join(f"{k} = {v:.4g}" for k, v in result.extension.items()) + "."]
+        if extension_command:
+            lines += ["", f"Use it in any command: `{extension_command}`"]
+        lines += ["", "## 4. Gain on held-out conditions", "",
+                  "| condition | KPI | measured | before | after | error before | error after |",
+                  "| --- | --- | --- | --- | --- | ---: | ---: |"]
+        lines += [_gain_line(g) for g in result.gain]
+        lines += ["", "![gain](gain.png)"]
+    lines += ["", "DEM evaluations: " + ", ".join(f"{k} {v}" for k, v in result.evaluations.items())]
+    files["md"] = out / "discovery.md"
+    files["md"].write_text("\n".join(lines) + "\n")
+    return files

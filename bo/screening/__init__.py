@@ -1,0 +1,1 @@
+"""Screening (paper section 3.3): the DSD stage (``pipeline``), stepwise regression (``stepwise``), the variance split parameters vs DEM noise (``variance``), the Table 6 parameter-bound extension (``bounds``)."""

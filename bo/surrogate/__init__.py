@@ -1,0 +1,1 @@
+"""The surrogate stage (paper sections 3.4-3.5): the objective (``objective``), Gaussian processes (``gp``), batch expected improvement (``acquisition``), the genetic algorithm on the surrogate (``ga``)."""

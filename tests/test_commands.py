@@ -1,0 +1,147 @@
+"""Every command as a user runs it (tests/test_commands.py):
+
+- bad input ends every entry point with one line, ``torchdem-<cmd>: error: <message>``, on
+  stderr and exit status 2, before any progress bar or DEM work; the message names the config
+  key the user typed, the value and the allowed range; ``HYDRA_FULL_ERROR=1`` gives the traceback;
+- every command runs end to end on the mini box with every model extension of
+  ``conf/extension/`` (the command x extension matrix), with a procedure cut to a fraction of a
+  second of simulated time so that each run takes seconds;
+- each extension changes the model it names (the matrix alone would pass a silently ignored one).
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+EXTENSIONS = sorted(p.stem for p in (REPO / "conf" / "extension").glob("*.yaml"))
+MODULES = {"demo": "torchdem.cli", "simulate": "torchdem.cli_simulate", "screen": "bo.cli.screen",
+           "study": "bo.cli.study", "calibrate": "bo.cli.calibrate", "discover": "bo.cli.discover"}
+
+# A fraction of a second of fill and discharge: enough for every stage to run, not to measure.
+TINY_RUN = ["+experiment=mini", "run.fill_time_s=0.1", "run.discharge_time_s=0.3", "run.flow_window_s=[0.02,0.15]",
+            "run.final_window_s=0.05"]
+TINY = {
+    "simulate": ["output.images=false", "output.progress=false"],
+    "screen": ["screen=mini", "replicates=1"],
+    "study": ["fractions=[0.2,0.3]", "replicates=2"],
+    "calibrate": ["profile=smoke", "replicates=1", "surrogate.replicates=1", "surrogate.points_per_parameter=3",
+                  "surrogate.budget=6", "ga.pop_size=20", "ga.n_generations=10", "ga.repetitions=1",
+                  "verification.replicates=1"],
+    "discover": ["profile=smoke", "discovery.conditions=[50-50,25-75]", "discovery.candidates=[density_per_material]",
+                 "discovery.always_score=true", "discovery.replicates=2", "discovery.fit_replicates=1",
+                 "discovery.points_per_parameter=3",
+                 "discovery.ga={pop_size: 20, n_generations: 10, stall_generations: 5}"],
+}
+
+
+def run_command(command: str, *overrides: str, out: Path, env: dict | None = None, timeout: float = 600):
+    """``python -m <module of torchdem-<command>> overrides... hydra.run.dir=out``."""
+    return subprocess.run([sys.executable, "-m", MODULES[command], *overrides, f"hydra.run.dir={out}"],
+                          cwd=REPO, capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})})
+
+
+# ---------------------------------------------------------------------------------------------
+# one-line errors
+# ---------------------------------------------------------------------------------------------
+
+BAD = [  # (command, override, what the message must name)
+    ("simulate", "contact.mu_s_pp=-0.3", "contact.mu_s_pp = -0.3"),
+    ("screen", "contact.mu_s_pp=-0.3", "contact.mu_s_pp = -0.3"),
+    ("study", "contact.e_ss=1.5", "contact.e_ss = 1.5"),
+    ("calibrate", "contact.mu_r_ss=-1", "contact.mu_r_ss = -1"),
+    ("discover", "contact.mu_s_pp=-0.3", "contact.mu_s_pp = -0.3"),
+    ("demo", "contact.mu_s=-0.3", "contact.mu_s = -0.3"),
+    ("simulate", "sim.device=bogus", "sim.device"),
+    ("simulate", "extension=cohesion extension.values.coh_pp=-5", "extension.values.coh_pp = -5"),
+    ("calibrate", "measured=/nonexistent/lab.json", "/nonexistent/lab.json"),
+    ("discover", "calibration=/nonexistent/calibration.json", "/nonexistent/calibration.json"),
+]
+
+
+@pytest.mark.parametrize("command, override, named", BAD, ids=[f"{c}:{o}" for c, o, _ in BAD])
+def test_bad_input_is_one_line_and_exit_status_2(tmp_path, command, override, named):
+    mini = [] if command == "demo" else TINY_RUN[:1]
+    proc = run_command(command, *mini, *override.split(), out=tmp_path / "out", timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"torchdem-{command}: error: "), lines[0]
+    assert named in lines[0]
+    assert "Traceback" not in proc.stderr and "simulated s" not in proc.stderr  # no progress bar started
+    assert not (tmp_path / "out" / "campaign.sqlite").exists()  # no store opened
+
+
+def test_range_message_states_the_allowed_range(tmp_path):
+    proc = run_command("simulate", "+experiment=mini", "contact.e_ss=1.5", out=tmp_path / "out", timeout=120)
+    assert proc.returncode == 2
+    assert "expected a restitution coefficient in (0, 1]" in proc.stderr
+
+
+def test_hydra_full_error_keeps_the_traceback(tmp_path):
+    proc = run_command("simulate", "+experiment=mini", "contact.mu_s_pp=-0.3", out=tmp_path / "out",
+                       env={"HYDRA_FULL_ERROR": "1"}, timeout=120)
+    assert proc.returncode != 0
+    assert "Traceback" in proc.stderr and "ConfigError" in proc.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# each extension changes the model it names
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("extension", [e for e in EXTENSIONS if e != "none"])
+def test_extension_reaches_the_model(extension):
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from bo.cli.common import model_from
+    from torchdem import config
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        plain = OmegaConf.to_container(compose(config_name="screen", overrides=["+experiment=mini",
+                                                                                 f"extension={extension}"]),
+                                       resolve=True)
+        base = OmegaConf.to_container(compose(config_name="screen", overrides=["+experiment=mini"]), resolve=True)
+    name, values = config.extension_from(plain["extension"])
+    model, plain_model = model_from(plain), model_from(base)
+    assert name == extension and values
+    for key, value in values.items():
+        assert model.fixed[key] == pytest.approx(value)
+    test, plain_test = model.test_for(plain["condition"], [{}]), plain_model.test_for(base["condition"], [{}])
+    mixture = test.member_mixtures[0] if test.member_mixtures else test.mixture
+    changed = {
+        "clump_shape": lambda: {m.shape for m in mixture.materials if m.name == "sinter"} == {"trilobe_s0.1500"},
+        "cohesion": lambda: test.parameter_sets[0]["coh_pp"] == values["coh_pp"],
+        "density_per_material": lambda: [m.density for m in mixture.materials] == [values["density_pellet"],
+                                                                                   values["density_sinter"]],
+        "free_interaction": lambda: test.parameter_sets[0]["mu_s_ps"] == values["mu_s_ps"],
+        "front_back_walls": lambda: (test.settings.front_back_material is not None
+                                     and plain_test.settings.front_back_material is None),
+        "rolling_ai2011": lambda: (test.settings.rolling_stiffness == "ai2011"
+                                   and plain_test.settings.rolling_stiffness != "ai2011"),
+    }
+    assert changed[extension](), f"extension={extension} did not change the model"
+
+
+# ---------------------------------------------------------------------------------------------
+# the command x extension matrix
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.slow
+@pytest.mark.parametrize("extension", EXTENSIONS)
+@pytest.mark.parametrize("command", ["simulate", "screen", "study", "calibrate", "discover"])
+def test_every_command_runs_with_every_extension(tmp_path, command, extension):
+    out = tmp_path / "out"
+    proc = run_command(command, *TINY_RUN, *TINY[command], f"extension={extension}", out=out)
+    assert proc.returncode == 0, f"torchdem-{command} extension={extension}:\n{proc.stdout[-1500:]}\n{proc.stderr[-3000:]}"
+    written = {"simulate": "kpis.json", "screen": "screening.json", "study": "timestep.json",
+               "calibrate": "calibration.json", "discover": "discovery.json"}[command]
+    assert json.loads((out / written).read_text())
+    saved = (out / ".hydra" / "config.yaml").read_text()
+    assert f"name: {extension}" in saved or (extension == "none" and "name: null" in saved)

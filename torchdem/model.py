@@ -1,0 +1,184 @@
+"""A draw down DEM model: everything a run needs besides the varied parameters and the seed.
+
+Contract:
+- :class:`DrawDownModel` holds the mixture of every condition, the geometry, the run settings,
+  the contact parameters that stay fixed and the device. It is a frozen, picklable dataclass
+  (campaign executors ship it to worker processes). :meth:`DrawDownModel.test_for` turns a
+  condition and parameter sets into a :class:`~torchdem.drawdown.DrawDownTest`.
+- A condition name may carry run-setting variants after ``|``:
+  ``"50-50|time_step_fraction=0.2|shear_modulus=1e7"`` runs the 50-50 mixture with those
+  :class:`~torchdem.drawdown.RunSettings` fields replaced (the time-step and stiffness
+  studies store their runs this way, so they resume like any other campaign stage).
+- A parameter ``density_<material>`` (kg/m^3) is not a contact parameter: it replaces that
+  material's solid density in the mixture of the parameter set (bulk-density recalibration,
+  section 3.6 of the paper, and density as a calibration parameter, which the paper
+  recommends); ``lobe_spacing_<material>`` makes that material a trilobe clump of that lobe
+  spacing (:func:`torchdem.mixture.trilobe_template`). Such parameter sets run in one ensemble
+  with per-member mixtures.
+- Model extensions (:mod:`torchdem.mechanisms`) change a model through
+  :func:`torchdem.mechanisms.apply_extension`; every entry point applies the ``extension``
+  config group that way.
+- :func:`mixtures_from_measured` builds the mixture of every condition of a measured-data file
+  (:mod:`torchdem.measured`) from the materials the model uses.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+from torchdem.drawdown import DrawDownTest, RunSettings
+from torchdem.errors import ConfigError
+from torchdem.geometry import DrawDownGeometry
+from torchdem.measured import MeasuredData
+from torchdem.mixture import Mixture, ParticleMaterial, trilobe_shape
+
+#: Prefix of task parameters that set a material's solid density (kg/m^3), not a contact law.
+DENSITY_PREFIX = "density_"
+#: Per-material task parameters: prefix -> (exclusive low, inclusive high, allowed range text).
+MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3"),
+                     "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size")}
+
+_VARIANT_FIELDS = {"time_step_fraction": float, "shear_modulus": float, "fines_cut": float,
+                   "rolling_damping": float, "loose_fraction": float}
+
+
+@dataclass(frozen=True)
+class DrawDownModel:
+    """A draw down DEM model ready to evaluate (see the module docstring).
+
+    Attributes:
+        conditions: condition name -> mixture (e.g. ``"50-50"`` -> the 50-50 layered fill).
+        geometry: the boxes. settings: how runs are simulated.
+        fixed: contact parameters not varied by the campaign (``mu_s_pp`` ... ), overridden by
+            a task's parameters of the same name.
+        device: torch device name of the ensembles.
+    """
+
+    conditions: Mapping[str, Mixture]
+    geometry: DrawDownGeometry
+    settings: RunSettings
+    fixed: Mapping[str, float] = field(default_factory=dict)
+    device: str = "cpu"
+
+    def test_for(self, condition: str, parameter_sets: Sequence[Mapping[str, float]],
+                 isolate: bool = True) -> DrawDownTest:
+        """The :class:`DrawDownTest` of a (possibly variant) condition with these parameter sets.
+
+        ``isolate`` (campaigns): a blow-up fails that member only (its outcome says why), not the
+        whole ensemble; False keeps the run settings' own ``guards.on_blowup``."""
+        base, settings = split_condition(condition, self.settings)
+        if isolate:
+            settings = dataclasses.replace(settings, guards=dataclasses.replace(settings.guards, on_blowup="isolate"))
+        if base not in self.conditions:
+            raise ConfigError(f"condition {base!r} is not part of the model; known: {sorted(self.conditions)}")
+        mixture = self.conditions[base]
+        sets, properties = [], []
+        for p in parameter_sets:
+            contact, props = split_material_parameters({**self.fixed, **p}, mixture, f"condition {condition!r}")
+            sets.append(contact)
+            properties.append(props)
+        mixtures = None
+        if any(properties):
+            mixtures = [with_material_properties(mixture, props) for props in properties]
+        return DrawDownTest(mixture, self.geometry, sets, settings, mixtures=mixtures)
+
+
+def split_material_parameters(params: Mapping[str, float], mixture: Mixture, source: str
+                              ) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
+    """``(contact parameters, {material: {property: value}})`` of a parameter set: the per-material
+    parameters ``density_<material>`` (solid density, kg/m^3) and ``lobe_spacing_<material>``
+    (trilobe clump shape, :func:`torchdem.mixture.trilobe_template`, in (0, 0.3] of the sieve size)
+    are taken out; everything else is a contact parameter."""
+    names = {m.name for m in mixture.materials}
+    contact: dict[str, float] = {}
+    material: dict[str, dict[str, float]] = {}
+    for key, value in params.items():
+        prefix = next((p for p in MATERIAL_PREFIXES if key.startswith(p)), None)
+        if prefix is None:
+            contact[key] = value
+            continue
+        name = key[len(prefix):]
+        if name not in names:
+            raise ConfigError(f"{source}: parameter {key!r} names no material of mixture {mixture.name!r}; "
+                              f"expected {prefix}<material> with a material of {sorted(names)}")
+        low, high, allowed = MATERIAL_PREFIXES[prefix]
+        if not (math.isfinite(value) and low < value <= high):
+            raise ConfigError(f"{source}: {key} = {value!r} is not allowed; expected {allowed}")
+        material.setdefault(name, {})[prefix[:-1]] = float(value)
+    return contact, material
+
+
+def split_density(params: Mapping[str, float], mixture: Mixture, source: str
+                  ) -> tuple[dict[str, float], dict[str, float]]:
+    """``(contact parameters, {material: density kg/m^3})`` (other material parameters are refused)."""
+    contact, material = split_material_parameters(params, mixture, source)
+    other = sorted(k for props in material.values() for k in props if k != "density")
+    if other:
+        raise ConfigError(f"{source}: split_density got material parameters {other}; use split_material_parameters")
+    return contact, {m: props["density"] for m, props in material.items()}
+
+
+def with_material_properties(mixture: Mixture, properties: Mapping[str, Mapping[str, float]]) -> Mixture:
+    """The mixture with the given materials' densities and trilobe lobe spacings replaced."""
+    materials = []
+    for m in mixture.materials:
+        props = properties.get(m.name, {})
+        changes = {}
+        if "density" in props:
+            changes["density"] = props["density"]
+        if "lobe_spacing" in props:
+            changes["shape"] = trilobe_shape(props["lobe_spacing"])
+        materials.append(dataclasses.replace(m, **changes) if changes else m)
+    return dataclasses.replace(mixture, materials=tuple(materials))
+
+
+def with_densities(mixture: Mixture, density: Mapping[str, float]) -> Mixture:
+    """The mixture with the given materials' solid densities replaced."""
+    return with_material_properties(mixture, {m: {"density": rho} for m, rho in density.items()})
+
+
+def variant(condition: str, **changes: float) -> str:
+    """Condition name with run-setting variants, e.g. ``variant("50-50", time_step_fraction=0.2)``."""
+    for k in changes:
+        if k not in _VARIANT_FIELDS:
+            raise ConfigError(f"variant: {k!r} is not a run setting a study may vary; allowed: {sorted(_VARIANT_FIELDS)}")
+    return "|".join([condition] + [f"{k}={changes[k]!r}" for k in sorted(changes)])
+
+
+def split_condition(condition: str, settings: RunSettings) -> tuple[str, RunSettings]:
+    """Base condition name and the run settings with the variant's fields replaced."""
+    base, *parts = condition.split("|")
+    changes = {}
+    for part in parts:
+        key, sep, value = part.partition("=")
+        if not sep or key not in _VARIANT_FIELDS:
+            raise ConfigError(f"condition {condition!r}: variant {part!r} is not <field>=<value> with a field of "
+                              f"{sorted(_VARIANT_FIELDS)}")
+        try:
+            changes[key] = _VARIANT_FIELDS[key](value)
+        except ValueError:
+            raise ConfigError(f"condition {condition!r}: {key} = {value!r} is not a number") from None
+    return base, dataclasses.replace(settings, **changes).validate(f"condition {condition!r}")
+
+
+def mixtures_from_measured(data: MeasuredData, materials: Mapping[str, ParticleMaterial],
+                           total_mass: float | None = None, layers_source: str = "measured data"
+                           ) -> dict[str, Mixture]:
+    """Mixture of every condition (fractions and layering from the data, materials given)."""
+    out = {}
+    for name in data.names:
+        c = data.condition(name)
+        fractions = c.mass_fractions()
+        missing = [m for m in fractions if m not in materials]
+        if missing:
+            raise ConfigError(f"{layers_source}: condition {name!r} uses materials {missing} that the model does not "
+                              f"define; defined: {sorted(materials)}")
+        used = [m for m, f in fractions.items() if f > 0]
+        mass = total_mass if total_mass is not None else (c.fill_mass_kg or 40.0)
+        out[name] = Mixture(f"{name}", tuple(materials[m] for m in used), tuple(fractions[m] for m in used),
+                            tuple(c.layering), mass).validate(f"{layers_source}: condition {name!r}")
+    return out
+
+
