@@ -221,7 +221,7 @@ def test_screen_app_writes_the_report_and_a_rerun_repeats_no_dem_run(tmp_path):
     # them so that Table 5 has columns to check
     args = [f"store={store}", "screen=mini", *FAST_RUN, "screening.stochastic_threshold=0.99",
             "screening.kpis=[shear_angle_deg,mass_lower_box_full_kg,max_heap_height_m,mass_flow_rate_full_kg_s]"]
-    stdout, first_wall = _run_app(args, tmp_path / "run1")
+    stdout, _ = _run_app(args, tmp_path / "run1")
     out = tmp_path / "run1"
     for name in ("screening.json", "screening.md", "table5.md", "table5.json", "fig10_variance_shares.png",
                  "fig11_screening_vs_measured.png"):
@@ -252,10 +252,9 @@ def test_screen_app_writes_the_report_and_a_rerun_repeats_no_dem_run(tmp_path):
     done_before = [(r.task_id, r.finished_at) for r in con.records("screening", status="done")]
     assert len(done_before) == 10
 
-    stdout2, second_wall = _run_app(args, tmp_path / "run2")
+    stdout2, _ = _run_app(args, tmp_path / "run2")
     assert re.search(r"DEM evaluations run now: 0 in", stdout2)
     assert [(r.task_id, r.finished_at) for r in con.records("screening", status="done")] == done_before
-    assert second_wall < 0.5 * first_wall
     assert json.loads((tmp_path / "run2" / "screening.json").read_text())["results"] == doc["results"]
 
 

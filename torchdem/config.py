@@ -169,6 +169,8 @@ def run_settings_from(sim: Mapping[str, Any], run: Mapping[str, Any]) -> RunSett
         fines_cut=None if fines is None else fines / 1000.0,
         skin_fraction=_number(sim, "skin_fraction", "sim", 0.0, 2.0, open_low=True, default=0.2,
                               allowed="(0, 2] of the largest sphere radius"),
+        reorder_every=int(_number(sim, "reorder_every", "sim", 0.0, default=0,
+                                  allowed="an int >= 0 (neighbour rebuilds between spatial reorders; 0: never)")),
     ).validate("sim/run")
 
 

@@ -2,7 +2,8 @@
 
 Contract: :func:`write_vtk_frame` writes ``<directory>/<prefix>_m<member>_<step>.vtk`` for
 every requested ensemble member: the active spheres as points (vertices) with point data
-``id`` (sphere index), ``body`` (body index), ``material`` (material id), ``radius`` (m) and
+``id`` (sphere index as built), ``body`` (body index as built: ids survive a spatial reorder,
+``State.sphere_id`` / ``State.body_id``), ``material`` (material id), ``radius`` (m) and
 ``velocity`` (m/s, of the sphere centre). Each frame is a binary (big-endian) legacy VTK file,
 which ParaView reads directly; use the "Glyph" filter with ``radius`` as the scale to see
 spheres. :class:`VTKWriter` calls it every ``interval`` steps and keeps a ``.pvd``-free file
@@ -45,7 +46,8 @@ def write_vtk_frame(directory: str | Path, system: System, state: State, members
     act = sphere_active(system, state.bodies).reshape(B, Ns).cpu().numpy()
     rad = system.sphere_radius.detach().cpu().double().numpy()
     mat = system.sphere_material.cpu().numpy()
-    body = system.sphere_body.cpu().numpy()
+    body = torch.gather(state.body_id, 1, system.sphere_body).cpu().numpy()
+    sphere_id = state.sphere_id.cpu().numpy()
     paths = []
     for m in (range(B) if members is None else members):
         sel = np.nonzero(act[m])[0]
@@ -60,7 +62,7 @@ def write_vtk_frame(directory: str | Path, system: System, state: State, members
             verts = np.stack([np.ones(n, dtype=np.int64), np.arange(n, dtype=np.int64)], 1)
             fh.write(verts.astype(">i4").tobytes())
             fh.write(f"\nPOINT_DATA {n}\n".encode())
-            for name, arr, kind in (("id", sel, "int"), ("body", body[m, sel], "int"),
+            for name, arr, kind in (("id", sphere_id[m, sel], "int"), ("body", body[m, sel], "int"),
                                     ("material", mat[m, sel], "int"), ("radius", rad[m, sel], "double")):
                 fh.write(f"SCALARS {name} {kind} 1\nLOOKUP_TABLE default\n".encode())
                 fh.write(np.asarray(arr).astype(">i4" if kind == "int" else ">f8").tobytes())

@@ -41,7 +41,7 @@ MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3
                      "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size")}
 
 _VARIANT_FIELDS = {"time_step_fraction": float, "shear_modulus": float, "fines_cut": float,
-                   "rolling_damping": float, "loose_fraction": float}
+                   "rolling_damping": float, "loose_fraction": float, "dtype": str}
 
 
 @dataclass(frozen=True)
@@ -139,12 +139,16 @@ def with_densities(mixture: Mixture, density: Mapping[str, float]) -> Mixture:
     return with_material_properties(mixture, {m: {"density": rho} for m, rho in density.items()})
 
 
-def variant(condition: str, **changes: float) -> str:
-    """Condition name with run-setting variants, e.g. ``variant("50-50", time_step_fraction=0.2)``."""
+def variant(condition: str, **changes: float | str) -> str:
+    """Condition name with run-setting variants, e.g. ``variant("50-50", time_step_fraction=0.2)``
+    or ``variant("50-50", dtype="float32")`` (numbers by ``repr``, names as they are)."""
     for k in changes:
         if k not in _VARIANT_FIELDS:
             raise ConfigError(f"variant: {k!r} is not a run setting a study may vary; allowed: {sorted(_VARIANT_FIELDS)}")
-    return "|".join([condition] + [f"{k}={changes[k]!r}" for k in sorted(changes)])
+        if _VARIANT_FIELDS[k] is str and (not isinstance(changes[k], str) or any(c in changes[k] for c in "|=")):
+            raise ConfigError(f"variant: {k} = {changes[k]!r} is not allowed; expected a name without '|' or '='")
+    return "|".join([condition] + [f"{k}={changes[k] if _VARIANT_FIELDS[k] is str else repr(changes[k])}"
+                                   for k in sorted(changes)])
 
 
 def split_condition(condition: str, settings: RunSettings) -> tuple[str, RunSettings]:

@@ -14,6 +14,10 @@ Contract:
 - Bodies that leave the domain box are deactivated and counted in ``state.lost``.
 - ``save(path)`` / ``Simulation.load(path, system)`` write and read the full state, contact
   history included, so a run resumes bit-for-bit.
+- ``reorder_every = k > 0`` renumbers the bodies along a space-filling curve after every k-th
+  neighbour rebuild (:mod:`torchdem.reorder`), so the contact kernels read partners that lie
+  close in memory; ``state.body_id`` keeps every body's id as built, and ``load`` maps the system
+  as built onto a saved state's order. 0 (default) never reorders.
 - Python's cyclic garbage collector is paused while ``advance`` runs (and restored after): a step
   allocates a few hundred short-lived objects, which triggered collections that scanned every
   object of the process (torch, botorch, ...), 2-3 % of a step's time; a step creates no reference
@@ -33,6 +37,7 @@ import torch
 
 from torchdem.errors import BlowUpError, ConfigError
 from torchdem.integrate import Kernels, body_angular_velocity, evaluate_forces, step
+from torchdem.reorder import permute_system, reorder
 from torchdem.state import State, state_from_dict, to_dict
 from torchdem.system import System
 
@@ -102,9 +107,14 @@ class Simulation:
     """A batched DEM run (see the module docstring)."""
 
     def __init__(self, system: System, state: State, guards: GuardSettings = GuardSettings(),
-                 compile: bool = False, backend: str = "auto"):
+                 compile: bool = False, backend: str = "auto", reorder_every: int = 0):
         """``compile``: torch.compile the torch kernels. ``backend``: contact kernels for CPU
-        tensors, ``"auto"`` (C++ when it builds), ``"cpp"`` or ``"torch"`` (see :class:`Kernels`)."""
+        tensors, ``"auto"`` (C++ when it builds), ``"cpp"`` or ``"torch"`` (see :class:`Kernels`).
+        ``reorder_every``: neighbour rebuilds between spatial reorders of the bodies (0: never)."""
+        if isinstance(reorder_every, bool) or not isinstance(reorder_every, int) or reorder_every < 0:
+            raise ConfigError(f"Simulation: reorder_every = {reorder_every!r} is not allowed; expected an int >= 0 "
+                              "(neighbour rebuilds between spatial reorders; 0: never)")
+        self.reorder_every = reorder_every
         self.system = system
         self.guards = guards.validate()
         self.kernels = Kernels(compile, backend)
@@ -133,7 +143,11 @@ class Simulation:
         """Take ``n_steps`` steps; call ``callback(self)`` every ``callback_every`` steps."""
         with _cyclic_gc_paused():
             for _ in range(n_steps):
+                rebuilds = self.state.rebuilds
                 self.state = step(self.system, self.state, self.kernels)
+                if self.reorder_every and self.state.rebuilds != rebuilds \
+                        and self.state.rebuilds % self.reorder_every == 0:
+                    self.system, self.state = reorder(self.system, self.state)
                 k = self.state.step
                 if k % self.guards.check_every == 0:
                     self.check()
@@ -207,14 +221,18 @@ class Simulation:
 
     @classmethod
     def load(cls, path: str | Path, system: System, guards: GuardSettings = GuardSettings(),
-             compile: bool = False, backend: str = "auto") -> "Simulation":
-        """Restore a run saved by :meth:`save`; ``system`` must be the one it was built with."""
+             compile: bool = False, backend: str = "auto", reorder_every: int = 0) -> "Simulation":
+        """Restore a run saved by :meth:`save`; ``system`` must be the one it was built with (in
+        the order it was built: a reordered state's order is applied to it here)."""
         data = torch.load(Path(path), weights_only=True)
         state = state_from_dict(data["state"])
         if state.bodies.position.shape[:2] != system.mass.shape:
             raise ConfigError(f"{path}: saved state has bodies {tuple(state.bodies.position.shape[:2])} but "
                               f"the system has {tuple(system.mass.shape)}")
-        sim = cls(system, state, guards, compile, backend)
+        identity = torch.arange(system.n_bodies, device=state.body_id.device).expand_as(state.body_id)
+        if not torch.equal(state.body_id, identity):
+            system = permute_system(system, state.body_id, state.sphere_id)
+        sim = cls(system, state, guards, compile, backend, reorder_every)
         sim.failed = dict(data.get("failed", {}))
         return sim
 

@@ -161,6 +161,10 @@ class State(_Replaceable):
         step: number of steps taken since t = 0 (time = step * dt).
         rebuilds: number of neighbour-list rebuilds so far.
         lost: ``[B]`` int64, bodies deactivated because they left the domain, per member.
+        body_id: ``[B, Nb]`` int64, the body's index when the system was built: slot k of
+            member m holds body ``body_id[m, k]``. The identity until the bodies are reordered
+            in space (:mod:`torchdem.reorder`); outputs name bodies by it.
+        sphere_id: ``[B, Ns]`` int64, the same for spheres.
     """
 
     bodies: Bodies
@@ -172,6 +176,8 @@ class State(_Replaceable):
     step: int
     rebuilds: int
     lost: Tensor
+    body_id: Tensor
+    sphere_id: Tensor
 
 
 def to_dict(obj) -> dict:
@@ -184,10 +190,14 @@ def to_dict(obj) -> dict:
 
 
 def state_from_dict(d: dict) -> State:
-    """Inverse of :func:`to_dict` for :class:`State`."""
-    return State(
-        bodies=Bodies(**d["bodies"]),
-        pairs=PairContacts(**d["pairs"]),
-        walls=WallContacts(**d["walls"]),
-        **{k: v for k, v in d.items() if k not in ("bodies", "pairs", "walls")},
-    )
+    """Inverse of :func:`to_dict` for :class:`State` (a state saved before ``body_id`` and
+    ``sphere_id`` existed gets the identity order)."""
+    bodies = Bodies(**d["bodies"])
+    rest = {k: v for k, v in d.items() if k not in ("bodies", "pairs", "walls")}
+    B, Nb = bodies.active.shape
+    if "body_id" not in rest:
+        rest["body_id"] = torch.arange(Nb, device=bodies.active.device).expand(B, Nb).clone()
+    if "sphere_id" not in rest:
+        Ns = rest["reference"].shape[0] // B
+        rest["sphere_id"] = torch.arange(Ns, device=bodies.active.device).expand(B, Ns).clone()
+    return State(bodies=bodies, pairs=PairContacts(**d["pairs"]), walls=WallContacts(**d["walls"]), **rest)

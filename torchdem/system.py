@@ -438,4 +438,6 @@ def initial_state(system: System, bodies: Bodies) -> State:
         step=0,
         rebuilds=0,
         lost=torch.zeros(system.batch, dtype=torch.long, device=device),
+        body_id=torch.arange(system.n_bodies, device=device).expand(system.batch, system.n_bodies).clone(),
+        sphere_id=torch.arange(system.n_spheres, device=device).expand(system.batch, system.n_spheres).clone(),
     )

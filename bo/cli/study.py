@@ -24,12 +24,12 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (check_kpis, config_hash, executor_from, executor_settings_from, model_from,
-                           plain_config, replicate_seeds, store_path_from)
+from bo.cli.common import (_int, check_kpis, config_hash, executor_from, executor_settings_from, measured_kpis_from,
+                           model_from, plain_config, replicate_seeds, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 
-STUDIES = ("timestep", "shear_modulus")
+STUDIES = ("timestep", "shear_modulus", "precision")
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,9 @@ class StudySettings:
     deciding_kpis: tuple[str, ...] | None
     relative_tolerance: float
     std_growth_factor: float
+    alpha: float = 0.05
+    power: float = 0.8
+    minimum_seeds: int = 10
 
 
 def _numbers(values, key: str, where: str, allowed: str) -> tuple[float, ...]:
@@ -64,18 +67,30 @@ def study_settings_from(plain: Mapping[str, Any]) -> StudySettings:
     if len(seeds) < 2:
         raise out_of_range("replicates", len(seeds), "an int >= 2 (the criteria compare standard deviations)",
                            "config")
+    equivalence = plain.get("equivalence") or {}
     if study == "timestep":
         values = _numbers(plain.get("fractions"), "fractions", "config",
                           "a list of >= 2 distinct fractions of the Rayleigh time step in (0, 1]")
         ok = len(values) >= 2 and len(set(values)) == len(values) and all(0 < v <= 1 for v in values)
         if not ok:
             raise out_of_range("fractions", list(values), "a list of >= 2 distinct fractions in (0, 1]", "config")
-    else:
+    elif study == "shear_modulus":
         values = _numbers(plain.get("shear_moduli_pa"), "shear_moduli_pa", "config",
                           "a list of >= 2 distinct shear moduli > 0 Pa")
         if len(values) < 2 or len(set(values)) != len(values) or not all(v > 0 for v in values):
             raise out_of_range("shear_moduli_pa", list(values), "a list of >= 2 distinct shear moduli > 0 Pa",
                                "config")
+    else:
+        values = tuple(plain.get("dtypes") or ())
+        if len(values) != 2 or len(set(values)) != 2 or any(v not in ("float32", "float64") for v in values):
+            raise out_of_range("dtypes", list(values), "two distinct precisions, the reference first, e.g. "
+                               "[float64, float32]", "config")
+        alpha, power = equivalence.get("alpha", 0.05), equivalence.get("power", 0.8)
+        if not isinstance(alpha, (int, float)) or not 0 < alpha < 0.5:
+            raise out_of_range("equivalence.alpha", alpha, "a number in (0, 0.5)", "config")
+        if not isinstance(power, (int, float)) or not 0 < power < 1:
+            raise out_of_range("equivalence.power", power, "a number in (0, 1)", "config")
+        _int(equivalence.get("minimum_seeds", 10), "equivalence.minimum_seeds", "config", 2, "an int >= 2")
     kpis = check_kpis(plain.get("kpis"), "config")
     deciding = plain.get("deciding_kpis")
     if deciding is not None:
@@ -93,14 +108,18 @@ def study_settings_from(plain: Mapping[str, Any]) -> StudySettings:
     if not growth >= 1:
         raise out_of_range("std_growth_factor", growth, "a number >= 1, e.g. 2.0", "config")
     return StudySettings(study=study, values=values, seeds=tuple(seeds), condition=str(plain.get("condition")),
-                         kpis=kpis, deciding_kpis=deciding, relative_tolerance=rel, std_growth_factor=growth)
+                         kpis=kpis, deciding_kpis=deciding, relative_tolerance=rel, std_growth_factor=growth,
+                         alpha=float(equivalence.get("alpha", 0.05)), power=float(equivalence.get("power", 0.8)),
+                         minimum_seeds=int(equivalence.get("minimum_seeds", 10)))
 
 
 def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     """The whole app on a plain config: check, run (resume), analyse, write. Returns a summary."""
     from bo.campaign.store import CampaignStore
-    from bo.studies.pipeline import (STUDY_STAGES, run_shear_modulus_study, run_time_step_study, shear_modulus_report,
-                            smallest_sphere_rayleigh_time_step, time_step_report)
+    from bo.screening.pipeline import measured_for
+    from bo.studies.pipeline import (STUDY_STAGES, precision_report, run_precision_study, run_shear_modulus_study,
+                                     run_time_step_study, shear_modulus_report, smallest_sphere_rayleigh_time_step,
+                                     time_step_report)
 
     s = study_settings_from(plain)
     executor_settings = executor_settings_from(plain.get("executor") or {})
@@ -117,10 +136,13 @@ def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
         if s.study == "timestep":
             runs = run_time_step_study(store, executor, condition=s.condition, params=params, fractions=s.values,
                                        seeds=list(s.seeds), kpis=list(s.kpis), stage=stage)
-        else:
+        elif s.study == "shear_modulus":
             runs = run_shear_modulus_study(store, executor, condition=s.condition, params=params,
                                            shear_moduli_pa=s.values, seeds=list(s.seeds), kpis=list(s.kpis),
                                            stage=stage)
+        else:
+            runs = run_precision_study(store, executor, condition=s.condition, params=params, dtypes=s.values,
+                                       seeds=list(s.seeds), kpis=list(s.kpis), stage=stage)
     wall = time.perf_counter() - started
     counts = store.counts(stage)
     evaluated = counts["done"] + counts["failed"] - before
@@ -129,9 +151,13 @@ def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
         result, files = time_step_report(runs, out, rayleigh_time_step_s=rayleigh, deciding_kpis=s.deciding_kpis,
                                          relative_tolerance=s.relative_tolerance,
                                          std_growth_factor=s.std_growth_factor)
-    else:
+    elif s.study == "shear_modulus":
         result, files = shear_modulus_report(runs, out, deciding_kpis=s.deciding_kpis,
                                              relative_tolerance=s.relative_tolerance)
+    else:
+        measured = measured_for(s.kpis, measured_kpis_from(plain))
+        result, files = precision_report(runs, out, margins={k: v.ci95 for k, v in measured.items()},
+                                         alpha=s.alpha, power=s.power, minimum_seeds=s.minimum_seeds)
     echo(result.to_text())
     echo(f"store {path}: {counts['done']} done, {counts['failed']} failed; DEM evaluations run now: "
          f"{evaluated} in {wall:.1f} s")

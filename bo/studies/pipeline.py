@@ -22,6 +22,11 @@ writes ``shear_modulus.json`` and ``shear_modulus.md``. The wall time of an eval
 wall time of the ensemble it ran in, so compare values whose replicates ran in batches of one
 size (``batch_size >= replicates``, the default).
 
+``run_precision_study(store, executor, *, condition, params, dtypes, seeds, kpis)`` runs the
+same in each floating-point precision (``variant(condition, dtype=...)``, stage ``"precision"``);
+``precision_report`` applies ``bo.studies.precision.precision_verdict`` (TOST per KPI against the
+lab's CI half-width) and writes ``precision.json`` and ``precision.md``.
+
 ``STUDY_STAGES`` are the extra stage names to open the store with.
 ``smallest_sphere_rayleigh_time_step(mixture, settings)`` is Eq. 3 for the smallest sphere the
 sieve allows (smallest sieve size after the fines cut x the smallest template sphere), the
@@ -45,6 +50,7 @@ from torchdem.model import variant
 from bo.campaign.executor import Executor, canonical_params, run_pending
 from bo.screening.pipeline import _check_kpis, json_ready
 from bo.campaign.store import CampaignStore
+from bo.studies.precision import PrecisionVerdict, precision_verdict
 from bo.studies.timestep import ShearModulusSummary, TimeStepChoice, choose_time_step, summarise_shear_modulus_study
 from torchdem.errors import ConfigError, out_of_range
 
@@ -56,9 +62,12 @@ __all__ = [
     "run_shear_modulus_study",
     "time_step_report",
     "shear_modulus_report",
+    "run_precision_study",
+    "precision_report",
 ]
 
-STUDY_STAGES = ("timestep", "shear_modulus")
+STUDY_STAGES = ("timestep", "shear_modulus", "precision")
+DTYPES = ("float64", "float32")
 
 
 @dataclass(frozen=True, eq=False)
@@ -193,6 +202,41 @@ def run_shear_modulus_study(store: CampaignStore, executor: Executor, *, conditi
     kpis = _check_kpis(kpis, source)
     store.check_stage(stage, source)
     return _run_study(store, executor, stage, "shear_modulus", condition, params, moduli, list(seeds), kpis)
+
+
+def run_precision_study(store: CampaignStore, executor: Executor, *, condition: str,
+                        params: Mapping[str, float], dtypes: Sequence[str], seeds: Sequence[int],
+                        kpis: Sequence[str], stage: str = "precision") -> StudyRuns:
+    """Run (or resume) the reference parameters in every floating-point precision of ``dtypes``."""
+    source = "run_precision_study"
+    dtypes = tuple(dtypes)
+    if len(dtypes) != 2 or len(set(dtypes)) != 2 or any(d not in DTYPES for d in dtypes):
+        raise out_of_range("dtypes", list(dtypes), f"two distinct precisions of {list(DTYPES)}, the reference first",
+                           source)
+    seeds = _check_seeds(seeds, source)
+    kpis = _check_kpis(kpis, source)
+    store.check_stage(stage, source)
+    return _run_study(store, executor, stage, "dtype", condition, params, dtypes, list(seeds), kpis)
+
+
+def precision_report(runs: StudyRuns, out_dir, *, margins: Mapping[str, float], alpha: float = 0.05,
+                     power: float = 0.8, minimum_seeds: int = 10) -> tuple[PrecisionVerdict, dict[str, Path]]:
+    """TOST of the second precision against the first per KPI; writes precision.json and .md."""
+    verdict = precision_verdict(runs.kpi_values[0], runs.kpi_values[1], runs.kpi_names, margins,
+                                labels=(str(runs.values[0]), str(runs.values[1])), alpha=alpha, power=power,
+                                minimum_seeds=minimum_seeds)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    walls = {str(v): (None if not np.isfinite(w) else float(w)) for v, w in zip(runs.values, runs.wall_time_s)}
+    payload = {**verdict.to_dict(), "seeds": list(runs.seeds), "conditions": list(runs.conditions),
+               "failed_runs": {str(v): int(n) for v, n in zip(runs.values, runs.n_failed)},
+               "mean_wall_time_s": walls}
+    files = {"json": out / "precision.json", "md": out / "precision.md"}
+    files["json"].write_text(json.dumps(json_ready(payload), indent=2))
+    files["md"].write_text(f"# Precision study: {runs.conditions[1]} against {runs.conditions[0]}\n\n"
+                           f"Seeds: {list(runs.seeds)}; failed runs: {payload['failed_runs']}; mean wall time "
+                           f"per run (s): {walls}\n\n{verdict.to_text()}\n")
+    return verdict, files
 
 
 def _measured_columns(runs: StudyRuns, deciding: Sequence[str] | None, source: str) -> list[str]:

@@ -1,0 +1,160 @@
+"""Spatial order: renumber bodies (and their spheres) along a space-filling curve.
+
+Contract
+--------
+The contact kernels read both partners' rows of every listed pair. When the body indices carry
+no spatial order, the partner j of sphere i lies anywhere in memory and most of those reads miss
+the cache. LIGGGHTS sorts its atoms by spatial bin for the same reason (``atom_modify sort``).
+
+- :func:`spatial_permutation` gives, per member, the body order along the Morton (Z-order) curve
+  of the cell grid's cells: ``perm[m, k]`` is the current slot of the body that goes to slot
+  ``k``. Active bodies come first (by cell, ties by current slot), inactive ones (padding, lost,
+  frozen) after them in their current order.
+- :func:`permute_system` and :func:`reorder` apply a permutation: every per-body and per-sphere
+  tensor of the :class:`~torchdem.system.System` and of the :class:`~torchdem.state.State` is
+  gathered (a body's spheres follow it, kept in their order), ``sphere_body`` is renumbered,
+  and ``State.body_id`` / ``State.sphere_id`` record each slot's body and sphere as built, so
+  outputs keep naming a body (a sphere) by the same id. The neighbour lists are rebuilt in the new numbering, with the history carried over:
+  a listed pair whose two spheres swap order (i < j in the new numbering) has its tangential
+  spring and rolling torque negated, since both are defined from i towards j. The lists are
+  built from positions only, so after a reorder at a step where they were just built they hold
+  the same contacts with the same history; only the order of the force sums changes, by
+  round-off.
+- :func:`permute_system` alone maps a system as built onto a saved state's order
+  (``Simulation.load``).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from torchdem.state import State
+from torchdem.system import System
+
+Tensor = torch.Tensor
+
+__all__ = ["morton_code", "spatial_permutation", "permute_system", "reorder"]
+
+
+def _spread_bits(v: Tensor) -> Tensor:
+    """Insert two zero bits between the low 21 bits of ``v`` (int64)."""
+    v = v & 0x1FFFFF
+    v = (v | (v << 32)) & 0x1F00000000FFFF
+    v = (v | (v << 16)) & 0x1F0000FF0000FF
+    v = (v | (v << 8)) & 0x100F00F00F00F00F
+    v = (v | (v << 4)) & 0x10C30C30C30C30C3
+    v = (v | (v << 2)) & 0x1249249249249249
+    return v
+
+
+def morton_code(cell: Tensor) -> Tensor:
+    """Morton (Z-order) code of integer cell coordinates ``[..., 3]`` (each < 2^21) -> ``[...]``."""
+    c = cell.to(torch.int64)
+    return _spread_bits(c[..., 0]) | (_spread_bits(c[..., 1]) << 1) | (_spread_bits(c[..., 2]) << 2)
+
+
+def spatial_permutation(system: System, state: State) -> Tensor:
+    """``[B, Nb]`` int64: the bodies of each member along the Morton curve of the grid's cells
+    (see the module docstring)."""
+    grid = system.grid
+    x = state.bodies.position
+    dims = torch.tensor(grid.dims, device=x.device)
+    cell = torch.floor((x - grid.lower) / grid.cell_size).to(torch.int64)
+    cell = torch.minimum(torch.clamp_min(cell, 0), dims - 1)
+    code = morton_code(cell)
+    Nb = system.n_bodies
+    slot = torch.arange(Nb, device=x.device)
+    inactive = ~state.bodies.active
+    big = int(code.max()) + 1 if code.numel() else 1
+    # active by code then slot; inactive after every active one, by slot
+    key = torch.where(inactive, big + slot, code) * Nb + slot
+    return torch.argsort(key, dim=1)
+
+
+def _sphere_permutation(system: System, body_perm: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-member sphere permutation following ``body_perm`` and the new body index of every
+    sphere slot ``[B, Ns]`` each."""
+    B, Nb = body_perm.shape
+    Ns = system.n_spheres
+    inverse = torch.empty_like(body_perm)
+    inverse.scatter_(1, body_perm, torch.arange(Nb, device=body_perm.device).expand(B, Nb))
+    new_body = torch.gather(inverse, 1, system.sphere_body)
+    order = torch.argsort(new_body * Ns + torch.arange(Ns, device=body_perm.device), dim=1)
+    return order, torch.gather(new_body, 1, order)
+
+
+def permute_system(system: System, body_perm: Tensor, sphere_perm: Tensor | None = None) -> System:
+    """The system with its bodies in the order ``body_perm`` ``[B, Nb]`` (slot k takes the body of
+    slot ``body_perm[:, k]``) and their spheres following them (in the order ``sphere_perm``
+    ``[B, Ns]`` when given, e.g. a saved state's ``sphere_id``)."""
+    if sphere_perm is None:
+        sphere_perm, sphere_body = _sphere_permutation(system, body_perm)
+    else:
+        B, Nb = body_perm.shape
+        inverse = torch.empty_like(body_perm)
+        inverse.scatter_(1, body_perm, torch.arange(Nb, device=body_perm.device).expand(B, Nb))
+        sphere_body = torch.gather(torch.gather(inverse, 1, system.sphere_body), 1, sphere_perm)
+
+    def bodies(t: Tensor) -> Tensor:
+        index = body_perm.reshape(body_perm.shape + (1,) * (t.dim() - 2)).expand_as(t)
+        return torch.gather(t, 1, index)
+
+    def spheres(t: Tensor) -> Tensor:
+        index = sphere_perm.reshape(sphere_perm.shape + (1,) * (t.dim() - 2)).expand_as(t)
+        return torch.gather(t, 1, index)
+
+    return dataclasses.replace(
+        system, sphere_body=sphere_body, sphere_offset=spheres(system.sphere_offset),
+        sphere_radius=spheres(system.sphere_radius), sphere_material=spheres(system.sphere_material),
+        mass=bodies(system.mass), inertia=bodies(system.inertia), body_material=bodies(system.body_material))
+
+
+def _flat(perm: Tensor, n: int) -> Tensor:
+    """Flat old index of every flat new slot for a per-member permutation ``[B, n]``."""
+    B = perm.shape[0]
+    return (perm + torch.arange(B, device=perm.device)[:, None] * n).reshape(-1)
+
+
+def reorder(system: System, state: State, body_perm: Tensor | None = None) -> tuple[System, State]:
+    """Renumber bodies and spheres (default order: :func:`spatial_permutation`) and rebuild the
+    neighbour lists in the new numbering, history carried (see the module docstring). The
+    rebuild counter is left as it was."""
+    from torchdem.integrate import rebuild, sphere_positions
+
+    if body_perm is None:
+        body_perm = spatial_permutation(system, state)
+    B, Nb, Ns = system.batch, system.n_bodies, system.n_spheres
+    sphere_perm, _ = _sphere_permutation(system, body_perm)
+    new_system = permute_system(system, body_perm)
+    old_body, old_sphere = _flat(body_perm, Nb), _flat(sphere_perm, Ns)
+    S = B * Ns
+    sphere_new = torch.empty_like(old_sphere)
+    sphere_new[old_sphere] = torch.arange(S, device=old_sphere.device)
+
+    b = state.bodies
+    bodies = b.set(**{f.name: getattr(b, f.name).reshape((B * Nb,) + getattr(b, f.name).shape[2:])[old_body]
+                      .reshape(getattr(b, f.name).shape) for f in dataclasses.fields(b)})
+    body_id = torch.gather(state.body_id, 1, body_perm)
+    sphere_id = torch.gather(state.sphere_id, 1, sphere_perm)
+
+    # history of the old lists under the new sphere numbering, i < j, sorted by key
+    p = state.pairs
+    i, j = sphere_new[p.i], sphere_new[p.j]
+    swap = i > j
+    sign = torch.where(swap, -1.0, 1.0).to(p.tangential.dtype)[:, None]
+    key = torch.minimum(i, j) * S + torch.maximum(i, j)
+    order = torch.argsort(key)
+    pairs = p.set(key=key[order], tangential=(p.tangential * sign)[order], rolling=(p.rolling * sign)[order])
+    w = state.walls
+    W = max(system.walls.n, 1)
+    wkey = sphere_new[w.sphere] * W + w.wall
+    worder = torch.argsort(wkey)
+    walls = w.set(key=wkey[worder], tangential=w.tangential[worder], rolling=w.rolling[worder])
+
+    moved = state.set(bodies=bodies, pairs=pairs, walls=walls, body_id=body_id, sphere_id=sphere_id)
+    rebuilt, _ = rebuild(new_system, moved, sphere_positions(new_system, bodies), state.step * system.dt)
+    # the skin criterion keeps measuring from the last regular build (the same positions when the
+    # reorder follows a rebuild, as in Simulation), so the rebuild schedule does not change
+    return new_system, rebuilt.set(rebuilds=state.rebuilds, reference=state.reference[old_sphere],
+                                   wall_shift=state.wall_shift, wall_active=state.wall_active)
