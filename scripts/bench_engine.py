@@ -52,8 +52,52 @@ Reading the figures:
   the torch ones (with ``--compile``: torch.compile'd). With cpp, the drift, and the pair and wall
   contacts with the kick (one fused call per step), are C++ too.
 
-Usage: ``python scripts/bench_engine.py [--steps 2000] [--json] [--quick] [--backend cpp|torch]``. Plain argparse,
-not Hydra: a benchmark with a handful of flags and no config groups.
+Optional extras (off by default; the default run's cost is unchanged):
+
+- ``--scaling``: particle-steps/s of the settled box against its size N (B = 1) and against the
+  ensemble size B (B = 1, 4, 16, 64 of the packing), for every ``--dtypes`` precision,
+  ``--scaling-steps`` (300; 60 with --quick) timed steps after ``--scaling-warmup`` (30; 10 with
+  --quick) each, best of one. No new packing is settled: the N cases are cut from or tiled out of
+  the cached one. ~1k: the spheres with x < 0.3 box_x, the x wall moved to just beyond them
+  (max x + r). ~3.4k, ~14k, ~54k: 1x1, 2x2 and 4x4 copies of the packing side by side in x and y
+  inside one box around them. Neighbouring tiles are placed one box length plus a gap apart, the
+  gap being the deepest wall penetration of the settled spheres at the two facing walls (~10 um),
+  so two spheres that leant on the two facing walls are at least r1 + r2 apart: tiling adds no
+  overlap. Each N case prints the largest overlap over the whole packing (the settled contacts'
+  own, the same as the source packing's) and over pairs of spheres from different tiles (seam;
+  negative = the closest approach is a gap). The seam spheres lose their wall and settle a little
+  during the run; that changes few contacts. JSON key ``scaling``.
+  How to read it: if the cost of a step is linear in N and in B, particle-steps/s is constant, and
+  the table's ratio to the smallest case is 1. A rise with N or B means fixed per-step costs
+  (Python, kernel calls, the neighbour check) that larger cases amortise; a fall means the cost per
+  particle grows. The pair kernel reads both partners' rows (position, velocity, angular
+  velocity, force; ~200 bytes per sphere in float64, ~120 in float32, with mass, radius, indices)
+  for every contact. A member of ~1k spheres (~0.2 MB) keeps them in L2, ~3.4k (~0.7 MB) in L2
+  or L3, ~14k (~3 MB) in L3, ~54k (~11 MB) at or past the L3 of a small CPU: a fall at the large
+  N is partner rows missing the cache. The ensemble gives each thread whole members, so its
+  working set stays one member's at any B: B should stay flat until the streamed neighbour lists
+  and histories (pairs/N x ~100 bytes per sphere, never reused) meet the memory bandwidth, which
+  ``--stream`` measures. The ``pairs/N`` column (listed pairs per sphere) shows when a cut or
+  tiled packing is not the same work per sphere.
+- ``--stream``: a STREAM triad (``a = b + s c``, float64, ``--stream-mib`` 64 MiB per array, far
+  past the last-level cache, best of ``--stream-repeat`` 10, on torch's intra-op threads, as the
+  timings) gives the machine's memory bandwidth, counted as STREAM does (3 arrays x 8 bytes per
+  element: 2 reads, 1 write) and with the write-allocate read of ``a`` (4 arrays: the true
+  traffic of ordinary stores). :func:`pair_bytes_per_step` itemises the bytes the C++ pair kernel
+  moves per step (``contact_cpu.cpp``: pair_block inside forces_kick's per-member path, which the
+  B = 16 ensemble takes) as a lower bound (each byte once: the per-pair streams, plus every
+  per-sphere and per-body row once per step) and an upper bound (every gathered partner row a
+  full 64-byte cache line from memory, every time). With the contact counts of the B = 16 timing
+  (listed pairs, pairs whose spheres overlap, spheres) it prints bytes per listed pair, the
+  achieved bytes/s (pair bytes x steps / wall time of the whole step: walls, drift, kick and the
+  Python around them included, so this is a floor of the kernel's own rate) and its fraction of
+  the triad bandwidth (writes counted once on both sides). A lower-bound fraction near 1 would
+  mean the step is bandwidth-bound; an upper-bound fraction above 1 means the cache serves most
+  partner rows. JSON key ``stream``. The wall contacts (JSON ``wall_contacts``) are not counted.
+
+Usage: ``python scripts/bench_engine.py [--steps 2000] [--json] [--quick] [--backend cpp|torch]
+[--scaling] [--stream]``. Plain argparse, not Hydra: a benchmark with a handful of flags and no
+config groups.
 """
 from __future__ import annotations
 
@@ -80,6 +124,7 @@ import torch
 from torchdem.cpu_monitor import CpuMonitor
 from torchdem.errors import ConfigError
 from torchdem.materials import Material, interaction_table, rayleigh_time_step
+from torchdem.neighbors import cell_grid, find_pairs
 from torchdem.simulation import GuardSettings, Simulation
 from torchdem.system import build_system
 from torchdem.walls import box_walls
@@ -89,6 +134,10 @@ CACHE_FORMAT = 1                      # bump when the cached packing's content c
 MATERIAL = "bench_sphere"             # one material for spheres and walls
 STANDARD_GRAVITY = 9.81
 B_ENSEMBLE = 16
+SCALING_TRIM = 0.3                    # --scaling: the ~1k case keeps the spheres with x < this x box_x
+SCALING_TILES = (1, 2, 4)             # --scaling: n x n copies of the packing side by side
+SCALING_BATCHES = (1, 4, 16, 64)      # --scaling: ensemble sizes on the packing
+CACHE_LINE = 64                       # bytes; --stream's upper bound moves one line per gathered row
 
 
 @dataclass(frozen=True)
@@ -203,8 +252,27 @@ class FinalState:
 
 
 @dataclass(frozen=True)
+class ContactCounts:
+    """Neighbour lists after a timed run, all members together.
+
+    Attributes: listed sphere-sphere pairs (``state.pairs.n``), the listed pairs whose spheres
+    overlap (the pair kernel runs its contact law on those; None where spheres are not bodies),
+    listed sphere-wall contacts (``state.walls.n``), spheres, bodies, and whether every sphere
+    is its own body (:attr:`System.spheres_are_bodies`).
+    """
+
+    listed_pairs: int
+    touching_pairs: int | None
+    wall_contacts: int
+    spheres: int
+    bodies: int
+    spheres_are_bodies: bool
+
+
+@dataclass(frozen=True)
 class EngineTiming:
-    """One timed run. particle_steps_per_s = batch * n_particles * steps / wall_time."""
+    """One timed run. particle_steps_per_s = batch * n_particles * steps / wall_time.
+    ``contacts``: torchdem's neighbour lists at the end (None for LIGGGHTS)."""
 
     engine: str
     dtype: str
@@ -216,6 +284,7 @@ class EngineTiming:
     initial: FinalState
     final: FinalState
     other_cpu_cores: float | None = None
+    contacts: ContactCounts | None = None
 
     @property
     def particle_steps_per_s(self) -> float:
