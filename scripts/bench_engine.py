@@ -27,7 +27,8 @@ Contract:
 - ``--json`` prints one JSON object on stdout (progress goes to stderr) with the keys
   ``particle_steps_per_s_b1``, ``particle_steps_per_s_b16``, ``liggghts_particle_steps_per_s``,
   ``ratio_b1``, ``ratio_b16`` (headline precision, float64 by default because LIGGGHTS runs in
-  double) plus per-precision figures and run details. ``--quick`` is a smoke run: 600
+  double) plus per-precision figures and run details, and ``scaling`` / ``stream`` with
+  ``--scaling`` / ``--stream`` (below). ``--quick`` is a smoke run: 600
   spheres settled only to 0.1 m/s, 200 steps; its figures are not the benchmark.
 
 Issue target on the 2-core reference machine: B = 16 at least LIGGGHTS's throughput, B = 1 at
@@ -61,8 +62,8 @@ Optional extras (off by default; the default run's cost is unchanged):
   the cached one. ~1k: the spheres with x < 0.3 box_x, the x wall moved to just beyond them
   (max x + r). ~3.4k, ~14k, ~54k: 1x1, 2x2 and 4x4 copies of the packing side by side in x and y
   inside one box around them. Neighbouring tiles are placed one box length plus a gap apart, the
-  gap being the deepest wall penetration of the settled spheres at the two facing walls (~10 um),
-  so two spheres that leant on the two facing walls are at least r1 + r2 apart: tiling adds no
+  gap being the deepest penetration of the settled spheres into the low wall plus that into the
+  high wall (soft walls; some 10-30 um), so two spheres that leant on the two facing walls are at least r1 + r2 apart: tiling adds no
   overlap. Each N case prints the largest overlap over the whole packing (the settled contacts'
   own, the same as the source packing's) and over pairs of spheres from different tiles (seam;
   negative = the closest approach is a gap). The seam spheres lose their wall and settle a little
@@ -70,15 +71,16 @@ Optional extras (off by default; the default run's cost is unchanged):
   How to read it: if the cost of a step is linear in N and in B, particle-steps/s is constant, and
   the table's ratio to the smallest case is 1. A rise with N or B means fixed per-step costs
   (Python, kernel calls, the neighbour check) that larger cases amortise; a fall means the cost per
-  particle grows. The pair kernel reads both partners' rows (position, velocity, angular
-  velocity, force; ~200 bytes per sphere in float64, ~120 in float32, with mass, radius, indices)
-  for every contact. A member of ~1k spheres (~0.2 MB) keeps them in L2, ~3.4k (~0.7 MB) in L2
-  or L3, ~14k (~3 MB) in L3, ~54k (~11 MB) at or past the L3 of a small CPU: a fall at the large
-  N is partner rows missing the cache. The ensemble gives each thread whole members, so its
-  working set stays one member's at any B: B should stay flat until the streamed neighbour lists
-  and histories (pairs/N x ~100 bytes per sphere, never reused) meet the memory bandwidth, which
-  ``--stream`` measures. The ``pairs/N`` column (listed pairs per sphere) shows when a cut or
-  tiled packing is not the same work per sphere.
+  particle grows. The pair kernel reads both partners' rows (position, radius, mass, material,
+  velocity, angular velocity, force and torque: 208 bytes per sphere in float64, 112 in float32
+  by :func:`pair_bytes_per_step`) for every contact. A member of ~1k spheres (~0.2 MB) keeps them
+  in L2, ~3.4k (~0.7 MB) in L2 or L3, ~14k (~3 MB) in L3, ~54k (~11 MB) at or past the L3 of a
+  small CPU (L2 is typically 0.5-2 MB per core, L3 a few MB to a few tens of MB): a fall at the
+  large N is partner rows missing the cache. The ensemble gives each thread whole members, so
+  its working set stays one member's at any B: B should stay flat until the streamed neighbour
+  lists and histories (~3 listed pairs per sphere, ~90 bytes each in float64, never reused) meet
+  the memory bandwidth, which ``--stream`` measures. The ``pairs/N`` column (listed pairs per
+  sphere) shows when a cut or tiled packing is not the same work per sphere.
 - ``--stream``: a STREAM triad (``a = b + s c``, float64, ``--stream-mib`` 64 MiB per array, far
   past the last-level cache, best of ``--stream-repeat`` 10, on torch's intra-op threads, as the
   timings) gives the machine's memory bandwidth, counted as STREAM does (3 arrays x 8 bytes per
@@ -304,15 +306,17 @@ def bench_material(scenario: BenchScenario) -> Material:
 
 def bench_system(scenario: BenchScenario, position: np.ndarray, radius: np.ndarray, velocity: np.ndarray,
                  angular_velocity: np.ndarray, dtype: torch.dtype, *, dt: float | None = None,
-                 time_step_fraction: float | None = None):
-    """``(System, State)`` of the scenario; position/velocity/angular_velocity are ``[B, N, 3]``."""
+                 time_step_fraction: float | None = None, box: tuple[float, float] | None = None):
+    """``(System, State)`` of the scenario; position/velocity/angular_velocity are ``[B, N, 3]``.
+    ``box``: inner (x, y) size of the open box, m (default the scenario's; walls as high)."""
     B, N, _ = position.shape
     material = bench_material(scenario)
     coefficients = {"mu_s": scenario.mu_s, "mu_r": scenario.mu_r, "restitution": scenario.restitution,
                     "rolling_damping": 0.0}   # epsd2 has no rolling dashpot
     table = interaction_table([material], {(MATERIAL, MATERIAL): coefficients}, batch=B, dtype=dtype,
                               source="bench_engine")
-    walls = box_walls("box", (0.0, 0.0, 0.0), (scenario.box_x, scenario.box_y, scenario.wall_height), MATERIAL)
+    box_x, box_y = box if box is not None else (scenario.box_x, scenario.box_y)
+    walls = box_walls("box", (0.0, 0.0, 0.0), (box_x, box_y, scenario.wall_height), MATERIAL)
     as_t = lambda a: torch.as_tensor(a, dtype=dtype)  # noqa: E731
     return build_system(
         as_t(position), torch.zeros((B, N), dtype=torch.long), [material], table,
@@ -424,21 +428,35 @@ def member0_state(system, state) -> FinalState:
     )
 
 
+def contact_counts(system, state) -> ContactCounts:
+    """:class:`ContactCounts` of ``state`` (non-periodic systems: plain separations)."""
+    p = state.pairs
+    touching = None
+    if system.spheres_are_bodies:
+        x = state.bodies.position.reshape(-1, 3)
+        r = system.sphere_radius.reshape(-1)
+        dist = (x[p.j] - x[p.i]).norm(dim=-1)
+        touching = int((dist < r[p.i] + r[p.j]).sum())
+    return ContactCounts(p.n, touching, state.walls.n, system.batch * system.n_spheres,
+                         system.batch * system.n_bodies, bool(system.spheres_are_bodies))
+
+
 def time_torchdem(scenario: BenchScenario, packing: Packing, batch: int, dtype: torch.dtype, dt: float,
                   steps: int, warmup: int, jitter: float, repeat: int = 1, compile: bool = False,
-                  backend: str = "cpp") -> EngineTiming:
+                  backend: str = "cpp", box: tuple[float, float] | None = None) -> EngineTiming:
     """Best of ``repeat`` timings, each from the same initial state with a fresh Simulation.
 
-    ``backend``: contact kernels, ``"cpp"`` (C++ extension) or ``"torch"`` (see ``Kernels``)."""
+    ``backend``: contact kernels, ``"cpp"`` (C++ extension) or ``"torch"`` (see ``Kernels``).
+    ``box``: see :func:`bench_system` (packings cut or tiled by ``--scaling``)."""
     velocity, omega = ensemble_velocities(packing, batch, jitter, scenario.seed + 1)
     position = np.broadcast_to(packing.position, velocity.shape).copy()
-    system, state = bench_system(scenario, position, packing.radius, velocity, omega, dtype, dt=dt)
+    system, state = bench_system(scenario, position, packing.radius, velocity, omega, dtype, dt=dt, box=box)
     name = str(dtype).replace("torch.", "")
     best = None
     for k in range(repeat):
         sim = Simulation(system, state, compile=compile, backend=backend)
         initial = member0_state(system, sim.state)
-        log(f"torchdem {name} B = {batch}: {warmup} warm-up + {steps} timed steps"
+        log(f"torchdem {name} B = {batch}, N = {packing.position.shape[0]}: {warmup} warm-up + {steps} timed steps"
             f"{f' (repeat {k + 1}/{repeat})' if repeat > 1 else ''} ...")
         sim.advance(warmup)
         builds0 = sim.state.rebuilds
@@ -449,8 +467,8 @@ def time_torchdem(scenario: BenchScenario, packing: Packing, batch: int, dtype: 
         if sim.failed:
             raise RuntimeError(f"torchdem {name} B = {batch}: members failed during timing: {sim.failed}")
         timing = EngineTiming("torchdem", name, batch, packing.position.shape[0], steps, wall,
-                              sim.state.rebuilds - builds0, initial, member0_state(system, sim.state),
-                              cpu.other_cores)
+                              sim.state.rebuilds - builds0, initial, member0_state(sim.system, sim.state),
+                              cpu.other_cores, contact_counts(sim.system, sim.state))
         log(f"  {wall:.2f} s, {timing.particle_steps_per_s:.4g} particle-steps/s{_busy_note(timing)}")
         if best is None or timing.wall_time < best.wall_time:
             best = timing
@@ -600,6 +618,341 @@ def run_liggghts(directory: Path, command: list[str], steps: int, timeout: float
     return timing, output
 
 
+# --------------------------------------------------------------------------- --scaling
+
+
+@dataclass(frozen=True)
+class ScalingPacking:
+    """A packing for ``--scaling``: ``box`` its inner (x, y) box size, m; ``tile`` ``[N]`` the tile
+    of every sphere (all 0 unless tiled); ``max_overlap`` the largest r_i + r_j - d over the
+    packing, ``max_seam_overlap`` over pairs of spheres from different tiles (None: untiled), m."""
+
+    label: str
+    packing: Packing
+    box: tuple[float, float]
+    tile: np.ndarray
+    max_overlap: float | None
+    max_seam_overlap: float | None
+
+
+@dataclass(frozen=True)
+class ScalingCase:
+    """One ``--scaling`` timing. ``sweep``: ``"N"`` (B = 1, packings of different size) or ``"B"``
+    (the packing, B copies). ``ratio``: particle-steps/s over that of the sweep's smallest case
+    (same dtype). ``pairs_per_particle``: listed sphere-sphere pairs / (B N)."""
+
+    sweep: str
+    label: str
+    dtype: str
+    n_particles: int
+    batch: int
+    box_x: float
+    box_y: float
+    steps: int
+    wall_time: float
+    particle_steps_per_s: float
+    ratio: float
+    pairs_per_particle: float
+    neighbour_builds: int
+    other_cpu_cores: float | None
+    max_overlap: float | None
+    max_seam_overlap: float | None
+
+
+def _packing_rows(packing: Packing, rows) -> Packing:
+    return Packing(packing.position[rows], packing.radius[rows], packing.velocity[rows],
+                   packing.angular_velocity[rows], packing.settle_time, packing.settle_max_speed)
+
+
+def trim_packing(packing: Packing, box_x: float, fraction: float) -> tuple[Packing, float]:
+    """The spheres with x < ``fraction`` box_x and the box x size that just holds them
+    (max x + r over them; the y size is unchanged)."""
+    keep = packing.position[:, 0] < fraction * box_x
+    if keep.sum() < 2:
+        raise ConfigError(f"trim_packing: {int(keep.sum())} spheres have x < {fraction} x {box_x} m; expected >= 2")
+    trimmed = _packing_rows(packing, keep)
+    return trimmed, float((trimmed.position[:, 0] + trimmed.radius).max())
+
+
+def tile_packing(packing: Packing, box_x: float, box_y: float, nx: int, ny: int
+                 ) -> tuple[Packing, tuple[float, float], np.ndarray]:
+    """``nx`` x ``ny`` copies of a packing in the box [0, box_x] x [0, box_y], side by side in x
+    and y: ``(packing, (box x, box y) around all tiles, [N] tile of every sphere)``.
+
+    Tiles are ``box + gap`` apart per axis, the gap being the deepest penetration of the spheres
+    into the low wall plus that into the high wall (soft walls: settled spheres press into them),
+    so spheres of neighbouring tiles that leant on the two facing walls are r1 + r2 apart or more.
+    Tile (ix, iy) is rows ``(iy nx + ix) N ...``: every tile keeps the source's order."""
+    if nx < 1 or ny < 1:
+        raise ConfigError(f"tile_packing: {nx} x {ny} tiles; expected at least 1 x 1")
+    x, r = packing.position, packing.radius
+    pitch = []
+    for axis, size in ((0, box_x), (1, box_y)):
+        low = max(0.0, float((r - x[:, axis]).max()))
+        high = max(0.0, float((x[:, axis] + r - size).max()))
+        pitch.append(size + low + high)
+    tiles = [(ix, iy) for iy in range(ny) for ix in range(nx)]
+    shift = np.array([[ix * pitch[0], iy * pitch[1], 0.0] for ix, iy in tiles])
+    n = len(r)
+    tiled = Packing((x[None] + shift[:, None]).reshape(-1, 3), np.tile(r, len(tiles)),
+                    np.tile(packing.velocity, (len(tiles), 1)), np.tile(packing.angular_velocity, (len(tiles), 1)),
+                    packing.settle_time, packing.settle_max_speed)
+    box = ((nx - 1) * pitch[0] + box_x, (ny - 1) * pitch[1] + box_y)
+    return tiled, box, np.repeat(np.arange(len(tiles)), n)
+
+
+def max_overlaps(position: np.ndarray, radius: np.ndarray, tile: np.ndarray) -> tuple[float | None, float | None]:
+    """Largest r_i + r_j - |x_i - x_j| (m; > 0: overlap) over the sphere pairs closer than
+    r_i + r_j + max radius, and over those of them whose spheres are in different tiles (each
+    None when there is no such pair), by :func:`torchdem.neighbors.find_pairs`."""
+    x = torch.as_tensor(position, dtype=torch.float64)
+    r = torch.as_tensor(radius, dtype=torch.float64)
+    n = x.shape[0]
+    skin = float(r.max())
+    grid = cell_grid((x.min(0).values - skin).tolist(), (x.max(0).values + skin).tolist(), 3.0 * skin)
+    i, j = find_pairs(x, r, torch.arange(n), torch.ones(n, dtype=torch.bool), n, grid, skin)
+    if i.numel() == 0:
+        return None, None
+    overlap = r[i] + r[j] - (x[i] - x[j]).norm(dim=-1)
+    t = torch.as_tensor(tile)
+    seam = t[i] != t[j]
+    return float(overlap.max()), (float(overlap[seam].max()) if bool(seam.any()) else None)
+
+
+def scaling_packings(scenario: BenchScenario, packing: Packing) -> list[ScalingPacking]:
+    """The N cases of ``--scaling``: the cut packing, then the 1x1, 2x2, 4x4 tilings."""
+    def checked(label, p, box, tile):
+        overlap, seam = max_overlaps(p.position, p.radius, tile)
+        um = lambda v: "none" if v is None else f"{v * 1e6:.1f} um"  # noqa: E731
+        log(f"scaling packing {label}: N = {len(p.radius)}, box {box[0]:.4f} x {box[1]:.4f} m, "
+            f"max overlap {um(overlap)}{'' if seam is None else f', across tile seams {um(seam)}'}")
+        return ScalingPacking(label, p, box, tile, overlap, seam)
+
+    cut, cut_x = trim_packing(packing, scenario.box_x, SCALING_TRIM)
+    cases = [checked(f"x < {SCALING_TRIM} box_x", cut, (cut_x, scenario.box_y), np.zeros(len(cut.radius), int))]
+    for k in SCALING_TILES:
+        tiled, box, tile = tile_packing(packing, scenario.box_x, scenario.box_y, k, k)
+        cases.append(checked(f"{k}x{k} tiles", tiled, box, tile))
+    return cases
+
+
+def run_scaling(scenario: BenchScenario, packing: Packing, dtypes: list[str], dt: float, steps: int, warmup: int,
+                jitter: float, compile: bool, backend: str) -> list[ScalingCase]:
+    """Times the N sweep (B = 1) and the B sweep (the 1x1 packing) for every dtype."""
+    sizes = scaling_packings(scenario, packing)
+    base = next(s for s in sizes if s.label == "1x1 tiles")
+    cases = []
+    for d in dtypes:
+        def timed(sweep, s: ScalingPacking, batch):
+            t = time_torchdem(scenario, s.packing, batch, getattr(torch, d), dt, steps, warmup, jitter, 1,
+                              compile, backend, box=s.box)
+            return ScalingCase(sweep, s.label if sweep == "N" else f"B = {batch}", d, t.n_particles, batch,
+                               s.box[0], s.box[1], steps, t.wall_time, t.particle_steps_per_s, math.nan,
+                               t.contacts.listed_pairs / (batch * t.n_particles), t.neighbour_builds,
+                               t.other_cpu_cores, s.max_overlap, s.max_seam_overlap)
+
+        by_n = [timed("N", s, 1) for s in sizes]
+        by_b = [dataclasses.replace(by_n[sizes.index(base)], sweep="B", label="B = 1") if b == 1
+                else timed("B", base, b) for b in SCALING_BATCHES]
+        for sweep in (by_n, by_b):
+            ref = sweep[0].particle_steps_per_s
+            cases += [dataclasses.replace(c, ratio=c.particle_steps_per_s / ref) for c in sweep]
+    return cases
+
+
+def print_scaling(cases: list[ScalingCase]) -> None:
+    if not cases:
+        return
+    c0 = cases[0]
+    print(f"scaling: {c0.steps} timed steps per case (best of 1); ratio = particle-steps/s over the first row's; "
+          "constant particle-steps/s (ratio 1) = cost linear in N and B")
+    for dtype in dict.fromkeys(c.dtype for c in cases):
+        for sweep, title in (("N", "B = 1, packing size N"), ("B", "ensemble size B, the 1x1 packing")):
+            rows = [c for c in cases if c.dtype == dtype and c.sweep == sweep]
+            print(f"  {dtype}, {title}:")
+            print(f"    {'case':<17}{'N':>7}{'B':>4}{'B*N':>8}{'pairs/N':>9}{'particle-steps/s':>18}{'ratio':>8}"
+                  f"{'nbr builds':>11}{'other cores':>12}{'max overlap um':>16}{'seam um':>9}")
+            for c in rows:
+                other = f"{c.other_cpu_cores:.2f}" if c.other_cpu_cores is not None else "?"
+                overlap = f"{c.max_overlap * 1e6:.1f}" if c.max_overlap is not None else "-"
+                seam = f"{c.max_seam_overlap * 1e6:.1f}" if c.max_seam_overlap is not None else "-"
+                print(f"    {c.label:<17}{c.n_particles:>7}{c.batch:>4}{c.batch * c.n_particles:>8}"
+                      f"{c.pairs_per_particle:>9.2f}{c.particle_steps_per_s:>18.4g}{c.ratio:>8.3f}"
+                      f"{c.neighbour_builds:>11}{other:>12}{overlap:>16}{seam:>9}")
+    print("  (max overlap: the settled contacts' own; seam: pairs across tiles, < 0 a gap, so tiling made no overlap)")
+
+
+# --------------------------------------------------------------------------- --stream
+
+
+@dataclass(frozen=True)
+class StreamResult:
+    """Best of ``repetitions`` STREAM triads ``a = b + s c`` on float64 arrays of ``array_bytes``
+    each, on ``threads`` torch threads. gb_per_s counts 3 arrays (STREAM's convention: 2 reads,
+    1 write); gb_per_s_write_allocate 4 (the write's line is read first)."""
+
+    array_bytes: int
+    repetitions: int
+    threads: int
+    best_time: float
+    other_cpu_cores: float | None
+
+    @property
+    def gb_per_s(self) -> float:
+        return 3 * self.array_bytes / self.best_time / 1e9
+
+    @property
+    def gb_per_s_write_allocate(self) -> float:
+        return 4 * self.array_bytes / self.best_time / 1e9
+
+
+def stream_triad(mib: float = 64.0, repetitions: int = 10) -> StreamResult:
+    """STREAM triad with torch (``torch.add(b, c, alpha=s, out=a)``: one pass, no temporary) on
+    torch's intra-op threads; every page is touched before the first timed pass."""
+    n = int(mib * 2 ** 20) // 8
+    if n < 1 or repetitions < 1:
+        raise ConfigError(f"stream_triad: {mib} MiB, {repetitions} repetitions; expected > 0 and >= 1")
+    b = torch.rand(n, dtype=torch.float64)
+    c = torch.rand(n, dtype=torch.float64)
+    a = torch.zeros(n, dtype=torch.float64)
+    s = 3.0
+    torch.add(b, c, alpha=s, out=a)                          # warm-up
+    best = math.inf
+    with CpuMonitor() as cpu:
+        for _ in range(repetitions):
+            t0 = time.perf_counter()
+            torch.add(b, c, alpha=s, out=a)
+            best = min(best, time.perf_counter() - t0)
+    k = min(n, 1000)
+    if not torch.allclose(a[:k], b[:k] + s * c[:k]):
+        raise RuntimeError("stream_triad: a != b + s c")
+    return StreamResult(8 * n, repetitions, torch.get_num_threads(), best, cpu.other_cores)
+
+
+def pair_bytes_per_step(dtype_bytes: int, spheres_are_bodies: bool) -> dict:
+    """Bytes the C++ pair kernel moves per step, stream by stream (``torchdem/_ext/contact_cpu.cpp``,
+    ``pair_block`` run from ``forces_kick``'s per-member path; tensors as ``integrate._cpp_pair_tensors``
+    passes them).
+
+    ``dtype_bytes``: 8 (float64) or 4 (float32); indices are int64. ``spheres_are_bodies``:
+    ``System.spheres_are_bodies``; integrate then passes i, j as body_i, body_j (the same arrays:
+    one index stream pair less) and the system is ``spheres_only``, so the kernel runs centred
+    (no body centres gathered). False is taken to mean clumps: body indices and centres streamed.
+
+    Returns ``{"streams": [...], "lower": totals, "upper": totals, "dtype_bytes", "spheres_are_bodies",
+    "line_bytes"}``. Each stream is ``{"stream", "cpp", "access", "lower", "upper"}`` whose
+    ``lower`` and ``upper`` map a unit to bytes per unit and step; ``totals`` sums them per unit.
+    Units: ``listed_pair`` (every pair of the Verlet list), ``touching_pair`` (pairs whose spheres
+    overlap: ``touching_pairs`` runs the gather and the law on those only), ``sphere``, ``body``.
+    Lower bound: each byte once; per-sphere and per-body rows (however many pairs read them) once
+    per step. Upper bound: per-pair streams once (contiguous, prefetched), every gathered row of
+    either partner a full cache line from memory each time it is read (a scattered row: read and
+    written back), the table none. The i side is sorted, so its rows mostly hit in practice: the
+    upper bound is far above what a spatially ordered packing costs. Not counted: the ``owns()``
+    pre-scan of body_i/body_j (a second read of the index streams, from cache for a member that
+    fits); the row buffer (64 contacts on the stack, L1) — at B = 1 ``two_passes`` instead writes
+    9 values + an int32 per touching pair to a scratch buffer and reads them back once per thread;
+    and the wall contacts, the drift and the kick."""
+    T, L, idx = dtype_bytes, CACHE_LINE, 8
+    centred = spheres_are_bodies
+    streams = []
+
+    def add(stream, cpp, access, lower, upper):
+        streams.append({"stream": stream, "cpp": cpp, "access": access, "lower": lower, "upper": upper})
+
+    # --- every listed pair
+    add("pair indices i, j", "data.i[p], data.j[p]: PairPass::ok (range check), touching_pairs, gather_pairs; "
+        "prefetch_partners re-reads j", "read", {"listed_pair": 2 * idx}, {"listed_pair": 2 * idx})
+    if not spheres_are_bodies:
+        add("pair body indices body_i, body_j", "data.body_i[p], data.body_j[p]: ok, gather_pairs, add_row "
+            "(the same arrays as i, j when spheres are bodies)", "read",
+            {"listed_pair": 2 * idx}, {"listed_pair": 2 * idx})
+    add("sphere positions x[i], x[j]", "load(data.x, data.i[p]), load(data.x, data.j[p]) in touching_pairs "
+        "(every listed pair); gather_pairs kXA/kXB re-reads them from L1", "read",
+        {"sphere": 3 * T}, {"listed_pair": 2 * L})
+    add("sphere radii radius[i], radius[j]", "data.radius[data.i[p]], data.radius[data.j[p]] in touching_pairs; "
+        "gather_pairs kRI/kRJ re-reads them", "read", {"sphere": T}, {"listed_pair": 2 * L})
+    add("history read tangential[p], rolling[p]", "data.tangential[3p + c], data.rolling[3p + c] in "
+        "gather_pairs (kTG, kRL), touching pairs only; upper: their lines hold non-touching neighbours too",
+        "read", {"touching_pair": 6 * T}, {"listed_pair": 6 * T})
+    add("history write tangential_new[p], rolling_new[p]", "pair_block stage 3: data.tangential_new[3(p0 + k) "
+        "+ c], data.rolling_new[...] for every listed pair (zeros where not touching)", "write",
+        {"listed_pair": 6 * T}, {"listed_pair": 6 * T})
+    # --- touching pairs: gather_pairs on the selected pairs
+    if not centred:
+        add("body centres X[body_i], X[body_j]", "data.X[3 ba + c], data.X[3 bb + c] in gather_pairs (kBA, kBB); "
+            "skipped when centred", "read", {"body": 3 * T}, {"touching_pair": 2 * L})
+    add("body velocities V[body_i], V[body_j]", "data.V[3 ba + c], data.V[3 bb + c] in gather_pairs (kVA, kVB)",
+        "read", {"body": 3 * T}, {"touching_pair": 2 * L})
+    add("angular velocities W[body_i], W[body_j]", "data.W[3 ba + c], data.W[3 bb + c] in gather_pairs "
+        "(kWA, kWB)", "read", {"body": 3 * T}, {"touching_pair": 2 * L})
+    add("sphere masses and rolling inertias", "data.mass[a], data.mass[b], data.rolling_inertia[a], "
+        "data.rolling_inertia[b] in gather_pairs (kMI, kMJ, kII, kIJ)", "read", {"sphere": 2 * T},
+        {"touching_pair": 4 * L})
+    add("material lookup pair_row[i], material[j]", "data.pair_row[a] + data.material[b] (int64) in gather_pairs: "
+        "the table column", "read", {"sphere": 2 * idx}, {"touching_pair": 2 * L})
+    add("material-pair table", "data.table[k R + col], k = 0..5 (6 with cohesion), in gather_pairs (kE ... kCOH): "
+        "[6, B M^2], a few lines that stay in L1", "read", {}, {})
+    add("force and torque scatter", "add_row: force[3a + c] +=, torque[3a + c] +=, force[3b + c] -=, "
+        "torque[3b + c] += (read and write); lower: per_member copies force_in/torque_in into the outputs "
+        "(read) and the rows leave once (write)", "read+write", {"body": 12 * T}, {"touching_pair": 4 * 2 * L})
+    units = ("listed_pair", "touching_pair", "sphere", "body")
+    totals = {bound: {u: sum(s[bound].get(u, 0) for s in streams) for u in units} for bound in ("lower", "upper")}
+    return {"dtype_bytes": T, "spheres_are_bodies": spheres_are_bodies, "line_bytes": L, "streams": streams,
+            **totals}
+
+
+def pair_traffic(per_unit: dict, listed: int, touching: int, spheres: int, bodies: int) -> float:
+    """Bytes per step of one bound of :func:`pair_bytes_per_step` (its ``lower`` or ``upper``)."""
+    return (per_unit["listed_pair"] * listed + per_unit["touching_pair"] * touching
+            + per_unit["sphere"] * spheres + per_unit["body"] * bodies)
+
+
+def pair_bandwidth(t: EngineTiming, stream: StreamResult) -> dict:
+    """The pair kernel's bytes per listed pair and achieved bytes/s in the timing ``t``, both
+    bounds, against ``stream`` (see the module docstring)."""
+    c = t.contacts
+    counts = pair_bytes_per_step(getattr(torch, t.dtype).itemsize, c.spheres_are_bodies)
+    touching = c.touching_pairs if c.touching_pairs is not None else c.listed_pairs
+    out = {"dtype": t.dtype, "batch": t.batch, "n_particles": t.n_particles, "steps": t.steps,
+           "wall_time": t.wall_time, "neighbour_builds": t.neighbour_builds, "other_cpu_cores": t.other_cpu_cores,
+           **dataclasses.asdict(c)}
+    for bound in ("lower", "upper"):
+        per_step = pair_traffic(counts[bound], c.listed_pairs, touching, c.spheres, c.bodies)
+        achieved = per_step * t.steps / t.wall_time
+        out[f"bytes_per_step_{bound}"] = per_step
+        out[f"bytes_per_listed_pair_{bound}"] = per_step / max(c.listed_pairs, 1)
+        out[f"achieved_gb_per_s_{bound}"] = achieved / 1e9
+        out[f"fraction_of_stream_{bound}"] = achieved / 1e9 / stream.gb_per_s
+        out[f"fraction_of_stream_write_allocate_{bound}"] = achieved / 1e9 / stream.gb_per_s_write_allocate
+    out["pair_bytes"] = counts
+    return out
+
+
+def print_stream(stream: StreamResult, kernels: list[dict]) -> None:
+    other = f"{stream.other_cpu_cores:.2f}" if stream.other_cpu_cores is not None else "?"
+    print(f"STREAM triad (float64, {stream.array_bytes / 2 ** 20:.0f} MiB per array, best of {stream.repetitions}, "
+          f"{stream.threads} threads, other cores {other}): {stream.gb_per_s:.2f} GB/s counting 3 arrays, "
+          f"{stream.gb_per_s_write_allocate:.2f} GB/s with write-allocate (4 arrays)")
+    for k in kernels:
+        c = k["pair_bytes"]
+        lo, up = c["lower"], c["upper"]
+        touching = k["touching_pairs"]
+        frac = f"{touching / max(k['listed_pairs'], 1):.3f}" if touching is not None else "?"
+        print(f"pair kernel, {k['dtype']} B = {k['batch']} (N = {k['n_particles']}, {k['steps']} steps, "
+              f"{k['wall_time']:.2f} s): {k['listed_pairs']} listed pairs ({k['listed_pairs'] / k['spheres']:.2f} "
+              f"per sphere, {frac} touching), {k['wall_contacts']} wall contacts (not counted)")
+        print(f"  bytes per step: lower {lo['listed_pair']} per listed pair + {lo['touching_pair']} per touching "
+              f"pair + {lo['sphere']} per sphere + {lo['body']} per body; upper {up['listed_pair']} per listed "
+              f"pair + {up['touching_pair']} per touching pair")
+        for bound in ("lower", "upper"):
+            print(f"  {bound}: {k[f'bytes_per_listed_pair_{bound}']:.0f} B per listed pair, "
+                  f"{k[f'achieved_gb_per_s_{bound}']:.3f} GB/s achieved = "
+                  f"{k[f'fraction_of_stream_{bound}']:.3f} of the triad's {stream.gb_per_s:.2f} GB/s")
+    print("  (achieved = pair bytes x steps / wall time of the whole step: a floor of the kernel's own rate)")
+
+
+
 # --------------------------------------------------------------------------- report
 
 
@@ -665,6 +1018,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache-dir", type=Path, default=REPO / ".bench_cache")
     parser.add_argument("--resettle", action="store_true", help="ignore the cached packing and settle again")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    parser.add_argument("--scaling", action="store_true",
+                        help="also time N ~1k/3.4k/14k/54k (B = 1) and B = 1/4/16/64, from the cached packing")
+    parser.add_argument("--scaling-steps", type=int, default=None,
+                        help="timed steps per --scaling case (default 300; 60 with --quick)")
+    parser.add_argument("--scaling-warmup", type=int, default=None,
+                        help="untimed steps per --scaling case (default 30; 10 with --quick)")
+    parser.add_argument("--stream", action="store_true",
+                        help="also measure the STREAM triad bandwidth and the pair kernel's share of it")
+    parser.add_argument("--stream-mib", type=float, default=64.0, help="MiB per --stream array (float64)")
+    parser.add_argument("--stream-repeat", type=int, default=10, help="--stream triads, keep the best")
     args = parser.parse_args(argv)
 
     steps = args.steps if args.steps is not None else (200 if args.quick else 2000)
@@ -683,6 +1046,14 @@ def main(argv: list[str] | None = None) -> int:
         args.liggghts_repeat = 1 if args.quick else 3
     if args.repeat < 1 or args.liggghts_repeat < 1:
         raise ConfigError(f"--repeat = {args.repeat}, --liggghts-repeat = {args.liggghts_repeat}; expected >= 1")
+    scaling_steps = args.scaling_steps if args.scaling_steps is not None else (60 if args.quick else 300)
+    scaling_warmup = args.scaling_warmup if args.scaling_warmup is not None else (10 if args.quick else 30)
+    if scaling_steps < 1 or scaling_warmup < 0:
+        raise ConfigError(f"--scaling-steps = {scaling_steps}, --scaling-warmup = {scaling_warmup}; expected "
+                          "steps >= 1 and warmup >= 0")
+    if not args.stream_mib > 0 or args.stream_repeat < 1:
+        raise ConfigError(f"--stream-mib = {args.stream_mib}, --stream-repeat = {args.stream_repeat}; expected "
+                          "> 0 and >= 1")
     if args.compile and "compile" not in inspect.signature(Simulation).parameters:
         raise ConfigError("--compile: this torchdem's Simulation has no compile option")
     if args.threads:
@@ -728,6 +1099,22 @@ def main(argv: list[str] | None = None) -> int:
             liggghts, note = None, f"failed: {err}"
             log(f"LIGGGHTS {note}")
 
+    scaling = []
+    if args.scaling:
+        scaling = run_scaling(scenario, packing, dtypes, args.dt, scaling_steps, scaling_warmup,
+                              args.velocity_jitter, args.compile, args.backend)
+
+    stream, kernels = None, []
+    if args.stream:
+        log(f"STREAM triad: {args.stream_mib:g} MiB per array, best of {args.stream_repeat} ...")
+        stream = stream_triad(args.stream_mib, args.stream_repeat)
+        log(f"  {stream.gb_per_s:.2f} GB/s (3 arrays), {stream.gb_per_s_write_allocate:.2f} GB/s (4 arrays)")
+        ensemble = [t for t in timings if t.batch == B_ENSEMBLE]
+        if not ensemble:   # --batches without 16: a short B = 16 timing per precision
+            ensemble = [time_torchdem(scenario, packing, B_ENSEMBLE, getattr(torch, d), args.dt, steps, warmup,
+                                      args.velocity_jitter, 1, args.compile, args.backend) for d in dtypes]
+        kernels = [pair_bandwidth(t, stream) for t in ensemble]
+
     def figure(dtype: str, batch: int) -> float | None:
         for t in timings:
             if t.dtype == dtype and t.batch == batch:
@@ -764,9 +1151,21 @@ def main(argv: list[str] | None = None) -> int:
                             for t in timings + ([liggghts] if liggghts else []) if t.batch == 1},
             "scenario": dataclasses.asdict(scenario),
         }
+        if args.scaling:
+            result["scaling"] = {"steps": scaling_steps, "warmup_steps": scaling_warmup,
+                                 "cases": [dataclasses.asdict(c) for c in scaling]}
+        if stream is not None:
+            result["stream"] = {"array_mib": stream.array_bytes / 2 ** 20, "repetitions": stream.repetitions,
+                                "threads": stream.threads, "best_time_s": stream.best_time,
+                                "other_cpu_cores": stream.other_cpu_cores, "triad_gb_per_s": stream.gb_per_s,
+                                "triad_gb_per_s_write_allocate": stream.gb_per_s_write_allocate,
+                                "pair_kernel": {k["dtype"]: k for k in kernels}}
         print(json.dumps(result))
     else:
         print_report(scenario, args.dt, steps, warmup, timings, liggghts, note, args.headline_dtype)
+        print_scaling(scaling)
+        if stream is not None:
+            print_stream(stream, kernels)
     return 0
 
 
