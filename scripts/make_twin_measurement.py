@@ -76,7 +76,7 @@ def main(argv=None) -> None:
         conditions[name] = {"description": f"DEM twin of {c.description or name}", "pellet_mass_fraction":
                             c.pellet_mass_fraction, "layering": list(c.layering),
                             "fill_mass_kg": round(float(result.kpi_table('fill_mass_full_kg').mean()), 4),
-                            "kpis": kpis}
+                            "replicates": len(seeds), "kpis": kpis}
         print(f"{name}: " + ", ".join(f"{k} {v['mean']:.4g} +- {v['ci95']:.2g}" for k, v in kpis.items()), flush=True)
     model_desc = {k: plain[k] for k in ("geometry", "sim", "run")}
     data = {

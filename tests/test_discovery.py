@@ -149,9 +149,16 @@ def test_discrepancy_z_chi2_and_p_value(tmp_path):
         assert d.noise.dof[KPIS.index(cell.kpi)] == 6
         assert cell.dem_mean == pytest.approx(np.mean(reps[(cell.condition, cell.kpi)]))
         assert cell.dem_se == pytest.approx(se)
-        assert cell.z == pytest.approx((cell.dem_mean - m.mean) / math.sqrt(se ** 2 + (m.ci95 / 1.96) ** 2))
+        assert cell.z == pytest.approx((cell.dem_mean - m.mean) / math.sqrt(se ** 2 + (m.ci95 / stats.norm.ppf(0.975)) ** 2))
     assert d.chi2 == pytest.approx(sum(c.z ** 2 for c in d.cells))
-    assert d.p_value == pytest.approx(stats.chi2.sf(d.chi2, 12))
+    # the p-value maps each z through its Student-t (Welch: 6 DEM dof; the lab's repeats are not
+    # stated here, so its uncertainty counts as known) to a chi^2_1 value of the same tail
+    for cell in d.cells:
+        u = lab.condition(cell.condition).kpis[cell.kpi.replace("_full_", "_")].ci95 / stats.norm.ppf(0.975)
+        assert cell.dof == pytest.approx((cell.dem_se ** 2 + u ** 2) ** 2 / (cell.dem_se ** 4 / 6))
+    q = sum(stats.chi2.isf(2 * stats.t.sf(abs(c.z), c.dof), 1) for c in d.cells)
+    assert d.chi2_equivalent == pytest.approx(q) and d.chi2_equivalent < d.chi2
+    assert d.p_value == pytest.approx(stats.chi2.sf(q, 12))
     # the mass-like KPIs of sinter-rich conditions carry the discrepancy, the angles do not
     z = {(c.condition, c.kpi): c.z for c in d.cells}
     assert abs(z[("25-75", "mass_flow_rate_full_kg_s")]) > abs(z[("75-25", "mass_flow_rate_full_kg_s")]) > 2

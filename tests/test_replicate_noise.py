@@ -41,7 +41,7 @@ def test_pooled_variance_and_dof_equal_a_hand_computation():
 def test_pooled_noise_keeps_the_discrepancy_test_at_its_level():
     rng = np.random.default_rng(7)
     conditions, kpis, sigma, alpha = ["a", "b", "c", "d"], ["k1", "k2"], np.array([0.5, 2.0]), 0.05
-    lab = {(c, k): (10.0, 0.05 * s) for c in conditions for k, s in zip(kpis, sigma)}
+    lab = {(c, k): (10.0, 0.05 * s, math.inf) for c in conditions for k, s in zip(kpis, sigma)}  # u known exactly
     trials, pooled_alarms, own_alarms = 4000, 0, 0
     for _ in range(trials):
         reps = 10.0 + sigma * rng.standard_normal((len(conditions), 2, len(kpis)))   # [C, r = 2, K]

@@ -28,6 +28,7 @@ File format (``"format": "torchdem-measured-data/1"``)::
           "pellet_mass_fraction": 0.5,               # two-component pellet-sinter form ...
           "layering": ["pellet", "sinter", "pellet", "sinter"],   # bottom to top
           "fill_mass_kg": 40.0,                      # optional
+          "replicates": 5,                           # optional: lab repeats behind the CIs
           "kpis": {"angle_of_repose_deg": {"mean": 29.47, "ci95": 0.48}, ...}
         },
         "three-component": {
@@ -43,7 +44,12 @@ File format (``"format": "torchdem-measured-data/1"``)::
     }
 
 ``ci95`` is the half-width of the 95 % confidence interval of the mean, in the KPI's unit
-(write 0 when only one measurement exists). KPI names carry their unit; the known names are in
+(write 0 when only one measurement exists). ``replicates`` (an integer >= 2, optional) is how many
+lab repeats the means and CIs come from: the standard uncertainty of a mean is then
+``ci95 / t(0.975, replicates - 1)`` (a Student-t half-width, as a lab computes it from few
+repeats) with ``replicates - 1`` degrees of freedom; without it ``ci95 / 1.96`` (a large-sample
+half-width), which overstates the uncertainty of a mean of few repeats (2x in variance at 5).
+KPI names carry their unit; the known names are in
 ``KPI_UNITS``. A condition may carry any non-empty subset of KPIs; pass ``required_kpis`` to
 ``load_measured`` to insist on some.
 """
@@ -98,7 +104,8 @@ CALIBRATION_KPIS: tuple[str, ...] = PAPER_KPIS[:4]
 TWO_COMPONENT_MATERIALS: tuple[str, ...] = ("pellet", "sinter")
 
 _TOP_LEVEL_KEYS = ("format", "source", "units", "notes", "conditions", "materials", "dem_reported")
-_CONDITION_KEYS = ("description", "pellet_mass_fraction", "layering", "fill_mass_kg", "mixture", "kpis")
+_CONDITION_KEYS = ("description", "pellet_mass_fraction", "layering", "fill_mass_kg", "replicates", "mixture",
+                   "kpis")
 _KPI_KEYS = ("mean", "ci95")
 _NEW_KPI_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _MIXTURE_SUM_TOLERANCE = 1e-3
@@ -212,6 +219,7 @@ class Condition:
         kpis: KPI name -> ``KPIValue``; any non-empty subset of KPIs.
         mixture: general mixture description for any materials, or None.
         description: free text (where the numbers come from, test notes).
+        replicates: lab repeats behind the means and CIs (>= 2), or None if not stated.
     """
 
     name: str
@@ -221,6 +229,7 @@ class Condition:
     kpis: Mapping[str, KPIValue]
     mixture: Mapping[str, Any] | None = None
     description: str = ""
+    replicates: int | None = None
 
     def __post_init__(self):
         try:
@@ -251,6 +260,9 @@ class Condition:
             if fill <= 0.0:
                 raise _not_allowed("fill_mass_kg", fill, "a mass in kg > 0")
             object.__setattr__(self, "fill_mass_kg", fill)
+        if self.replicates is not None and (isinstance(self.replicates, bool) or not isinstance(self.replicates, int)
+                                            or self.replicates < 2):
+            raise _not_allowed("replicates", self.replicates, "an integer >= 2 (lab repeats behind the CIs) or null")
         if not isinstance(self.description, str):
             raise _not_allowed("description", self.description, "a string")
         if not isinstance(self.kpis, Mapping) or not self.kpis:
@@ -266,6 +278,16 @@ class Condition:
                 low, high = _KPI_RANGES[kpi]
                 _number(f"kpis.{kpi}.mean", value.mean, low, high)
         object.__setattr__(self, "kpis", MappingProxyType(dict(self.kpis)))
+
+    def standard_uncertainty(self, kpi: str) -> tuple[float, float]:
+        """``(u, dof)`` of the measured mean of ``kpi``: ``ci95 / t(0.975, replicates - 1)`` with
+        ``replicates - 1`` degrees of freedom, or ``ci95 / 1.96`` with infinite ones when the
+        number of repeats is not stated."""
+        ci95 = self.kpis[kpi].ci95
+        if self.replicates is None:
+            return ci95 / 1.959963984540054, math.inf
+        dof = self.replicates - 1
+        return ci95 / float(_student_t_975(dof)), float(dof)
 
     def mass_fractions(self) -> dict[str, float]:
         """Material name -> mass fraction of the fill, for either form of the condition."""
@@ -285,8 +307,17 @@ class Condition:
             out["mixture"] = copy.deepcopy(dict(self.mixture))
         if self.fill_mass_kg is not None:
             out["fill_mass_kg"] = self.fill_mass_kg
+        if self.replicates is not None:
+            out["replicates"] = self.replicates
         out["kpis"] = {kpi: value.to_dict() for kpi, value in self.kpis.items()}
         return out
+
+
+def _student_t_975(dof: int) -> float:
+    """The 97.5 % quantile of Student's t with ``dof`` degrees of freedom."""
+    from scipy import stats
+
+    return float(stats.t.ppf(0.975, dof))
 
 
 def _check_mixture(mixture: Any) -> dict[str, Any]:
@@ -559,7 +590,7 @@ def _parse_condition(name: str, raw: Any, units: Mapping[str, str], where: str) 
     try:
         return Condition(name=name, pellet_mass_fraction=pellet_mass_fraction, layering=layering,
                          fill_mass_kg=raw.get("fill_mass_kg"), kpis=kpis, mixture=mixture,
-                         description=raw.get("description", ""))
+                         description=raw.get("description", ""), replicates=raw.get("replicates"))
     except MeasuredDataError as error:
         raise _located(error, where, path) from None
 

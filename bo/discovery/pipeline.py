@@ -9,11 +9,17 @@ returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model
 
 1. Discrepancy (stage ``discrepancy``): the calibrated model on every measured condition with
    ``settings.seeds``. For every condition c and KPI k: DEM mean and its standard error
-   ``se = s_k / sqrt(r)``, the measured mean and its standard uncertainty ``u = ci95 / 1.96``, and
-   ``z = (DEM - lab) / sqrt(se^2 + u^2)``. ``chi2 = sum z^2`` over the cells, compared with a
-   chi^2 distribution of as many degrees of freedom, is the probability that measurement
-   uncertainty and DEM stochasticity alone explain the disagreement; the discrepancy is
-   ``significant`` when that probability is below ``settings.alpha``. ``s_k`` is the DEM
+   ``se = s_k / sqrt(r)``, the measured mean and its standard uncertainty ``u``
+   (``Condition.standard_uncertainty``: ``ci95 / t(0.975, n - 1)`` with n - 1 degrees of freedom
+   when the data state the n lab repeats, else ``ci95 / 1.96``), and
+   ``z = (DEM - lab) / sqrt(se^2 + u^2)``. Both variances are estimates, so under the null z is
+   Student-t with the Welch-Satterthwaite degrees of freedom
+   ``nu = (se^2 + u^2)^2 / (se^4 / dof_s + u^4 / dof_u)``, not normal: each z is mapped to the
+   chi^2_1 value of the same tail probability, ``q = chi2_1.isf(2 t_nu.sf(|z|))``, and
+   ``sum q`` over the cells, against a chi^2 distribution of as many degrees of freedom, is the
+   probability that measurement uncertainty and DEM stochasticity alone explain the
+   disagreement (uniform under the null: tests/test_discovery_calibration.py); the discrepancy is
+   ``significant`` when it is below ``settings.alpha``. ``chi2`` reports ``sum z^2``. ``s_k`` is the DEM
    replicate scatter of KPI k pooled over groups of replicates (``bo.discovery.replicate_noise``; a cell's
    own 2 or 3 runs give a standard error too noisy to divide by): for this test, over the
    discrepancy runs of every condition.
@@ -159,6 +165,7 @@ class Cell:
     measured_u: float
     z: float
     relative_error_pct: float
+    dof: float = math.inf
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -175,6 +182,7 @@ class Discrepancy:
     p_value: float
     significant: bool
     noise: ReplicateNoise
+    chi2_equivalent: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -261,13 +269,32 @@ def _key(*parts) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=repr).encode()).hexdigest()[:12]
 
 
-def _lab(measured: MeasuredData, kpis: Sequence[str]) -> dict[tuple[str, str], tuple[float, float]]:
-    """(condition, DEM KPI) -> (measured mean, standard uncertainty ci95 / 1.96), measured cells only."""
+def _lab(measured: MeasuredData, kpis: Sequence[str]) -> dict[tuple[str, str], tuple[float, float, float]]:
+    """(condition, DEM KPI) -> (measured mean, standard uncertainty, its degrees of freedom), measured
+    cells only (``Condition.standard_uncertainty``)."""
     out = {}
     for c in measured.names:
-        for kpi, value in measured_for(kpis, measured.condition(c).kpis).items():
-            out[(c, kpi)] = (float(value.mean), float(value.ci95) / 1.96)
+        condition = measured.condition(c)
+        for kpi, value in measured_for(kpis, condition.kpis).items():
+            name = kpi.replace("_full_", "_", 1) if "_full_" in kpi else kpi
+            u, dof = condition.standard_uncertainty(name)
+            out[(c, kpi)] = (float(value.mean), float(u), float(dof))
     return out
+
+
+def welch_dof(se: float, dof_se: float, u: float, dof_u: float) -> float:
+    """Welch-Satterthwaite degrees of freedom of ``se^2 + u^2`` (inf: both known exactly)."""
+    a, b = se ** 2, u ** 2
+    den = (a * a / dof_se if a > 0 and math.isfinite(dof_se) else 0.0) + (b * b / dof_u if b > 0 and math.isfinite(dof_u)
+                                                                           else 0.0)
+    return (a + b) ** 2 / den if den > 0 else math.inf
+
+
+def chi2_equivalent(z: float, dof: float) -> float:
+    """The chi^2_1 value with the tail probability of a Student-t ``z`` of ``dof`` degrees of freedom."""
+    if not math.isfinite(dof):
+        return z * z
+    return float(stats.chi2.isf(2.0 * stats.t.sf(abs(z), dof), 1))
 
 
 def _run(store: CampaignStore, executor: Executor, stage: str, key: str, points: Sequence[Mapping[str, float]],
@@ -299,10 +326,11 @@ def _cells(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str],
             n = int(v.size)
             mean = float(v.mean()) if n else math.nan
             se = noise.se(k, n)
-            m, u = lab[(c, k)]
+            m, u, dof_u = lab[(c, k)]
             var = (se if math.isfinite(se) else 0.0) ** 2 + u ** 2
             z = (mean - m) / math.sqrt(var) if n and var > 0 else math.nan
-            cells.append(Cell(c, k, mean, se, n, m, u, z, (mean - m) / m * 100 if m else math.nan))
+            dof = welch_dof(se if math.isfinite(se) else 0.0, noise.dof[noise.kpis.index(k)], u, dof_u)
+            cells.append(Cell(c, k, mean, se, n, m, u, z, (mean - m) / m * 100 if m else math.nan, dof))
     return cells
 
 
@@ -318,8 +346,9 @@ def _discrepancy(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str
     cells = _cells(reps, conditions, kpis, lab, noise)
     finite = [c for c in cells if math.isfinite(c.z)]
     chi2 = float(sum(c.z ** 2 for c in finite))
-    p = float(stats.chi2.sf(chi2, len(finite))) if finite else math.nan
-    return Discrepancy(tuple(cells), chi2, len(finite), p, bool(finite) and p < alpha, noise)
+    equivalent = float(sum(chi2_equivalent(c.z, c.dof) for c in finite))
+    p = float(stats.chi2.sf(equivalent, len(finite))) if finite else math.nan
+    return Discrepancy(tuple(cells), chi2, len(finite), p, bool(finite) and p < alpha, noise, equivalent)
 
 
 # --------------------------------------------------------------------------------------------

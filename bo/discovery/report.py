@@ -45,7 +45,8 @@ def discovery_payload(result: DiscoveryResult) -> dict:
     return json_ready({
         "cause": result.cause,
         "explanation": result.explanation,
-        "discrepancy": {"chi2": d.chi2, "dof": d.dof, "p_value": d.p_value, "significant": d.significant,
+        "discrepancy": {"chi2": d.chi2, "chi2_equivalent": d.chi2_equivalent, "dof": d.dof, "p_value": d.p_value,
+                        "significant": d.significant,
                         "dem_noise": d.noise.to_dict(), "cells": [c.to_dict() for c in d.cells]},
         "candidates": [{"name": h.name, "description": h.description, "parameters": list(h.parameters),
                         "bounds": {k: list(v) for k, v in h.bounds.items()}, "added_parameters": h.added,
@@ -125,7 +126,8 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
     d = result.discrepancy
     lines = ["# Model discovery", "", f"**Cause: {result.cause or 'none'}.** {result.explanation}", "",
              "## 1. Discrepancy of the calibrated model", "",
-             f"chi^2 = {d.chi2:.2f} on {d.dof} cells, p = {d.p_value:.3g}: "
+             f"chi^2 = {d.chi2:.2f} on {d.dof} cells (each z mapped through its Student-t: {d.chi2_equivalent:.2f}), "
+             f"p = {d.p_value:.3g}: "
              f"{'beyond' if d.significant else 'within'} measurement uncertainty and DEM stochasticity.", "",
              "DEM replicate scatter per KPI, pooled over every run of the discovery (sd, degrees of freedom): "
              + ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in d.noise.to_dict().items())
