@@ -19,7 +19,7 @@ precision when the true difference is zero,
 
 and the seeds needed for the target power (at least ``minimum_seeds``). A KPI whose test is not
 passed although its power is reached fails: float32 moves it. One whose power is not reached is
-``undecided``: run more seeds (the study resumes and adds only the new runs).
+``undecided``: run it with more seeds (``replicates``; a new seed list is a new store batch).
 """
 from __future__ import annotations
 
@@ -131,7 +131,7 @@ class PrecisionVerdict:
         else:
             undecided = [r.kpi for r in self.rows if r.verdict == "undecided"]
             lines.append(f"Verdict: undecided on {undecided}: the runs have less than {self.target_power:.0%} "
-                         "power; add seeds (the study resumes).")
+                         "power; run it with more seeds (replicates).")
         return "\n".join(lines)
 
 
