@@ -111,17 +111,33 @@ CONTACT_RANGES = {"mu_s_": (0.0, math.inf, False, "a sliding friction coefficien
                   "eta_r": (0.0, 1.0, False, "a rolling damping ratio in [0, 1]")}
 
 
+def parameter_range(name: str) -> tuple[float, float, bool, str]:
+    """``(low, high, open low, allowed text)`` of a named model parameter by its prefix: the
+    contact parameters of :data:`CONTACT_RANGES` and the material parameters of
+    :data:`torchdem.model.MATERIAL_PREFIXES` (``density_<m>``, ``lobe_spacing_<m>``); any number
+    for other names."""
+    from torchdem.model import MATERIAL_PREFIXES
+
+    contact = next((p for p in CONTACT_RANGES if name.startswith(p)), None)
+    if contact is not None:
+        return CONTACT_RANGES[contact]
+    material = next((p for p in MATERIAL_PREFIXES if name.startswith(p)), None)
+    if material is not None:
+        low, high, allowed = MATERIAL_PREFIXES[material]
+        return low, high, True, allowed
+    return -math.inf, math.inf, False, "a number"
+
+
+def _ranged(cfg: Mapping[str, Any], key: str, where: str, name: str | None = None) -> float:
+    """``cfg[key]`` checked against :func:`parameter_range` of ``name`` (default ``key``)."""
+    low, high, open_low, allowed = parameter_range(name or key)
+    return _number(cfg, key, where, low, high, open_low=open_low, allowed=allowed)
+
+
 def contact_from(cfg: Mapping[str, Any], where: str = "contact") -> dict[str, float]:
     """Named contact parameters (``mu_s_pp: 0.49`` ...), each checked against the range its
     prefix allows (:data:`CONTACT_RANGES`); the error names the key, e.g. ``contact.mu_s_pp``."""
-    out = {}
-    for k, v in cfg.items():
-        prefix = next((p for p in CONTACT_RANGES if str(k).startswith(p)), None)
-        if prefix is None:
-            out[str(k)] = _number(cfg, k, where)
-            continue
-        low, high, open_low, allowed = CONTACT_RANGES[prefix]
-        out[str(k)] = _number(cfg, k, where, low, high, open_low=open_low, allowed=allowed)
+    out = {str(k): _ranged(cfg, k, where, str(k)) for k in cfg}
     if not out:
         raise ConfigError(f"{where}: no contact parameters given")
     return out
@@ -130,11 +146,8 @@ def contact_from(cfg: Mapping[str, Any], where: str = "contact") -> dict[str, fl
 def single_contact_from(cfg: Mapping[str, Any], where: str = "contact") -> dict[str, float]:
     """The one contact law of a single-material config (``torchdem-demo``): ``mu_s``, ``mu_r``,
     ``restitution``, ``rolling_damping``, each range-checked with its config key in the error."""
-    return {"mu_s": _number(cfg, "mu_s", where, *CONTACT_RANGES["mu_s_"][:2], allowed=CONTACT_RANGES["mu_s_"][3]),
-            "mu_r": _number(cfg, "mu_r", where, *CONTACT_RANGES["mu_r_"][:2], allowed=CONTACT_RANGES["mu_r_"][3]),
-            "restitution": _number(cfg, "restitution", where, 0.0, 1.0, open_low=True,
-                                   allowed=CONTACT_RANGES["e_"][3]),
-            "rolling_damping": _number(cfg, "rolling_damping", where, 0.0, 1.0, allowed=CONTACT_RANGES["eta_r"][3])}
+    return {key: _ranged(cfg, key, where, name) for key, name in
+            (("mu_s", "mu_s_"), ("mu_r", "mu_r_"), ("restitution", "e_"), ("rolling_damping", "eta_r"))}
 
 
 def guards_from(cfg: Mapping[str, Any], where: str = "sim.guards") -> GuardSettings:
@@ -185,18 +198,4 @@ def extension_from(cfg: Mapping[str, Any] | None, where: str = "extension") -> t
         raise out_of_range(f"{where}.name", name, "a mechanism name of torchdem/mechanisms/ or null", "config")
     if not isinstance(values, Mapping):
         raise out_of_range(f"{where}.values", values, "a mapping parameter -> number", "config")
-    from torchdem.model import MATERIAL_PREFIXES
-
-    out = {}
-    for k, v in values.items():
-        k = str(k)
-        low, high, open_low, allowed = -math.inf, math.inf, False, "a number"
-        contact = next((p for p in CONTACT_RANGES if k.startswith(p)), None)
-        material = next((p for p in MATERIAL_PREFIXES if k.startswith(p)), None)
-        if contact is not None:
-            low, high, open_low, allowed = CONTACT_RANGES[contact]
-        elif material is not None:
-            low, high, allowed = MATERIAL_PREFIXES[material]
-            open_low = True
-        out[k] = _number(values, k, f"{where}.values", low, high, open_low=open_low, allowed=allowed)
-    return name, out
+    return name, {str(k): _ranged(values, k, f"{where}.values", str(k)) for k in values}

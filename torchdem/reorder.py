@@ -72,14 +72,17 @@ def spatial_permutation(system: System, state: State) -> Tensor:
     return torch.argsort(key, dim=1)
 
 
+def _inverse(perm: Tensor) -> Tensor:
+    """Inverse of a per-member permutation ``[B, n]`` (new slot of every old slot)."""
+    inverse = torch.empty_like(perm)
+    return inverse.scatter_(1, perm, torch.arange(perm.shape[1], device=perm.device).expand_as(perm))
+
+
 def _sphere_permutation(system: System, body_perm: Tensor) -> tuple[Tensor, Tensor]:
     """Per-member sphere permutation following ``body_perm`` and the new body index of every
     sphere slot ``[B, Ns]`` each."""
-    B, Nb = body_perm.shape
     Ns = system.n_spheres
-    inverse = torch.empty_like(body_perm)
-    inverse.scatter_(1, body_perm, torch.arange(Nb, device=body_perm.device).expand(B, Nb))
-    new_body = torch.gather(inverse, 1, system.sphere_body)
+    new_body = torch.gather(_inverse(body_perm), 1, system.sphere_body)
     order = torch.argsort(new_body * Ns + torch.arange(Ns, device=body_perm.device), dim=1)
     return order, torch.gather(new_body, 1, order)
 
@@ -91,10 +94,7 @@ def permute_system(system: System, body_perm: Tensor, sphere_perm: Tensor | None
     if sphere_perm is None:
         sphere_perm, sphere_body = _sphere_permutation(system, body_perm)
     else:
-        B, Nb = body_perm.shape
-        inverse = torch.empty_like(body_perm)
-        inverse.scatter_(1, body_perm, torch.arange(Nb, device=body_perm.device).expand(B, Nb))
-        sphere_body = torch.gather(torch.gather(inverse, 1, system.sphere_body), 1, sphere_perm)
+        sphere_body = torch.gather(torch.gather(_inverse(body_perm), 1, system.sphere_body), 1, sphere_perm)
 
     def bodies(t: Tensor) -> Tensor:
         index = body_perm.reshape(body_perm.shape + (1,) * (t.dim() - 2)).expand_as(t)
@@ -129,8 +129,7 @@ def reorder(system: System, state: State, body_perm: Tensor | None = None) -> tu
     new_system = permute_system(system, body_perm)
     old_body, old_sphere = _flat(body_perm, Nb), _flat(sphere_perm, Ns)
     S = B * Ns
-    sphere_new = torch.empty_like(old_sphere)
-    sphere_new[old_sphere] = torch.arange(S, device=old_sphere.device)
+    sphere_new = _flat(_inverse(sphere_perm), Ns)  # new flat slot of every old flat sphere
 
     b = state.bodies
     bodies = b.set(**{f.name: getattr(b, f.name).reshape((B * Nb,) + getattr(b, f.name).shape[2:])[old_body]
