@@ -100,6 +100,11 @@ def geometry_from(cfg: Mapping[str, Any], where: str = "geometry") -> DrawDownGe
     values = {f: _number(cfg, f + "_m", where, 0.0, open_low=True, allowed="a length > 0 m") for f in fields}
     values["slice_depth"] = _number(cfg, "slice_depth_m", where, 0.0, open_low=True, default=None,
                                     allowed="a length > 0 m or null")
+    mirror = cfg.get("mirror", False)
+    if not isinstance(mirror, bool):
+        raise ConfigError(f"{where}: mirror = {mirror!r} is not allowed; expected true or false (a frictionless "
+                          "elastic symmetry plane at the slice's back face)")
+    values["mirror"] = mirror
     return DrawDownGeometry(**values).validate(where)
 
 

@@ -39,7 +39,7 @@ from kpi.segregation import measure_segregation
 from torchdem.contact_params import PAPER_REFERENCE, interaction_pairs
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.fill import rain_positions
-from torchdem.geometry import DrawDownGeometry
+from torchdem.geometry import MIRROR_MATERIAL, DrawDownGeometry
 from torchdem.integrate import sphere_positions
 from torchdem.io import VTKWriter
 from torchdem.materials import Material, interaction_table
@@ -249,6 +249,9 @@ class DrawDownTest:
 
         pairs = interaction_pairs(stacked, names, s.geometry_material.name, abbreviations=abbreviations(
             s.geometry_material.name), rolling_damping=rolling_damping)
+        if self.geometry.mirror:  # the symmetry plane: frictionless and elastic for every material
+            pairs.update({(m, MIRROR_MATERIAL): {"mu_s": 0.0, "mu_r": 0.0, "restitution": 1.0, "rolling_damping": 0.0}
+                          for m in names})
         if fb is not None:
             walled = {**stacked, **{k[:-1] + "g": v for k, v in own.items()}}
             pairs.update({k: v for k, v in interaction_pairs(walled, names, fb.name, abbreviations=abbreviations(
@@ -266,7 +269,9 @@ class DrawDownTest:
         mats = [Material(m.name, G if G is not None else m.shear_modulus, m.poisson_ratio, m.density)
                 for m in self.mixture.materials]
         fb = self.settings.front_back_material
-        return mats + [self.settings.geometry_material] + ([fb] if fb is not None else [])
+        g = self.settings.geometry_material
+        mirror = [Material(MIRROR_MATERIAL, g.shear_modulus, g.poisson_ratio, g.density)] if self.geometry.mirror else []
+        return mats + [g] + ([fb] if fb is not None else []) + mirror
 
     def mixture_of(self, parameter_index: int) -> Mixture:
         """The mixture members of parameter set ``parameter_index`` fill (see ``mixtures``)."""
@@ -277,9 +282,9 @@ class DrawDownTest:
         s, g = self.settings, self.geometry
         dtype = getattr(torch, s.dtype)
         fills = []
-        # a walled slice fills like a full box of the slice's depth (walls, not periodic images)
-        fill_geometry = (dataclasses.replace(g, depth=g.slice_depth, slice_depth=None)
-                         if g.is_slice and g.slice_walls else g)
+        # a walled or mirrored slice fills like a full box of the slice's depth (walls, not periodic images)
+        fill_geometry = (dataclasses.replace(g, depth=g.slice_depth, slice_depth=None, slice_walls=False, mirror=False)
+                         if g.is_slice and g.has_front_back_walls else g)
         mixes = [self.mixture_of(p) for p in parameter_index]
         for seed, mix_b in zip(seeds, mixes):
             layers = sample_layers(mix_b, g.depth_scale, seed)

@@ -6,7 +6,11 @@ outlet centred at x = 0, y the depth, z up with the lower box floor at z = 0) an
 the walls (:meth:`walls`), the simulation domain and the regions used by the KPIs. With
 ``slice_depth`` set, it describes a thin slice of the same boxes, periodic along y (no front
 and back walls: the slice stands for the interior of the full box); quantities that scale
-with depth are multiplied by ``depth / slice_depth`` to report them for the full box.
+with depth are multiplied by ``depth / slice_depth`` to report them for the full box. With
+``mirror`` set, the slice is bounded by the box's front wall at y = 0 and, at y = slice_depth, by
+a symmetry plane: a frictionless, elastic wall (material :data:`MIRROR_MATERIAL`, see
+:class:`torchdem.drawdown.RunSettings`). The lab box has the same wall on both faces, so half its
+depth with a mirror at mid-depth keeps the wall friction the full box has at half the cost.
 
 Default dimensions. The paper's figure with the dimensions is not in our text, so the
 defaults are derived from its numbers (40 kg fill; steady flow 10.3 kg/s; 81 % discharged,
@@ -36,6 +40,9 @@ from dataclasses import dataclass
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.walls import WallSpec
 
+#: Material name of the symmetry plane of a mirrored slice (``DrawDownGeometry.mirror``).
+MIRROR_MATERIAL = "mirror"
+
 
 @dataclass(frozen=True)
 class DrawDownGeometry:
@@ -50,6 +57,9 @@ class DrawDownGeometry:
         slice_depth: None for the full box, else the depth of a y-periodic slice.
         slice_walls: a slice bounded by front and back walls instead of periodic along y
             (the walls of the lab box, brought to ``slice_depth`` apart); ignored for the full box.
+        mirror: the slice's back face (y = slice_depth) is a symmetry plane, a frictionless
+            elastic wall, and its front face the box's front wall; needs ``slice_depth``
+            (``depth / 2`` for the lab box's mid-depth plane).
     """
 
     upper_width: float = 0.35
@@ -61,6 +71,7 @@ class DrawDownGeometry:
     lower_height: float = 0.30
     slice_depth: float | None = None
     slice_walls: bool = False
+    mirror: bool = False
 
     def validate(self, source: str = "geometry") -> "DrawDownGeometry":
         for name in ("upper_width", "depth", "upper_height", "outlet_width", "upper_bottom_z",
@@ -76,6 +87,9 @@ class DrawDownGeometry:
             raise out_of_range("upper_bottom_z", self.upper_bottom_z, "> 0 m", source)
         if self.slice_depth is not None and not (0 < self.slice_depth <= self.depth):
             raise out_of_range("slice_depth", self.slice_depth, f"(0, depth = {self.depth}] m or null", source)
+        if self.mirror and self.slice_depth is None:
+            raise out_of_range("mirror", self.mirror, "false for the full box (a mirror plane bounds a slice: set "
+                               "slice_depth, e.g. depth / 2)", source)
         return self
 
     @property
@@ -95,7 +109,7 @@ class DrawDownGeometry:
     @property
     def has_front_back_walls(self) -> bool:
         """Whether front and back walls bound the simulated depth (full box or walled slice)."""
-        return not self.is_slice or self.slice_walls
+        return not self.is_slice or self.slice_walls or self.mirror
 
     @property
     def periodic(self) -> tuple[bool, bool, bool]:
@@ -111,9 +125,12 @@ class DrawDownGeometry:
         return ((-self.lower_width / 2 - margin, y0, -margin), (self.lower_width / 2 + margin, y1, top))
 
     def walls(self, material: str, gate_open_time: float, fill_top: float | None = None,
-              front_back_material: str | None = None) -> list[WallSpec]:
+              front_back_material: str | None = None, mirror_material: str = "mirror") -> list[WallSpec]:
         """Walls of both boxes; the gate exists until ``gate_open_time`` (s). The front and back
-        walls (full box or walled slice) are of ``front_back_material`` (default ``material``).
+        walls (full box or walled slice) are of ``front_back_material`` (default ``material``);
+        with ``mirror`` the back walls are replaced by the symmetry plane, one rectangle of
+        ``mirror_material`` over the whole width and height of the domain (nothing crosses a plane
+        of symmetry, also not in the gap between the boxes).
 
         A loose rained fill stacked up to ``fill_top`` above the upper box walls is held by
         fill extension walls (a filling hopper continuing the box walls upwards) that exist
@@ -153,16 +170,22 @@ class DrawDownGeometry:
                 walls += [
                     WallSpec("fill_front", (0.0, 0.0, zc), (0, 1, 0), (0, 0, 1), He / 2, Wu / 2, fb,
                              active_until=gate_open_time),
-                    WallSpec("fill_back", (0.0, D, zc), (0, -1, 0), (0, 0, 1), He / 2, Wu / 2, fb,
-                             active_until=gate_open_time),
                 ]
+                if not self.mirror:
+                    walls.append(WallSpec("fill_back", (0.0, D, zc), (0, -1, 0), (0, 0, 1), He / 2, Wu / 2, fb,
+                                          active_until=gate_open_time))
         if walled:
             walls += [
                 WallSpec("upper_front", (0.0, 0.0, zb + Hu / 2), (0, 1, 0), (0, 0, 1), Hu / 2, Wu / 2, fb),
-                WallSpec("upper_back", (0.0, D, zb + Hu / 2), (0, -1, 0), (0, 0, 1), Hu / 2, Wu / 2, fb),
                 WallSpec("lower_front", (0.0, 0.0, Hl / 2), (0, 1, 0), (0, 0, 1), Hl / 2, Wl / 2, fb),
-                WallSpec("lower_back", (0.0, D, Hl / 2), (0, -1, 0), (0, 0, 1), Hl / 2, Wl / 2, fb),
             ]
+            if self.mirror:  # a symmetry plane is everywhere, gaps between the boxes included
+                zt = max(top, fill_top or 0.0) + 0.01
+                walls.append(WallSpec("mirror", (0.0, D, zt / 2), (0, -1, 0), (0, 0, 1), zt / 2, Wl / 2,
+                                      mirror_material))
+            else:
+                walls += [WallSpec("upper_back", (0.0, D, zb + Hu / 2), (0, -1, 0), (0, 0, 1), Hu / 2, Wu / 2, fb),
+                          WallSpec("lower_back", (0.0, D, Hl / 2), (0, -1, 0), (0, 0, 1), Hl / 2, Wl / 2, fb)]
         return walls
 
     def in_upper_box(self, x, z):

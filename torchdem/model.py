@@ -40,8 +40,21 @@ DENSITY_PREFIX = "density_"
 MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3"),
                      "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size")}
 
+def _optional_length(value: str) -> float | None:
+    return None if value == "None" else float(value)
+
+
+def _flag(value: str) -> bool:
+    if value not in ("True", "False"):
+        raise ValueError(value)
+    return value == "True"
+
+
 _VARIANT_FIELDS = {"time_step_fraction": float, "shear_modulus": float, "fines_cut": float,
                    "rolling_damping": float, "loose_fraction": float, "dtype": str}
+#: Geometry fields a condition may vary (``DrawDownGeometry``): a study of geometries runs each
+#: as a variant of the same condition, so one store holds them all.
+_GEOMETRY_FIELDS = {"slice_depth": _optional_length, "mirror": _flag}
 
 
 @dataclass(frozen=True)
@@ -69,6 +82,7 @@ class DrawDownModel:
         ``isolate`` (campaigns): a blow-up fails that member only (its outcome says why), not the
         whole ensemble; False keeps the run settings' own ``guards.on_blowup``."""
         base, settings = split_condition(condition, self.settings)
+        geometry = condition_geometry(condition, self.geometry)
         if isolate:
             settings = dataclasses.replace(settings, guards=dataclasses.replace(settings.guards, on_blowup="isolate"))
         if base not in self.conditions:
@@ -82,7 +96,7 @@ class DrawDownModel:
         mixtures = None
         if any(properties):
             mixtures = [with_material_properties(mixture, props) for props in properties]
-        return DrawDownTest(mixture, self.geometry, sets, settings, mixtures=mixtures)
+        return DrawDownTest(mixture, geometry, sets, settings, mixtures=mixtures)
 
 
 def split_material_parameters(params: Mapping[str, float], mixture: Mixture, source: str
@@ -139,32 +153,55 @@ def with_densities(mixture: Mixture, density: Mapping[str, float]) -> Mixture:
     return with_material_properties(mixture, {m: {"density": rho} for m, rho in density.items()})
 
 
-def variant(condition: str, **changes: float | str) -> str:
-    """Condition name with run-setting variants, e.g. ``variant("50-50", time_step_fraction=0.2)``
-    or ``variant("50-50", dtype="float32")`` (numbers by ``repr``, names as they are)."""
-    for k in changes:
-        if k not in _VARIANT_FIELDS:
-            raise ConfigError(f"variant: {k!r} is not a run setting a study may vary; allowed: {sorted(_VARIANT_FIELDS)}")
-        if _VARIANT_FIELDS[k] is str and (not isinstance(changes[k], str) or any(c in changes[k] for c in "|=")):
-            raise ConfigError(f"variant: {k} = {changes[k]!r} is not allowed; expected a name without '|' or '='")
-    return "|".join([condition] + [f"{k}={changes[k] if _VARIANT_FIELDS[k] is str else repr(changes[k])}"
-                                   for k in sorted(changes)])
+def variant(condition: str, **changes: float | str | bool | None) -> str:
+    """Condition name with run-setting or geometry variants, e.g. ``variant("50-50",
+    time_step_fraction=0.2)``, ``variant("50-50", dtype="float32")`` or ``variant("50-50",
+    slice_depth=0.1, mirror=True)`` (numbers, flags and None by ``repr``, names as they are)."""
+    allowed = sorted({**_VARIANT_FIELDS, **_GEOMETRY_FIELDS})
+    for k, v in changes.items():
+        if k not in _VARIANT_FIELDS and k not in _GEOMETRY_FIELDS:
+            raise ConfigError(f"variant: {k!r} is not a setting a study may vary; allowed: {allowed}")
+        if _VARIANT_FIELDS.get(k) is str and (not isinstance(v, str) or any(c in v for c in "|=")):
+            raise ConfigError(f"variant: {k} = {v!r} is not allowed; expected a name without '|' or '='")
+        if k == "mirror" and not isinstance(v, bool):
+            raise ConfigError(f"variant: mirror = {v!r} is not allowed; expected True or False")
+    return "|".join([condition] + [f"{k}={v if _VARIANT_FIELDS.get(k) is str else repr(v)}"
+                                   for k, v in sorted(changes.items())])
+
+
+def _variant_parts(condition: str) -> tuple[str, dict[str, object], dict[str, object]]:
+    """Base name, run-setting changes and geometry changes of a condition name."""
+    base, *parts = condition.split("|")
+    settings, geometry = {}, {}
+    for part in parts:
+        key, sep, value = part.partition("=")
+        kind = _VARIANT_FIELDS if key in _VARIANT_FIELDS else _GEOMETRY_FIELDS
+        if not sep or key not in kind:
+            raise ConfigError(f"condition {condition!r}: variant {part!r} is not <field>=<value> with a field of "
+                              f"{sorted({**_VARIANT_FIELDS, **_GEOMETRY_FIELDS})}")
+        try:
+            (settings if kind is _VARIANT_FIELDS else geometry)[key] = kind[key](value)
+        except ValueError:
+            raise ConfigError(f"condition {condition!r}: {key} = {value!r} is not a number (or None, True, False "
+                              "where the field allows)") from None
+    return base, settings, geometry
 
 
 def split_condition(condition: str, settings: RunSettings) -> tuple[str, RunSettings]:
     """Base condition name and the run settings with the variant's fields replaced."""
-    base, *parts = condition.split("|")
-    changes = {}
-    for part in parts:
-        key, sep, value = part.partition("=")
-        if not sep or key not in _VARIANT_FIELDS:
-            raise ConfigError(f"condition {condition!r}: variant {part!r} is not <field>=<value> with a field of "
-                              f"{sorted(_VARIANT_FIELDS)}")
-        try:
-            changes[key] = _VARIANT_FIELDS[key](value)
-        except ValueError:
-            raise ConfigError(f"condition {condition!r}: {key} = {value!r} is not a number") from None
+    base, changes, _ = _variant_parts(condition)
     return base, dataclasses.replace(settings, **changes).validate(f"condition {condition!r}")
+
+
+def condition_geometry(condition: str, geometry: DrawDownGeometry) -> DrawDownGeometry:
+    """The geometry with the condition's geometry variants (``slice_depth``, ``mirror``) replaced;
+    a full box (``slice_depth=None``) or a mirror drops ``slice_walls``."""
+    _, _, changes = _variant_parts(condition)
+    if not changes:
+        return geometry
+    if changes.get("slice_depth", geometry.slice_depth) is None or changes.get("mirror"):
+        changes["slice_walls"] = False
+    return dataclasses.replace(geometry, **changes).validate(f"condition {condition!r}")
 
 
 def mixtures_from_measured(data: MeasuredData, materials: Mapping[str, ParticleMaterial],

@@ -16,6 +16,7 @@ directory. ``main()`` only builds typed objects and calls ``bo.studies.pipeline`
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +30,7 @@ from bo.cli.common import (_int, check_kpis, config_hash, executor_from, executo
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 
-STUDIES = ("timestep", "shear_modulus", "precision")
+STUDIES = ("timestep", "shear_modulus", "precision", "geometry")
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,8 @@ class StudySettings:
     alpha: float = 0.05
     power: float = 0.8
     minimum_seeds: int = 10
+    geometries: Mapping[str, Mapping[str, Any]] | None = None
+    parameter_sets: Mapping[str, Mapping[str, float]] | None = None
 
 
 def _numbers(values, key: str, where: str, allowed: str) -> tuple[float, ...]:
@@ -56,6 +59,45 @@ def _numbers(values, key: str, where: str, allowed: str) -> tuple[float, ...]:
         return tuple(float(v) for v in values)
     except (TypeError, ValueError):
         raise out_of_range(key, values, allowed, where) from None
+
+
+def _geometry_study_from(plain: Mapping[str, Any]) -> tuple[dict, dict]:
+    """``geometries`` (name -> {slice_depth, mirror}, the reference first) and ``parameter_sets``
+    (name -> contact parameters replacing the config's ``contact``) of the geometry study."""
+    from torchdem.config import parameter_range
+
+    geometries = plain.get("geometries")
+    if not isinstance(geometries, Mapping) or len(geometries) < 2:
+        raise out_of_range("geometries", geometries, "a mapping of >= 2 named geometries, the reference first, e.g. "
+                           "{full: {slice_depth: null, mirror: false}, lab: {slice_depth: 0.1, mirror: true}}", "config")
+    out_g = {}
+    for name, g in geometries.items():
+        where = f"config: geometries.{name}"
+        if not isinstance(g, Mapping) or set(g) - {"slice_depth", "mirror"}:
+            raise out_of_range(f"geometries.{name}", g, "a mapping with keys slice_depth (m or null) and mirror "
+                               "(true/false)", "config")
+        depth, mirror = g.get("slice_depth"), bool(g.get("mirror", False))
+        if depth is not None and (isinstance(depth, bool) or not isinstance(depth, (int, float)) or not depth > 0):
+            raise out_of_range(f"geometries.{name}.slice_depth", depth, "a length > 0 m or null (whole box)", where)
+        out_g[str(name)] = {"slice_depth": None if depth is None else float(depth), "mirror": mirror}
+    sets = plain.get("parameter_sets")
+    if not isinstance(sets, Mapping) or not sets:
+        raise out_of_range("parameter_sets", sets, "a mapping of >= 1 named parameter sets (contact parameters that "
+                           "replace the config's contact values)", "config")
+    out_p = {}
+    for name, params in sets.items():
+        if not isinstance(params, Mapping):
+            raise out_of_range(f"parameter_sets.{name}", params, "a mapping of parameter -> value", "config")
+        checked = {}
+        for key, value in params.items():
+            low, high, open_low, allowed = parameter_range(str(key))
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) \
+                and (value > low if open_low else value >= low) and value <= high
+            if not ok:
+                raise out_of_range(f"parameter_sets.{name}.{key}", value, allowed, "config")
+            checked[str(key)] = float(value)
+        out_p[str(name)] = {**dict(plain.get("contact") or {}), **checked}
+    return out_g, out_p
 
 
 def study_settings_from(plain: Mapping[str, Any]) -> StudySettings:
@@ -80,6 +122,8 @@ def study_settings_from(plain: Mapping[str, Any]) -> StudySettings:
         if len(values) < 2 or len(set(values)) != len(values) or not all(v > 0 for v in values):
             raise out_of_range("shear_moduli_pa", list(values), "a list of >= 2 distinct shear moduli > 0 Pa",
                                "config")
+    elif study == "geometry":
+        values = ()
     else:
         values = tuple(plain.get("dtypes") or ())
         if len(values) != 2 or len(set(values)) != 2 or any(v not in ("float32", "float64") for v in values):
@@ -107,7 +151,11 @@ def study_settings_from(plain: Mapping[str, Any]) -> StudySettings:
         raise out_of_range("relative_tolerance", rel, "a number > 0, e.g. 0.02", "config")
     if not growth >= 1:
         raise out_of_range("std_growth_factor", growth, "a number >= 1, e.g. 2.0", "config")
+    geometries = parameter_sets = None
+    if study == "geometry":
+        geometries, parameter_sets = _geometry_study_from(plain)
     return StudySettings(study=study, values=values, seeds=tuple(seeds), condition=str(plain.get("condition")),
+                         geometries=geometries, parameter_sets=parameter_sets,
                          kpis=kpis, deciding_kpis=deciding, relative_tolerance=rel, std_growth_factor=growth,
                          alpha=float(equivalence.get("alpha", 0.05)), power=float(equivalence.get("power", 0.8)),
                          minimum_seeds=int(equivalence.get("minimum_seeds", 10)))
@@ -119,7 +167,7 @@ def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     from bo.screening.pipeline import measured_for
     from bo.studies.pipeline import (STUDY_STAGES, precision_report, run_precision_study, run_shear_modulus_study,
                                      run_time_step_study, shear_modulus_report, smallest_sphere_rayleigh_time_step,
-                                     time_step_report)
+                                     time_step_report, geometry_report, run_geometry_study)
 
     s = study_settings_from(plain)
     executor_settings = executor_settings_from(plain.get("executor") or {})
@@ -140,6 +188,10 @@ def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
             runs = run_shear_modulus_study(store, executor, condition=s.condition, params=params,
                                            shear_moduli_pa=s.values, seeds=list(s.seeds), kpis=list(s.kpis),
                                            stage=stage)
+        elif s.study == "geometry":
+            runs = run_geometry_study(store, executor, condition=s.condition, geometries=s.geometries,
+                                      parameter_sets=s.parameter_sets, seeds=list(s.seeds), kpis=list(s.kpis),
+                                      members_per_ensemble=executor_settings.batch_size, stage=stage)
         else:
             runs = run_precision_study(store, executor, condition=s.condition, params=params, dtypes=s.values,
                                        seeds=list(s.seeds), kpis=list(s.kpis), stage=stage)
@@ -154,6 +206,9 @@ def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     elif s.study == "shear_modulus":
         result, files = shear_modulus_report(runs, out, deciding_kpis=s.deciding_kpis,
                                              relative_tolerance=s.relative_tolerance)
+    elif s.study == "geometry":
+        measured = measured_for(s.kpis, measured_kpis_from(plain))
+        result, files = geometry_report(runs, out, lab_margins={k: v.ci95 for k, v in measured.items()})
     else:
         measured = measured_for(s.kpis, measured_kpis_from(plain))
         result, files = precision_report(runs, out, margins={k: v.ci95 for k, v in measured.items()},

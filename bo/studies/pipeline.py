@@ -27,6 +27,11 @@ same in each floating-point precision (``variant(condition, dtype=...)``, stage 
 ``precision_report`` applies ``bo.studies.precision.precision_verdict`` (TOST per KPI against the
 lab's CI half-width) and writes ``precision.json`` and ``precision.md``.
 
+``run_geometry_study(store, executor, *, condition, geometries, parameter_sets, seeds, kpis, ...)``
+runs every named parameter set in every geometry (condition variants of ``slice_depth`` and
+``mirror``, stage ``"geometry"``); ``geometry_report`` applies
+``bo.studies.geometry.geometry_comparison`` and writes ``geometry.json`` and ``geometry.md``.
+
 ``STUDY_STAGES`` are the extra stage names to open the store with.
 ``smallest_sphere_rayleigh_time_step(mixture, settings)`` is Eq. 3 for the smallest sphere the
 sieve allows (smallest sieve size after the fines cut x the smallest template sphere), the
@@ -64,9 +69,12 @@ __all__ = [
     "shear_modulus_report",
     "run_precision_study",
     "precision_report",
+    "GeometryRuns",
+    "run_geometry_study",
+    "geometry_report",
 ]
 
-STUDY_STAGES = ("timestep", "shear_modulus", "precision")
+STUDY_STAGES = ("timestep", "shear_modulus", "precision", "geometry")
 DTYPES = ("float64", "float32")
 
 
@@ -328,3 +336,102 @@ def shear_modulus_report(runs: StudyRuns, out_dir, *, deciding_kpis: Sequence[st
                            "reasoning": list(summary.reasoning)}}
     files["shear_modulus_json"].write_text(json.dumps(json_ready(payload), indent=2, allow_nan=False) + "\n")
     return summary, files
+
+
+@dataclass(frozen=True, eq=False)
+class GeometryRuns:
+    """KPIs of a geometry study.
+
+    Attributes:
+        geometries: name -> geometry variant (``{"slice_depth": 0.1, "mirror": True}``), reference first.
+        parameter_sets: name -> parameters. seeds: one per replicate. kpi_names: KPI columns.
+        kpi_values: parameter set -> geometry -> ``[replicates, n_kpi]`` (NaN for failures).
+        cost_per_run_s: geometry -> mean wall time of its ensembles / members per ensemble, s.
+        n_failed: parameter set -> geometry -> failed evaluations.
+    """
+
+    geometries: Mapping[str, Mapping[str, object]]
+    parameter_sets: Mapping[str, Mapping[str, float]]
+    seeds: tuple[int, ...]
+    kpi_names: tuple[str, ...]
+    kpi_values: Mapping[str, Mapping[str, np.ndarray]]
+    cost_per_run_s: Mapping[str, float]
+    n_failed: Mapping[str, Mapping[str, int]]
+
+    def to_dict(self) -> dict:
+        return json_ready({"geometries": {k: dict(v) for k, v in self.geometries.items()},
+                           "parameter_sets": {k: dict(v) for k, v in self.parameter_sets.items()},
+                           "seeds": list(self.seeds), "kpi_names": list(self.kpi_names),
+                           "kpi_values": {p: {g: v for g, v in by.items()} for p, by in self.kpi_values.items()},
+                           "cost_per_run_s": dict(self.cost_per_run_s),
+                           "n_failed": {p: dict(by) for p, by in self.n_failed.items()}})
+
+
+def run_geometry_study(store: CampaignStore, executor: Executor, *, condition: str,
+                       geometries: Mapping[str, Mapping[str, object]],
+                       parameter_sets: Mapping[str, Mapping[str, float]], seeds: Sequence[int],
+                       kpis: Sequence[str], members_per_ensemble: int, stage: str = "geometry") -> GeometryRuns:
+    """Run (or resume) every parameter set in every geometry (condition variants, the reference
+    geometry first; see :mod:`bo.studies.geometry`). Each (parameter set, geometry) is one store
+    batch; the batches are queued parameter set by parameter set, so an interrupted study has
+    its first parameter set complete first."""
+    source = "run_geometry_study"
+    if not isinstance(condition, str) or not condition or "|" in condition:
+        raise out_of_range("condition", condition, "a base condition name such as '50-50'", source)
+    if len(geometries) < 2:
+        raise out_of_range("geometries", list(geometries), "at least two geometries, the reference first", source)
+    if not parameter_sets:
+        raise out_of_range("parameter_sets", parameter_sets, "at least one named parameter set", source)
+    seeds = list(_check_seeds(seeds, source))
+    kpis = _check_kpis(kpis, source)
+    store.check_stage(stage, source)
+    seed_tag = hashlib.sha256(json.dumps(seeds).encode()).hexdigest()[:8]
+    keys = {}
+    for pset, params in parameter_sets.items():
+        point = canonical_params(params, f"{source}: parameter_sets.{pset}")
+        for g, changes in geometries.items():
+            cond = variant(condition, **dict(changes))
+            key = f"{stage}/{pset}/{cond}/seeds={seed_tag}"
+            stored = store.batch(stage, key, lambda: [point], seeds=seeds, conditions=[cond])
+            if stored != [point]:
+                raise ConfigError(f"{store.path}: batch {key} holds parameters {stored}, not {[point]}; "
+                                  f"give the changed parameter set a new name")
+            keys[pset, g] = (key, cond)
+    run_pending(store, executor, stage)
+    values: dict[str, dict[str, np.ndarray]] = {}
+    failed: dict[str, dict[str, int]] = {}
+    walls: dict[str, list[float]] = {g: [] for g in geometries}
+    for (pset, g), (key, cond) in keys.items():
+        out = np.full((len(seeds), len(kpis)), np.nan)
+        n_failed = 0
+        for rec in store.records(stage, batch_key=key, condition=cond):
+            if rec.status == "failed":
+                n_failed += 1
+            if rec.status != "done" or rec.kpis is None:
+                continue
+            out[seeds.index(rec.seed)] = [rec.kpis.get(k, math.nan) for k in kpis]
+            if rec.wall_time is not None:
+                walls[g].append(rec.wall_time)
+        out[~np.isfinite(out)] = np.nan
+        values.setdefault(pset, {})[g] = out
+        failed.setdefault(pset, {})[g] = n_failed
+    per_run = max(1, min(int(members_per_ensemble), len(seeds)))
+    cost = {g: float(np.mean(w)) / per_run if w else math.nan for g, w in walls.items()}
+    return GeometryRuns(geometries=dict(geometries), parameter_sets=dict(parameter_sets), seeds=tuple(seeds),
+                        kpi_names=tuple(kpis), kpi_values=values, cost_per_run_s=cost, n_failed=failed)
+
+
+def geometry_report(runs: GeometryRuns, out_dir, *, lab_margins: Mapping[str, float] | None = None):
+    """:func:`bo.studies.geometry.geometry_comparison` on the study; writes geometry.json and .md."""
+    from bo.studies.geometry import geometry_comparison
+
+    comparison = geometry_comparison(runs.kpi_values, runs.kpi_names, runs.cost_per_run_s, lab_margins=lab_margins)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"json": out / "geometry.json", "md": out / "geometry.md"}
+    files["json"].write_text(json.dumps(json_ready({"runs": runs.to_dict(), "comparison": comparison.to_dict()}),
+                                        indent=2) + "\n")
+    geoms = "; ".join(f"{g}: {dict(v)}" for g, v in runs.geometries.items())
+    files["md"].write_text(f"# Geometry study\n\nGeometries (condition variants): {geoms}\n\nSeeds: "
+                           f"{list(runs.seeds)}; failed runs: {runs.n_failed}\n\n{comparison.to_text()}\n")
+    return comparison, files

@@ -137,7 +137,7 @@ def model_context(model: "DrawDownModel", calibrated: Mapping[str, float]) -> Mo
     E = 2 * G * (1 + m0.poisson_ratio)
     e_eff = float(effective_young_modulus(torch.tensor(E), torch.tensor(m0.poisson_ratio), torch.tensor(E),
                                           torch.tensor(m0.poisson_ratio)))
-    periodic = bool(model.geometry.is_slice and not model.geometry.slice_walls)
+    periodic = model.geometry.periodic[1]
     return ModelContext(materials=names, letters=letters, densities={m.name: m.density for m in mixture.materials},
                         shapes={m.name: m.shape for m in mixture.materials}, calibrated=dict(calibrated),
                         young_eff=e_eff, periodic_slice=periodic, period=model.geometry.slice_depth if periodic else None,
