@@ -346,7 +346,8 @@ class GeometryRuns:
         geometries: name -> geometry variant (``{"slice_depth": 0.1, "mirror": True}``), reference first.
         parameter_sets: name -> parameters. seeds: one per replicate. kpi_names: KPI columns.
         kpi_values: parameter set -> geometry -> ``[replicates, n_kpi]`` (NaN for failures).
-        cost_per_run_s: geometry -> mean wall time of its ensembles / members per ensemble, s.
+        cost_per_run_s: geometry -> mean wall time of its ensembles / members per ensemble (the executor's
+            batch size, at most the runs of one geometry), s.
         n_failed: parameter set -> geometry -> failed evaluations.
     """
 
@@ -415,7 +416,8 @@ def run_geometry_study(store: CampaignStore, executor: Executor, *, condition: s
         out[~np.isfinite(out)] = np.nan
         values.setdefault(pset, {})[g] = out
         failed.setdefault(pset, {})[g] = n_failed
-    per_run = max(1, min(int(members_per_ensemble), len(seeds)))
+    # the executor fills an ensemble with runs of one condition, across parameter sets
+    per_run = max(1, min(int(members_per_ensemble), len(seeds) * len(parameter_sets)))
     cost = {g: float(np.mean(w)) / per_run if w else math.nan for g, w in walls.items()}
     return GeometryRuns(geometries=dict(geometries), parameter_sets=dict(parameter_sets), seeds=tuple(seeds),
                         kpi_names=tuple(kpis), kpi_values=values, cost_per_run_s=cost, n_failed=failed)
