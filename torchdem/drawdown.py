@@ -38,6 +38,7 @@ from kpi.loadcell import DischargeConfig, LoadCellSignal, fit_mass_flow_rate, me
 from kpi.segregation import measure_segregation
 from torchdem.contact_params import PAPER_REFERENCE, interaction_pairs
 from torchdem.errors import ConfigError, out_of_range
+from torchdem.clumps import ClumpTemplate, principal_template
 from torchdem.fill import rain_positions
 from torchdem.geometry import MIRROR_MATERIAL, DrawDownGeometry
 from torchdem.integrate import sphere_positions
@@ -88,6 +89,9 @@ class RunSettings:
             given is that of the geometry pair (``mu_s_pg`` ...).
         reorder_every: neighbour rebuilds between spatial reorders of the bodies
             (:mod:`torchdem.reorder`); 0 never reorders.
+        fill_packing: how the rained fill keeps particles apart: ``"bounding"`` (each particle's
+            bounding sphere) or ``"lobes"`` (its own spheres, so a flat clump takes the room of
+            its lobes; needed where flat sinter would overflow the fill column).
     """
 
     fill_time: float = 0.8
@@ -110,6 +114,7 @@ class RunSettings:
     rolling_stiffness: str = "tangential"
     front_back_material: Material | None = None
     reorder_every: int = 0
+    fill_packing: str = "bounding"
 
     def validate(self, source: str = "sim") -> "RunSettings":
         if self.rolling_stiffness not in ("tangential", "ai2011"):
@@ -129,6 +134,8 @@ class RunSettings:
             raise out_of_range("discharge_time", self.discharge_time,
                                f">= {hi + self.final_window:g} s (the mass-flow fit window ends {hi:g} s after the gate "
                                f"opens and the final mass is the mean of the last {self.final_window:g} s)", source)
+        if self.fill_packing not in ("bounding", "lobes"):
+            raise out_of_range("fill_packing", self.fill_packing, "'bounding' or 'lobes'", source)
         if self.dtype not in ("float32", "float64"):
             raise out_of_range("dtype", self.dtype, "'float32' or 'float64'", source)
         if self.fines_cut is not None and not self.fines_cut > 0:
@@ -291,8 +298,9 @@ class DrawDownTest:
             tmpl = [m.template for m in mix_b.materials]
             bound = np.array([tmpl[k].bounding_radius() for k in layers.material]) * layers.diameter
             volume = layers.mass / np.array([mix_b.materials[k].density for k in layers.material])
+            lobes = _lobes(tmpl, layers.material, layers.diameter) if s.fill_packing == "lobes" else None
             fills.append((layers, rain_positions(bound, layers.layer, volume, fill_geometry, seed, s.loose_fraction,
-                                                 max_top=g.upper_bottom_z + 3 * g.upper_height)))
+                                                 max_top=g.upper_bottom_z + 3 * g.upper_height, lobes=lobes)))
         fill_top = max(f[1].top for f in fills)
         B = len(seeds)
         N = max(f[0].material.shape[0] for f in fills)
@@ -533,6 +541,21 @@ class DrawDownTest:
                                  "lost_bodies": int(state.lost[m]), "total_kg": float(total[m]),
                                  "fill_kg": fill_mass})
         return DrawDownResult(kpis, loadcells, images, members, wall, state.step, counts, conservation, errors)
+
+
+def _lobes(templates: Sequence[ClumpTemplate], material: np.ndarray, diameter: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Each particle's spheres as the DEM builds them (principal frame, about the centre of mass,
+    scaled by the sieve size): offsets ``[N, K, 3]`` and radii ``[N, K]``, padded by repeating
+    a particle's first sphere (:func:`torchdem.fill.rain_positions` ``lobes``)."""
+    principal = [principal_template(t).template for t in templates]
+    K = max(p.n_spheres for p in principal)
+    off = np.zeros((len(principal), K, 3))
+    rad = np.zeros((len(principal), K))
+    for k, p in enumerate(principal):
+        pad = np.r_[np.arange(p.n_spheres), np.zeros(K - p.n_spheres, dtype=int)]
+        off[k], rad[k] = p.offsets[pad], p.radii[pad]
+    return off[material] * diameter[:, None, None], rad[material] * diameter[:, None]
 
 
 def _letters(names: Sequence[str], geometry: str) -> dict[str, str]:

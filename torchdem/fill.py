@@ -58,70 +58,120 @@ def _with_images(points: np.ndarray, depth: float, periodic: bool) -> tuple[np.n
 
 
 def _place_slab(radius: np.ndarray, lo: np.ndarray, hi: np.ndarray, placed: np.ndarray, placed_r: np.ndarray,
-                depth: float, periodic: bool, rng: np.random.Generator, rounds: int = 200) -> np.ndarray | None:
-    """Vectorised random sequential addition of spheres (radii sorted descending) in the box
-    [lo, hi] of allowed centres (per particle rows ``lo``/``hi`` ``[n, 3]``), avoiding the placed
-    spheres. Returns positions ``[n, 3]`` or None if some particles found no room."""
+                depth: float, periodic: bool, rng: np.random.Generator, rounds: int = 200,
+                lobe_offset: np.ndarray | None = None, lobe_radius: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Vectorised random sequential addition of bodies (sorted largest first) in the box [lo, hi]
+    of allowed centres (per body rows ``lo``/``hi`` ``[n, 3]``), avoiding the placed spheres.
+
+    A body is its bounding sphere of ``radius`` unless ``lobe_offset`` ``[n, K, 3]`` (world-frame
+    offsets of its spheres from its centre) and ``lobe_radius`` ``[n, K]`` are given; then its
+    spheres must overlap nothing. Returns (body positions ``[n, 3]``, sphere centres ``[n K, 3]``,
+    sphere radii ``[n K]``), or None if some bodies found no room."""
     n = radius.shape[0]
+    if lobe_offset is None:
+        lobe_offset, lobe_radius = np.zeros((n, 1, 3)), radius[:, None]
     pos = np.full((n, 3), np.nan)
     P, PR = placed.copy(), placed_r.copy()
-    # Largest first, in chunks: large spheres need empty space, small ones fill the gaps.
+    # Largest first, in chunks: large bodies need empty space, small ones fill the gaps.
     for chunk in np.array_split(np.arange(n), max(1, n // 64)):
-        P, PR, left = _place_chunk(chunk, radius, lo, hi, P, PR, pos, depth, periodic, rng, rounds)
+        P, PR, left = _place_chunk(chunk, lobe_offset, lobe_radius, lo, hi, P, PR, pos, depth, periodic, rng, rounds)
         if left:
             return None
-    return pos
+    return pos, (pos[:, None, :] + lobe_offset).reshape(-1, 3), lobe_radius.reshape(-1)
 
 
-def _place_chunk(todo, radius, lo, hi, P, PR, pos, depth, periodic, rng, rounds):
+def _overlaps_placed(tree: cKDTree, points: np.ndarray, radii: np.ndarray, spheres: np.ndarray, r: np.ndarray,
+                     r_max: float, k: int = 16) -> np.ndarray:
+    """Indices of ``spheres`` (radii ``r``) that overlap a sphere of ``points`` (``radii``, in
+    ``tree``): the ``k`` nearest within reach are tested at once; a sphere with ``k`` of them
+    in reach is tested against everything in reach."""
+    reach = r + r_max
+    _, idx = tree.query(spheres, k=min(k, points.shape[0]), distance_upper_bound=float(reach.max()))
+    idx = idx.reshape(spheres.shape[0], -1)
+    found = idx < points.shape[0]
+    safe = np.where(found, idx, 0)
+    d = np.linalg.norm(points[safe] - spheres[:, None, :], axis=2)
+    hit = (found & (d < r[:, None] + radii[safe])).any(1)
+    for a in np.flatnonzero(found[:, -1] & ~hit):  # k neighbours in reach: maybe more beyond them
+        h = np.asarray(tree.query_ball_point(spheres[a], reach[a]), dtype=int)
+        if h.size and (np.linalg.norm(points[h] - spheres[a], axis=1) < r[a] + radii[h]).any():
+            hit[a] = True
+    return np.flatnonzero(hit)
+
+
+def _place_chunk(todo, lobe_offset, lobe_radius, lo, hi, P, PR, pos, depth, periodic, rng, rounds):
+    K = lobe_offset.shape[1]
+    # spheres placed before this chunk: one search tree for all rounds; those the chunk places
+    # (at most 64 bodies) are tested directly
+    if P.shape[0]:
+        old_imgs, old_src = _with_images(P, depth, periodic)
+        old_tree, old_r, old_max = cKDTree(old_imgs), PR[old_src], PR.max()
+    new_P, new_R = [np.zeros((0, 3))], [np.zeros(0)]
     for _ in range(rounds):
         if todo.size == 0:
-            return P, PR, 0
+            break
         cand = lo[todo] + (hi[todo] - lo[todo]) * rng.random((todo.size, 3))
-        r = radius[todo]
+        spheres = (cand[:, None, :] + lobe_offset[todo]).reshape(-1, 3)  # [m K, 3], body a's at a K ..
+        r = lobe_radius[todo].reshape(-1)
+        owner = np.repeat(np.arange(todo.size), K)
         ok = np.ones(todo.size, dtype=bool)
         if P.shape[0]:
-            imgs, src = _with_images(P, depth, periodic)
-            tree = cKDTree(imgs)
-            hits = tree.query_ball_point(cand, r + PR.max())
-            for a, h in enumerate(hits):
-                if h:
-                    h = np.asarray(h)
-                    d = np.linalg.norm(imgs[h] - cand[a], axis=1)
-                    if (d < r[a] + PR[src[h]]).any():
-                        ok[a] = False
+            hit = _overlaps_placed(old_tree, old_imgs, old_r, spheres, r, old_max)
+            ok &= ~np.bincount(owner[hit], minlength=todo.size).astype(bool)
+        fresh = np.concatenate(new_P)
+        if fresh.shape[0]:
+            imgs, src = _with_images(fresh, depth, periodic)
+            fresh_r = np.concatenate(new_R)[src]
+            d = np.linalg.norm(imgs[None, :, :] - spheres[:, None, :], axis=2)
+            hit = (d < r[:, None] + fresh_r[None, :]).any(1)
+            ok &= ~np.bincount(owner[hit], minlength=todo.size).astype(bool)
         # conflicts among this round's candidates: the earlier (larger) one wins
-        good = np.flatnonzero(ok)
-        if good.size > 1:
-            imgs, src = _with_images(cand[good], depth, periodic)
-            tree = cKDTree(imgs)
-            for a, b in tree.query_pairs(2 * r[good].max(), output_type="ndarray"):
-                ia, ib = src[a], src[b]
-                if ia == ib:
-                    continue
-                if np.linalg.norm(imgs[a] - imgs[b]) < r[good][ia] + r[good][ib]:
-                    ok[good[max(ia, ib)]] = False
+        good = np.flatnonzero(ok[owner])
+        if np.unique(owner[good]).size > 1:
+            imgs, src = _with_images(spheres[good], depth, periodic)
+            rg, og = r[good], owner[good]
+            a, b = cKDTree(imgs).query_pairs(2 * rg.max(), output_type="ndarray").T
+            ia, ib = src[a], src[b]
+            clash = (og[ia] != og[ib]) & (np.linalg.norm(imgs[a] - imgs[b], axis=1) < rg[ia] + rg[ib])
+            ok[np.maximum(og[ia], og[ib])[clash]] = False
         acc = np.flatnonzero(ok)
         pos[todo[acc]] = cand[acc]
-        P = np.concatenate([P, cand[acc]])
-        PR = np.concatenate([PR, r[acc]])
+        taken = ok[owner]
+        new_P.append(spheres[taken])
+        new_R.append(r[taken])
         todo = todo[~ok]
-    return P, PR, todo.size
+    return np.concatenate([P, *new_P]), np.concatenate([PR, *new_R]), todo.size
+
+
+def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors ``v`` ``[N, K, 3]`` by unit quaternions ``q`` ``[N, 4]`` (w, x, y, z)."""
+    w, u = q[:, None, :1], q[:, None, 1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
 
 
 def rain_positions(bounding_radius: np.ndarray, layer: np.ndarray, volume: np.ndarray,
                    geometry: DrawDownGeometry, seed: int, loose_fraction: float = 0.3,
-                   gap: float = 0.0002, max_top: float | None = None) -> RainedFill:
+                   gap: float = 0.0002, max_top: float | None = None,
+                   lobes: tuple[np.ndarray, np.ndarray] | None = None) -> RainedFill:
     """Place particles layer by layer into the upper box (see the module docstring).
 
     Args:
         bounding_radius: ``[N]`` radius of each particle's enclosing sphere, m.
         layer: ``[N]`` layer index (0 = bottom). volume: ``[N]`` solid volume, m^3.
-        geometry: the boxes. seed: random seed. loose_fraction: bounding-sphere volume
-            fraction of the loose slabs. gap: clearance between bounding spheres, m.
+        geometry: the boxes. seed: random seed. loose_fraction: volume fraction of the loose
+            slabs (of the bounding spheres, or of the lobes with ``lobes``). gap: clearance
+            between bounding spheres (lobes), m.
         max_top: highest z the loose stack may reach (default: the top of the upper box
             walls); a stack above the walls needs the fill extension walls of
             :meth:`DrawDownGeometry.walls` (``fill_top``).
+        lobes: pack by the particles' own spheres instead of their bounding spheres:
+            (offsets ``[N, K, 3]`` of each particle's spheres from its centre in its own frame,
+            m; radii ``[N, K]``, m; pad a particle with fewer spheres by repeating one). The
+            orientations are drawn first, so each particle is placed as it will lie. A flat clump
+            takes the room of its lobes, not of its bounding sphere (a trilobe of lobe spacing
+            0.3 holds a fifth of its bounding sphere's volume).
     """
     if not 0.05 <= loose_fraction <= 0.35:
         raise ConfigError(f"fill: loose_fraction = {loose_fraction}; expected [0.05, 0.35] "
@@ -136,6 +186,16 @@ def rain_positions(bounding_radius: np.ndarray, layer: np.ndarray, volume: np.nd
     if N and not periodic and 2 * float(bounding_radius.max()) >= D:
         raise ConfigError(f"fill: a particle of diameter {2 * float(bounding_radius.max()):.4g} m does not fit "
                           f"the box depth ({D} m)")
+    orientation = None
+    if lobes is not None:
+        offset, lobe_r = (np.asarray(a, dtype=float) for a in lobes)
+        if offset.ndim != 3 or offset.shape[0] != N or offset.shape[2] != 3 or lobe_r.shape != offset.shape[:2]:
+            raise ConfigError(f"fill: lobes must be offsets [N = {N}, K, 3] and radii [N, K]; got {offset.shape} "
+                              f"and {lobe_r.shape}")
+        orientation = random_quaternions(N, rng)
+        offset = rotate(orientation, offset)
+        lobe_r = lobe_r + gap / 2
+        ext_lo, ext_hi = (offset - lobe_r[..., None]).min(1), (offset + lobe_r[..., None]).max(1)  # [N, 3]
     pos = np.zeros((N, 3))
     z0 = geometry.upper_bottom_z
     tops = []
@@ -145,26 +205,35 @@ def rain_positions(bounding_radius: np.ndarray, layer: np.ndarray, volume: np.nd
         members = np.flatnonzero(layer == k)
         members = members[np.argsort(-bounding_radius[members], kind="stable")]
         R = bounding_radius[members] + gap / 2
-        height = float((4 / 3 * np.pi * R ** 3).sum()) / (loose_fraction * W * D)
-        # Only spheres reaching above the slab's floor z0 can touch its candidates (centres at
-        # z >= z0 + R): the layers below end at z0, so they are left out of the overlap search
-        # (same positions, bit for bit; the search had grown with every layer placed).
+        if lobes is None:
+            lo_ext, hi_ext, shape = -np.repeat(R[:, None], 3, 1), np.repeat(R[:, None], 3, 1), {}
+            height = float((4 / 3 * np.pi * R ** 3).sum()) / (loose_fraction * W * D)
+        else:
+            lo_ext, hi_ext = ext_lo[members], ext_hi[members]
+            shape = {"lobe_offset": offset[members], "lobe_radius": lobe_r[members]}
+            height = float((4 / 3 * np.pi * lobe_r[members] ** 3).sum()) / (loose_fraction * W * D)
+        # Only spheres reaching above the slab's floor z0 can touch its candidates (every sphere
+        # of a candidate lies above z0): the layers below end at z0, so they are left out of the
+        # overlap search (same positions, bit for bit; the search had grown with every layer placed).
         reach = placed[:, 2] + placed_r > z0
         while True:
-            lo = np.stack([-W / 2 + R, np.zeros_like(R) if periodic else R, z0 + R], 1)
-            hi = np.stack([W / 2 - R, np.full_like(R, D) if periodic else D - R, np.maximum(z0 + height - R, z0 + R)], 1)
-            got = _place_slab(R, lo, hi, placed[reach], placed_r[reach], D, periodic, rng)
+            lo = np.stack([-W / 2 - lo_ext[:, 0], np.zeros_like(R) if periodic else -lo_ext[:, 1], z0 - lo_ext[:, 2]], 1)
+            hi = np.stack([W / 2 - hi_ext[:, 0], np.full_like(R, D) if periodic else D - hi_ext[:, 1],
+                           np.maximum(z0 + height - hi_ext[:, 2], z0 - lo_ext[:, 2])], 1)
+            got = _place_slab(R, lo, hi, placed[reach], placed_r[reach], D, periodic, rng, **shape)
             if got is not None:
                 break
             height *= 1.1  # too crowded: give the slab more room and place the layer again
-        pos[members] = got
-        placed = np.concatenate([placed, got])
-        placed_r = np.concatenate([placed_r, R])
-        z0 = float((got[:, 2] + R).max())
+        body, centres, radii = got
+        pos[members] = body
+        placed = np.concatenate([placed, centres])
+        placed_r = np.concatenate([placed_r, radii])
+        z0 = float((centres[:, 2] + radii).max())
         tops.append(z0)
     top = z0 if N else geometry.upper_bottom_z
     limit = geometry.upper_bottom_z + geometry.upper_height if max_top is None else max_top
     if top > limit:
         raise ConfigError(f"fill: the loose stack reaches z = {top:.3f} m, above the allowed z = {limit:.3f} m; "
-                          "raise geometry.upper_height, raise run.loose_fraction or reduce the fill mass")
-    return RainedFill(pos, random_quaternions(N, rng), top, tuple(tops))
+                          "raise geometry.upper_height, raise run.loose_fraction, pack by lobes "
+                          "(sim.fill_packing=lobes) or reduce the fill mass")
+    return RainedFill(pos, orientation if orientation is not None else random_quaternions(N, rng), top, tuple(tops))
