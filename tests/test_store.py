@@ -60,7 +60,7 @@ def test_batch_stores_points_once_and_reuses_them(tmp_path):
     assert {(r.point_index, r.seed, r.condition) for r in recs} == {
         (i, s, c) for i in range(3) for s in (0, 1) for c in ("50-50", "70-30")}
     assert all(r.config_hash == "cfg-1" and r.code_version == "test-1" for r in recs)
-    raw = sqlite3.connect(store.path).execute("SELECT params FROM evaluations LIMIT 1").fetchone()[0]
+    raw = sqlite3.connect(store.path).execute("SELECT params FROM evaluations ORDER BY task_id LIMIT 1").fetchone()[0]
     assert raw == '{"e_pp":0.5,"mu_s_pp":0.3}'
     assert store.batch_keys() == [("initial", "k")]
 
@@ -423,3 +423,48 @@ def test_two_processes_share_one_store(tmp_path):
     runs = _executions(log)
     assert set(runs) == set(keys) and set(runs.values()) == {1}  # nothing ran twice
     assert len({r.claimed_by for r in records}) == 2  # both processes did work
+
+
+def test_a_run_asked_for_again_in_another_batch_is_not_computed_again(tmp_path):
+    """Shared runs: same parameters, seed and condition -> the stored result, no new DEM run."""
+    store = new_store(tmp_path)
+    fill(store, key="first", seeds=(0, 1))
+    first = store.claim(100, "initial")
+    finish(store, first)
+    assert store.counts("initial") == {"pending": 0, "running": 0, "done": 6, "failed": 0}
+    # a longer seed list and one new point: only the new seed and the new point run
+    points = [POINTS[2], {"mu_s_pp": 0.9, "e_pp": 0.3}]  # POINTS[2] with its keys in another order
+    fill(store, stage="round-1", key="second", points=points, seeds=(0, 1, 2))
+    assert store.counts("round-1") == {"pending": 4, "running": 0, "done": 2, "failed": 0}
+    reused = [r for r in store.records("round-1", status="done")]
+    original = {(json.dumps(r.params, sort_keys=True), r.seed): r for r in store.records("initial")}
+    for r in reused:
+        src = original[json.dumps(r.params, sort_keys=True), r.seed]
+        assert r.reused_from == src.task_id and r.kpis == src.kpis and r.wall_time is None
+    # a pending twin is completed when its run finishes elsewhere
+    fill(store, stage="round-2", key="third", points=[points[1]], seeds=(5,))
+    task = [t for t in store.claim(100, "round-1") if t.params == points[1] and t.seed == 0]
+    finish(store, task)
+    assert [r.reused_from for r in store.records("round-2", status="done")] == []  # seed 5: not the same run
+    fill(store, stage="round-3", key="fourth", points=[points[1]], seeds=(1,))
+    twin = store.records("round-3")[0]
+    assert twin.status == "pending"  # seed 1 of that point is running in round-1, not done
+    store.release([t.task_id for t in store.records("round-1", status="running")])
+    run_1 = [t for t in store.claim(100, "round-1") if t.params == points[1] and t.seed == 1]
+    finish(store, run_1)
+    twin = store.records("round-3")[0]
+    assert twin.status == "done" and twin.reused_from == run_1[0].task_id
+    # computed evaluations: 6 + 2 in round-1 (the new point's seeds 0 and 1)
+    computed = store.counts(computed_only=True)
+    assert computed["done"] == 8 and store.counts()["done"] == 11
+    # failures are not shared
+    fill(store, stage="round-4", key="fifth", points=[{"mu_s_pp": 0.2, "e_pp": 0.2}], seeds=(0,))
+    (t,) = store.claim(100, "round-4")
+    store.record([(t, EvalOutcome.failure("BlowUpError: x", 1.0))])
+    fill(store, stage="round-5", key="sixth", points=[{"mu_s_pp": 0.2, "e_pp": 0.2}], seeds=(0,))
+    assert store.records("round-5")[0].status == "pending"
+    # share=False: a fresh rerun (verification on a new machine) runs every task
+    fill(store, stage="verification", key="fresh", points=[POINTS[0]], seeds=(0, 1))
+    assert store.counts("verification")["done"] == 2
+    store.batch("validation", "fresh", lambda: [POINTS[0]], seeds=(0, 1), conditions=("50-50",), share=False)
+    assert store.counts("validation") == {"pending": 2, "running": 0, "done": 0, "failed": 0}

@@ -35,6 +35,15 @@ transaction and returns them. A resumed campaign therefore re-uses the proposals
 a kill. If two processes race to create the same batch, the first commit wins and both
 return its points. Asking for a stored batch with other seeds or conditions is an error.
 
+Shared runs: an evaluation is the same run wherever it is asked for when its parameters
+(canonical JSON), seed, condition and config hash are equal. A new batch's task whose run is
+already ``done`` in any batch or stage is stored ``done`` at once with that run's KPIs
+(``claimed_by = "reused:<task id>"``, no wall time: it cost nothing), and when a task finishes,
+the pending tasks of the same run elsewhere are completed with it. So a seed list that grows, a
+design run again for another twin, or a screening point that a later stage asks for again
+costs no DEM time; ``EvaluationRecord.reused_from`` names the run a row took its result from,
+and ``counts(..., computed_only=True)`` counts only evaluations that ran.
+
 Claiming: ``claim(limit, stage)`` marks up to ``limit`` claimable tasks ``running`` under a
 lease (``claimed_by``, ``claimed_at``) inside one IMMEDIATE transaction, so two processes
 never claim the same task. Claimable = ``pending``, or ``running`` with a stale lease: the
@@ -93,6 +102,12 @@ STAGES = ("screening", "initial", "verification", "validation")
 """Stage names always accepted; ``round-<n>`` (n >= 1) is accepted too."""
 _ROUND = re.compile(r"round-[1-9][0-9]*")
 STATUSES = ("pending", "running", "done", "failed")
+#: ``claimed_by`` prefix of a row completed with another row's result (see "Shared runs").
+REUSED = "reused:"
+#: The done original of the same run as ``evaluations`` (correlated sub-query, see "Shared runs").
+_SAME_RUN_DONE = ("FROM evaluations d WHERE d.status = 'done' AND d.params = evaluations.params "
+                  "AND d.seed = evaluations.seed AND d.condition = evaluations.condition "
+                  "AND d.config_hash = evaluations.config_hash AND d.claimed_by NOT LIKE 'reused:%'")
 SCHEMA_VERSION = 1
 
 _SCHEMA = """
@@ -131,6 +146,7 @@ CREATE TABLE IF NOT EXISTS evaluations (
     FOREIGN KEY (stage, batch_key) REFERENCES batches (stage, batch_key)
 );
 CREATE INDEX IF NOT EXISTS evaluations_by_status ON evaluations (status, stage);
+CREATE INDEX IF NOT EXISTS evaluations_by_run ON evaluations (condition, seed, params);
 CREATE TABLE IF NOT EXISTS artifacts (
     name TEXT PRIMARY KEY,
     value TEXT NOT NULL,
@@ -236,6 +252,13 @@ class EvaluationRecord:
     @property
     def task(self) -> EvalTask:
         return EvalTask(self.params, self.seed, self.condition, self.task_id)
+
+    @property
+    def reused_from(self) -> int | None:
+        """Task id of the run whose result this row took (see "Shared runs"), else None."""
+        if self.claimed_by and self.claimed_by.startswith(REUSED):
+            return int(self.claimed_by[len(REUSED):])
+        return None
 
 
 @dataclass(frozen=True)
@@ -397,11 +420,13 @@ class CampaignStore:
     # -- batches -----------------------------------------------------------------------------
 
     def batch(self, stage: str, key: str, make_points: Callable[[], Sequence[Mapping[str, float]]],
-              *, seeds: Sequence[int], conditions: Sequence[str]) -> list[dict[str, float]]:
+              *, seeds: Sequence[int], conditions: Sequence[str], share: bool = True) -> list[dict[str, float]]:
         """Points of batch ``(stage, key)``: the stored ones, else ``make_points()`` stored.
 
         New points are stored with one pending task per point x seed x condition. Every point
-        must have the same parameter names and finite values.
+        must have the same parameter names and finite values. ``share=False`` runs every task
+        afresh even where the same run is done elsewhere (a verification rerun on a new
+        machine); its results are still shared with batches created later.
         """
         source = f"CampaignStore.batch({stage!r}, {key!r})"
         self.check_stage(stage, source)
@@ -414,7 +439,7 @@ class CampaignStore:
             with self._write() as conn:
                 stored = self._stored_batch(stage, key, conn)  # another process may have won
                 if stored is None:
-                    self._insert_batch(conn, stage, key, points, seeds, conditions)
+                    self._insert_batch(conn, stage, key, points, seeds, conditions, share)
                     return [dict(p) for p in points]
         points, stored_seeds, stored_conditions = stored
         if stored_seeds != seeds or stored_conditions != conditions:
@@ -437,7 +462,7 @@ class CampaignStore:
             return None
         return json.loads(row[0]), json.loads(row[1]), json.loads(row[2])
 
-    def _insert_batch(self, conn, stage, key, points, seeds, conditions) -> None:
+    def _insert_batch(self, conn, stage, key, points, seeds, conditions, share: bool = True) -> None:
         now = time.time()
         conn.execute("INSERT INTO batches (stage, batch_key, points, seeds, conditions, config_hash, "
                      "code_version, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
@@ -449,6 +474,14 @@ class CampaignStore:
             "VALUES (?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?)",
             [(stage, key, i, _dumps(point), seed, condition, self.config_hash, self.code_version, now)
              for condition in conditions for i, point in enumerate(points) for seed in seeds])
+        if not share:
+            return
+        conn.execute(
+            "UPDATE evaluations SET (status, kpis, error, wall_time, code_version, claimed_by, finished_at) = "
+            f"(SELECT 'done', d.kpis, NULL, NULL, d.code_version, '{REUSED}' || d.task_id, ? {_SAME_RUN_DONE} "
+            "ORDER BY d.task_id LIMIT 1) "
+            f"WHERE stage = ? AND batch_key = ? AND status = 'pending' AND EXISTS (SELECT 1 {_SAME_RUN_DONE})",
+            (now, stage, key))
 
     @staticmethod
     def _check_seeds(seeds, source: str) -> list[int]:
@@ -556,6 +589,13 @@ class CampaignStore:
                      outcome.wall_time, self.code_version, self.config_hash, owner, now,
                      task.task_id))
                 written += 1
+                if outcome.ok:  # the same run asked for elsewhere, still pending, is done too
+                    conn.execute(
+                        "UPDATE evaluations SET status = 'done', kpis = ?, error = NULL, wall_time = NULL, "
+                        "code_version = ?, claimed_by = ?, finished_at = ? WHERE status = 'pending' "
+                        "AND params = ? AND seed = ? AND condition = ? AND config_hash = ? AND task_id != ?",
+                        (_kpis_json(outcome.kpis), self.code_version, f"{REUSED}{task.task_id}", now,
+                         row[0], row[1], row[2], self.config_hash, task.task_id))
         return written
 
     def _update_own_running(self, sql: str, task_ids: Iterable[int], first: tuple = ()) -> int:
@@ -590,9 +630,12 @@ class CampaignStore:
 
     # -- queries -----------------------------------------------------------------------------
 
-    def counts(self, stage: str | None = None) -> dict[str, int]:
-        """Number of tasks per status (all four statuses present)."""
+    def counts(self, stage: str | None = None, *, computed_only: bool = False) -> dict[str, int]:
+        """Number of tasks per status (all four statuses present); ``computed_only`` leaves out
+        the rows that took another run's result (see "Shared runs")."""
         where_stage, args = ("", []) if stage is None else (" WHERE stage = ?", [self.check_stage(stage)])
+        if computed_only:
+            where_stage += (" AND" if where_stage else " WHERE") + " COALESCE(claimed_by, '') NOT LIKE 'reused:%'"
         out = dict.fromkeys(STATUSES, 0)
         conn = self._connect()
         try:

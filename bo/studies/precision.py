@@ -19,7 +19,7 @@ precision when the true difference is zero,
 
 and the seeds needed for the target power (at least ``minimum_seeds``). A KPI whose test is not
 passed although its power is reached fails: float32 moves it. One whose power is not reached is
-``undecided``: run it with more seeds (``replicates``; a new seed list is a new store batch).
+``undecided``: run it with more seeds (``replicates``; the store shares the seeds already run, so only the new ones run).
 """
 from __future__ import annotations
 
