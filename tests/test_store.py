@@ -434,37 +434,42 @@ def test_a_run_asked_for_again_in_another_batch_is_not_computed_again(tmp_path):
     assert store.counts("initial") == {"pending": 0, "running": 0, "done": 6, "failed": 0}
     # a longer seed list and one new point: only the new seed and the new point run
     points = [POINTS[2], {"mu_s_pp": 0.9, "e_pp": 0.3}]  # POINTS[2] with its keys in another order
-    fill(store, stage="round-1", key="second", points=points, seeds=(0, 1, 2))
-    assert store.counts("round-1") == {"pending": 4, "running": 0, "done": 2, "failed": 0}
-    reused = [r for r in store.records("round-1", status="done")]
-    original = {(json.dumps(r.params, sort_keys=True), r.seed): r for r in store.records("initial")}
+    fill(store, key="second", points=points, seeds=(0, 1, 2))
+    assert store.counts("initial") == {"pending": 4, "running": 0, "done": 8, "failed": 0}
+    reused = [r for r in store.records("initial", batch_key="second", status="done")]
+    original = {(json.dumps(r.params, sort_keys=True), r.seed): r for r in store.records("initial", batch_key="first")}
     for r in reused:
         src = original[json.dumps(r.params, sort_keys=True), r.seed]
         assert r.reused_from == src.task_id and r.kpis == src.kpis and r.wall_time is None
     # a pending twin is completed when its run finishes elsewhere
-    fill(store, stage="round-2", key="third", points=[points[1]], seeds=(5,))
-    task = [t for t in store.claim(100, "round-1") if t.params == points[1] and t.seed == 0]
+    fill(store, key="third", points=[points[1]], seeds=(5,))
+    task = [t for t in store.claim(100, "initial") if t.params == points[1] and t.seed == 0]
     finish(store, task)
-    assert [r.reused_from for r in store.records("round-2", status="done")] == []  # seed 5: not the same run
-    fill(store, stage="round-3", key="fourth", points=[points[1]], seeds=(1,))
-    twin = store.records("round-3")[0]
+    assert [r.reused_from for r in store.records("initial", batch_key="third", status="done")] == []  # seed 5: not the same run
+    fill(store, key="fourth", points=[points[1]], seeds=(1,))
+    twin = store.records("initial", batch_key="fourth")[0]
     assert twin.status == "pending"  # seed 1 of that point is running in round-1, not done
-    store.release([t.task_id for t in store.records("round-1", status="running")])
-    run_1 = [t for t in store.claim(100, "round-1") if t.params == points[1] and t.seed == 1]
+    store.release([t.task_id for t in store.records("initial", status="running")])
+    claimed = store.claim(100, "initial")
+    store.release([twin.task_id])  # the twin waits pending while its run goes on in "second"
+    run_1 = [t for t in claimed if t.params == points[1] and t.seed == 1 and t.task_id != twin.task_id]
     finish(store, run_1)
-    twin = store.records("round-3")[0]
+    twin = store.records("initial", batch_key="fourth")[0]
     assert twin.status == "done" and twin.reused_from == run_1[0].task_id
+    # another stage evaluates another model: nothing is shared with it
+    fill(store, stage="round-1", key="other", points=[POINTS[0]], seeds=(0,))
+    assert store.counts("round-1")["pending"] == 1
     # computed evaluations: 6 + 2 in round-1 (the new point's seeds 0 and 1)
-    computed = store.counts(computed_only=True)
-    assert computed["done"] == 8 and store.counts()["done"] == 11
+    computed = store.counts("initial", computed_only=True)
+    assert computed["done"] == 8 and store.counts("initial")["done"] == 11
     # failures are not shared
     fill(store, stage="round-4", key="fifth", points=[{"mu_s_pp": 0.2, "e_pp": 0.2}], seeds=(0,))
     (t,) = store.claim(100, "round-4")
     store.record([(t, EvalOutcome.failure("BlowUpError: x", 1.0))])
-    fill(store, stage="round-5", key="sixth", points=[{"mu_s_pp": 0.2, "e_pp": 0.2}], seeds=(0,))
-    assert store.records("round-5")[0].status == "pending"
+    fill(store, stage="round-4", key="sixth", points=[{"mu_s_pp": 0.2, "e_pp": 0.2}], seeds=(0,))
+    assert store.records("round-4", batch_key="sixth")[0].status == "pending"
     # share=False: a fresh rerun (verification on a new machine) runs every task
-    fill(store, stage="verification", key="fresh", points=[POINTS[0]], seeds=(0, 1))
-    assert store.counts("verification")["done"] == 2
-    store.batch("validation", "fresh", lambda: [POINTS[0]], seeds=(0, 1), conditions=("50-50",), share=False)
-    assert store.counts("validation") == {"pending": 2, "running": 0, "done": 0, "failed": 0}
+    fill(store, key="shared", points=[POINTS[0]], seeds=(0, 1))
+    assert {r.status for r in store.records("initial", batch_key="shared")} == {"done"}
+    store.batch("initial", "fresh", lambda: [POINTS[0]], seeds=(0, 1), conditions=("50-50",), share=False)
+    assert {r.status for r in store.records("initial", batch_key="fresh")} == {"pending"}

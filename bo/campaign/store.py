@@ -35,13 +35,15 @@ transaction and returns them. A resumed campaign therefore re-uses the proposals
 a kill. If two processes race to create the same batch, the first commit wins and both
 return its points. Asking for a stored batch with other seeds or conditions is an error.
 
-Shared runs: an evaluation is the same run wherever it is asked for when its parameters
-(canonical JSON), seed, condition and config hash are equal. A new batch's task whose run is
-already ``done`` in any batch or stage is stored ``done`` at once with that run's KPIs
-(``claimed_by = "reused:<task id>"``, no wall time: it cost nothing), and when a task finishes,
-the pending tasks of the same run elsewhere are completed with it. So a seed list that grows, a
-design run again for another twin, or a screening point that a later stage asks for again
-costs no DEM time; ``EvaluationRecord.reused_from`` names the run a row took its result from,
+Shared runs: within a stage, an evaluation is the same run wherever it is asked for when its
+parameters (canonical JSON), seed, condition and config hash are equal (not across stages: the
+stages of a discovery evaluate different models, extended by different mechanisms, under one
+config). A new batch's task whose run is already ``done`` in a batch of its stage is stored
+``done`` at once with that run's KPIs (``claimed_by = "reused:<task id>"``, no wall time: it
+cost nothing), and when a task finishes, the pending tasks of the same run in its stage are
+completed with it. So a seed list that grows, or a design run again for another twin, costs no
+DEM time (a stage must therefore always evaluate one model); ``EvaluationRecord.reused_from``
+names the run a row took its result from,
 and ``counts(..., computed_only=True)`` counts only evaluations that ran.
 
 Claiming: ``claim(limit, stage)`` marks up to ``limit`` claimable tasks ``running`` under a
@@ -105,7 +107,8 @@ STATUSES = ("pending", "running", "done", "failed")
 #: ``claimed_by`` prefix of a row completed with another row's result (see "Shared runs").
 REUSED = "reused:"
 #: The done original of the same run as ``evaluations`` (correlated sub-query, see "Shared runs").
-_SAME_RUN_DONE = ("FROM evaluations d WHERE d.status = 'done' AND d.params = evaluations.params "
+_SAME_RUN_DONE = ("FROM evaluations d WHERE d.status = 'done' AND d.stage = evaluations.stage "
+                  "AND d.params = evaluations.params "
                   "AND d.seed = evaluations.seed AND d.condition = evaluations.condition "
                   "AND d.config_hash = evaluations.config_hash AND d.claimed_by NOT LIKE 'reused:%'")
 SCHEMA_VERSION = 1
@@ -571,7 +574,7 @@ class CampaignStore:
                 if not isinstance(task, EvalTask) or not isinstance(outcome, EvalOutcome):
                     raise out_of_range("finished item", (task, outcome),
                                        "(EvalTask, EvalOutcome) pairs", "CampaignStore.record")
-                row = conn.execute("SELECT params, seed, condition, status FROM evaluations "
+                row = conn.execute("SELECT params, seed, condition, status, stage FROM evaluations "
                                    "WHERE task_id = ?", (task.task_id,)).fetchone()
                 if row is None or (json.loads(row[0]), row[1], row[2]) != \
                         (task.params, task.seed, task.condition):
@@ -593,9 +596,9 @@ class CampaignStore:
                     conn.execute(
                         "UPDATE evaluations SET status = 'done', kpis = ?, error = NULL, wall_time = NULL, "
                         "code_version = ?, claimed_by = ?, finished_at = ? WHERE status = 'pending' "
-                        "AND params = ? AND seed = ? AND condition = ? AND config_hash = ? AND task_id != ?",
+                        "AND stage = ? AND params = ? AND seed = ? AND condition = ? AND config_hash = ? AND task_id != ?",
                         (_kpis_json(outcome.kpis), self.code_version, f"{REUSED}{task.task_id}", now,
-                         row[0], row[1], row[2], self.config_hash, task.task_id))
+                         row[4], row[0], row[1], row[2], self.config_hash, task.task_id))
         return written
 
     def _update_own_running(self, sql: str, task_ids: Iterable[int], first: tuple = ()) -> int:
