@@ -360,7 +360,7 @@ def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Ma
     """Step 1 (see the module docstring), with the replicate noise pooled over these runs; also
     returns the replicates ``[C, r, K]``."""
     conditions = list(measured.names)
-    key = "calibrated/" + _key(sorted(calibrated.items()))
+    key = "calibrated/" + _key(sorted(calibrated.items()), list(settings.seeds), conditions)
     reps = _run(store, executor, "discrepancy", key, [dict(calibrated)], settings.seeds, conditions,
                 settings.kpis)[0]
     discrepancy = _discrepancy(reps, conditions, settings.kpis, _lab(measured, settings.kpis),
@@ -493,7 +493,7 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     with executor_for(hyp_model) as executor:
         for c, x in without.items():
             params = {**calibrated, **x}
-            key = f"held-out/{c}/" + _key(sorted(params.items()))
+            key = f"held-out/{c}/" + _key(sorted(params.items()), list(settings.seeds))
             held[c] = _run(store, executor, f"discovery-{name}", key, [params], settings.seeds, [c], kpis)[0, 0]
             missing = _unmeasured(held[c], c, kpis, lab)
             if missing:  # the fitted parameters could not be simulated here: no prediction, no score
