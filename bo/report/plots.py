@@ -218,3 +218,38 @@ def write_relative_error_plot(groups: Mapping[str, Sequence], path: str | os.Pat
                               title: str = "DEM vs measurement") -> pathlib.Path:
     """Render ``relative_error_figure`` to a PNG."""
     return save_png(relative_error_figure(groups, title), path)
+
+
+def power_figure(rows: Sequence) -> Figure:
+    """Detection and right-cause rate (Wilson 95 % bars) against effect size (fraction of the
+    prior) per mechanism of a power study (``bo.discovery.power.PowerRow``); the null's
+    false-alarm rate at 0 in every panel."""
+    null = [r for r in rows if r.mechanism == "null"]
+    names = sorted({r.mechanism for r in rows if r.mechanism != "null"})
+    if not names:
+        raise ConfigError("power_figure: no mechanism rows to plot")
+    fig, axes = _panels(len(names))
+    for ax, name in zip(axes, names):
+        mine = sorted((r for r in rows if r.mechanism == name), key=lambda r: r.fraction)
+        for attr, colour, label, dx in (("detection", "tab:blue", "discrepancy detected", -0.012),
+                                        ("right_rate", "tab:green", "right cause named", 0.0),
+                                        ("wrong_rate", "tab:red", "other cause named", 0.012)):
+            x = [r.fraction + dx for r in mine]  # side by side where the rates coincide
+            rate = np.array([getattr(r, attr) for r in mine])
+            ax.errorbar(x, rate[:, 0], yerr=[rate[:, 0] - rate[:, 1], rate[:, 2] - rate[:, 0]], marker="o",
+                        color=colour, capsize=3, label=label)
+        for r in null:
+            ax.errorbar([0.0], [r.wrong_rate[0]], yerr=[[r.wrong_rate[0] - r.wrong_rate[1]],
+                                                        [r.wrong_rate[2] - r.wrong_rate[0]]],
+                        marker="s", color="k", capsize=3, label="null: a cause named")
+        ax.axhline(0.8, color="0.6", linestyle="--", linewidth=0.8)
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_xlabel(f"{name}: effect (fraction of the prior)")
+        ax.set_ylabel("share of labs")
+        ax.legend(fontsize="x-small")
+    return fig
+
+
+def write_power_plot(rows: Sequence, path: str | os.PathLike, dpi: int = 150) -> pathlib.Path:
+    """Write ``power_figure`` to a PNG file."""
+    return save_png(power_figure(rows), path, dpi)
