@@ -103,6 +103,8 @@ class SurrogateStageSettings:
         adaptive: LHS size, q, target R^2, budget (points), CV folds and seeds, kernels.
         config: GP kernel / strategy (``kernel`` is replaced by each round's best kernel).
         compare_strategies: also cross-validate the other strategy after every round.
+        added: name -> (low, high) of parameters calibrated besides ``parameters`` (or Table 5's
+            selection): densities, a mechanism's parameters (``lobe_spacing_sinter``).
     """
 
     parameters: tuple[str, ...] | None
@@ -111,6 +113,7 @@ class SurrogateStageSettings:
     adaptive: AdaptiveSettings
     config: SurrogateConfig = SurrogateConfig()
     compare_strategies: bool = True
+    added: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -372,9 +375,14 @@ def choose_parameters(screening: ScreeningReport, s: SurrogateStageSettings
         note = (f"Table 5 selected no parameter (no KPI had a significant effect in enough replicates), so "
                 f"every screened parameter {list(names)} is calibrated")
     proposed = dict(screening.proposal.proposed_bounds) if screening.proposal is not None else {}
+    if s.added:
+        names = tuple(n for n in names if n not in s.added) + tuple(s.added)
+        note += f", and {list(s.added)} added by the config (surrogate.added)"
     rows = []
     for n in names:
-        if s.bounds is not None:
+        if n in s.added:
+            rows.append(tuple(s.added[n]))
+        elif s.bounds is not None:
             if n not in s.bounds:
                 raise ConfigError(f"surrogate.bounds: no bounds for calibrated parameter {n!r}; given for "
                                   f"{sorted(s.bounds)}")

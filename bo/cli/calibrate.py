@@ -31,6 +31,7 @@ from omegaconf import DictConfig
 
 from bo.cli.common import (MODEL_KEYS, _int, check_kpis, config_hash, executor_from, executor_settings_from, plain_config,
                            replicate_seeds, screen_settings_from, store_path_from)
+from torchdem.config import parameter_range
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 
@@ -87,6 +88,19 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
         bounds = checked
         if names is not None and [n for n in names if n not in bounds]:
             raise out_of_range("bounds", dict(bounds), f"bounds for every parameter {list(names)}", where)
+    added = cfg.get("added") or {}
+    if not isinstance(added, Mapping):
+        raise out_of_range("added", added, "a mapping name -> [low, high] of parameters calibrated besides the "
+                           "selection, or null", where)
+    checked_added = {}
+    for n, b in added.items():
+        lo_hi = _floats(b, f"added.{n}", where, "[low, high] with low < high")
+        low, high, open_low, allowed = parameter_range(str(n))
+        ok = len(lo_hi) == 2 and lo_hi[0] < lo_hi[1] and (lo_hi[0] > low if open_low else lo_hi[0] >= low) \
+            and lo_hi[1] <= high
+        if not ok:
+            raise out_of_range(f"added.{n}", list(b), f"[low, high] with low < high, each {allowed}", where)
+        checked_added[str(n)] = lo_hi
     strategy = cfg.get("strategy")
     if strategy not in STRATEGIES:
         raise out_of_range("strategy", strategy, f"one of {list(STRATEGIES)}", where)
@@ -102,11 +116,11 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
         target_r2=cfg.get("target_r2"), n_folds=cfg.get("n_folds"), cv_seeds=tuple(cfg.get("cv_seeds") or ()),
         kernels=tuple(kernels), seed=base_seed, acquisition=acquisition))
     if names is not None:
-        _wrap(where, lambda: adaptive.initial_size(len(names)))  # budget vs initial design, up front
+        _wrap(where, lambda: adaptive.initial_size(len(names) + len(checked_added)))  # budget vs initial design, up front
     config = _wrap(where, lambda: SurrogateConfig(kernel=kernels[0], strategy=strategy))
     return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=_seeds(cfg, where, base_seed),
                                   adaptive=adaptive, config=config,
-                                  compare_strategies=bool(cfg.get("compare_strategies")))
+                                  compare_strategies=bool(cfg.get("compare_strategies")), added=checked_added)
 
 
 def calibration_settings_from(plain: Mapping[str, Any]):
