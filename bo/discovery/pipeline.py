@@ -42,7 +42,12 @@ returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model
    noise estimate than another. The GP's noise is the design's pooled ``s_k^2 / fit replicates``.
 3. Cause: the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
    than ``max(margin, 2 x gain_noise_sd)``; else none: no candidate explains the discrepancy
-   better than the parameters and noise. ``gain_noise_sd`` is the standard deviation the score
+   better than the parameters and noise. If another candidate also beats it so and lies within
+   ``max(margin, 2 sd)`` of the best (sd: the DEM-noise sd of the two scores' difference), the
+   candidates cannot be told apart: none is named and ``DiscoveryResult.tied`` lists them
+   (:func:`tied_with`). A named cause comes with the share of the calibrated model's chi^2 it
+   removes on the held-out cells and, when the extended model still misses there beyond noise,
+   the statement that it is partial and what remains (:func:`explained_share`). ``gain_noise_sd`` is the standard deviation the score
    difference would have from DEM noise alone if both hypotheses predicted the same means: per
    cell, z = (m + e) / s with e ~ N(0, se^2) has Var(z^2) = 4 (m/s)^2 (se/s)^2 + 2 (se/s)^4; the
    two hypotheses' held-out runs are independent, so their variances add, with m the mean of the
@@ -83,7 +88,8 @@ from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
 
 __all__ = ["PARAMETERS", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore", "GainRow",
-           "DiscoveryResult", "discovery_stages", "gain_noise_sd", "gain_rows", "measure_discrepancy", "run_discovery"]
+           "DiscoveryResult", "discovery_stages", "explained_share", "gain_noise_sd", "gain_rows", "measure_discrepancy",
+           "run_discovery", "tied_with"]
 
 #: Name of the no-new-physics hypothesis (the calibrated parameters refitted).
 PARAMETERS = "parameters"
@@ -250,7 +256,8 @@ class GainRow:
 
 @dataclass(frozen=True)
 class DiscoveryResult:
-    """Everything ``run_discovery`` found (plain data)."""
+    """Everything ``run_discovery`` found (plain data); ``tied``: the candidates that each explain
+    the discrepancy but that the data cannot tell apart (no cause is then named)."""
 
     discrepancy: Discrepancy
     hypotheses: tuple[HypothesisScore, ...]
@@ -259,6 +266,7 @@ class DiscoveryResult:
     gain: tuple[GainRow, ...]
     extension: Mapping[str, float]
     evaluations: Mapping[str, int]
+    tied: tuple[str, ...] = ()
 
 
 # --------------------------------------------------------------------------------------------
@@ -557,7 +565,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
          f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise; noise pooled "
          f"over these runs)")
     hypotheses: list[HypothesisScore] = []
-    cause, explanation = None, ""
+    cause, explanation, tied = None, "", ()
     if not names:
         explanation = (f"discovery.candidates = []: only the discrepancy was measured (chi^2 = {discrepancy.chi2:.1f} "
                        f"on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g}); no candidate was scored.")
@@ -603,11 +611,24 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         need = max(settings.margin, 2 * best.gain_noise_sd) if best is not None else math.nan
         rule = (f"held-out chi^2 + {settings.penalty:g} per added parameter; a cause must gain more than "
                 f"max(margin {settings.margin:g}, 2 x the gain's DEM-noise sd) = {need:.1f}")
-        if best is not None and best.score < reference.score - need:
+        rivals = tied_with(best, candidates, reference, settings.margin) if best is not None else []
+        if best is not None and best.score < reference.score - need and rivals:
+            tied = (best.name, *(r.name for r in rivals))
+            explanation = (f"The candidates {list(tied)} cannot be told apart: each beats refitting the calibrated "
+                           f"parameters alone (score {reference.score:.1f}; {rule}), and their scores ("
+                           + ", ".join(f"{h.name} {h.score:.1f}" for h in (best, *rivals))
+                           + ") differ by less than max(margin, 2 x the DEM-noise sd of their difference). No cause "
+                           "is named: a condition or KPI that separates them, or more replicates, would decide.")
+        elif best is not None and best.score < reference.score - need:
             cause = best.name
             explanation = (f"{best.name} ({best.description}) predicts the held-out conditions best: score "
                            f"{best.score:.1f} against {reference.score:.1f} for refitting the calibrated parameters "
                            f"alone ({rule}).")
+            share, partial, remaining = explained_share(best, discrepancy, settings.alpha)
+            explanation += (f" On the held-out conditions it removes {100 * share:.0f} % of the calibrated model's "
+                            f"chi^2.")
+            if partial:
+                explanation += f" The cause is partial: {remaining}"
         else:
             explanation = ("No candidate explains the discrepancy better than the calibrated parameters and noise: "
                            + (f"the best, {best.name}, scores {best.score:.1f} against {reference.score:.1f} "
@@ -630,7 +651,45 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         if c["done"] + c["failed"]:
             evaluations[stage] = c["done"] + c["failed"]
     evaluations["total"] = sum(evaluations.values())
-    return DiscoveryResult(discrepancy, tuple(hypotheses), cause, explanation, tuple(gain), extension, evaluations)
+    return DiscoveryResult(discrepancy, tuple(hypotheses), cause, explanation, tuple(gain), extension, evaluations,
+                           tied=tuple(tied))
+
+
+def tied_with(best: HypothesisScore, candidates: Sequence[HypothesisScore], reference: HypothesisScore,
+              margin: float) -> list[HypothesisScore]:
+    """The candidates that also beat ``reference`` by their own threshold and whose score is within
+    ``max(margin, 2 sd)`` of ``best``'s, sd the DEM-noise sd of the two scores' difference
+    (:func:`gain_noise_sd` between the two candidates' held-out cells): those the data cannot tell
+    from ``best``."""
+    out = []
+    for h in candidates:
+        if h is best or not math.isfinite(h.score):
+            continue
+        beats = h.score < reference.score - max(margin, 2 * h.gain_noise_sd)
+        close = h.score - best.score < max(margin, 2 * gain_noise_sd(best.held_out_cells, h.held_out_cells))
+        if beats and close:
+            out.append(h)
+    return sorted(out, key=lambda h: h.score)
+
+
+def explained_share(cause: HypothesisScore, discrepancy: Discrepancy, alpha: float) -> tuple[float, bool, str]:
+    """Share of the calibrated model's chi^2 on the held-out cells that ``cause`` removes, whether
+    the extended model still misses beyond noise there (its held-out chi^2-equivalent against a
+    chi^2 of as many cells, below ``alpha``: a partial cause) and, if so, what remains."""
+    before = {(c.condition, c.kpi): c for c in discrepancy.cells}
+    cells = [c for c in cause.held_out_cells if (c.condition, c.kpi) in before and math.isfinite(c.z)]
+    base = sum(before[c.condition, c.kpi].z ** 2 for c in cells)
+    after = sum(c.z ** 2 for c in cells)
+    share = 1.0 - after / base if base > 0 else math.nan
+    q = sum(chi2_equivalent(c.z, c.dof) for c in cells)
+    p = float(stats.chi2.sf(q, len(cells))) if cells else math.nan
+    if not (cells and p < alpha):
+        return share, False, ""
+    worst = sorted(cells, key=lambda c: -abs(c.z))[:3]
+    remaining = (f"with it the held-out cells still disagree beyond noise (chi^2 {after:.1f} on {len(cells)} cells, "
+                 f"p = {p:.3g}); largest: " + ", ".join(f"{c.kpi} on {c.condition} {c.relative_error_pct:+.1f} % "
+                                                         f"(z {c.z:+.1f})" for c in worst) + ".")
+    return share, True, remaining
 
 
 def gain_noise_sd(reference: Sequence[Cell], candidate: Sequence[Cell]) -> float:

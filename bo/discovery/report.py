@@ -45,6 +45,7 @@ def discovery_payload(result: DiscoveryResult) -> dict:
     return json_ready({
         "cause": result.cause,
         "explanation": result.explanation,
+        "tied": list(result.tied),
         "discrepancy": {"chi2": d.chi2, "chi2_equivalent": d.chi2_equivalent, "dof": d.dof, "p_value": d.p_value,
                         "significant": d.significant,
                         "dem_noise": d.noise.to_dict(), "cells": [c.to_dict() for c in d.cells]},
