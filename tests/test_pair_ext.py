@@ -524,7 +524,27 @@ def test_cpp_pair_constants_equal_torch(extension, dtype, monkeypatch):
 def test_kernel_outputs_recycle_only_memory_nobody_references(extension):
     """The step kernels recycle the memory of outputs the caller has dropped (no fresh pages, so
     no page faults, per step) and never that of outputs still referenced: a kept result, or a
-    view of one, keeps its values through later calls."""
+    view of one, keeps its values through later calls. The pools are per thread, so the check runs
+    in a thread of its own: in the test process's main thread, storages freed by earlier tests can
+    be handed out first (the order of tests decided it)."""
+    import threading
+
+    failures = []
+
+    def body():
+        try:
+            _recycle_checks(extension)
+        except BaseException as exc:  # re-raised in the test's thread
+            failures.append(exc)
+
+    worker = threading.Thread(target=body)
+    worker.start()
+    worker.join()
+    if failures:
+        raise failures[0]
+
+
+def _recycle_checks(extension):
     g = torch.Generator().manual_seed(31)
     N = 5000
     mass = 1 + torch.rand(N, generator=g, dtype=F64)

@@ -60,7 +60,8 @@ def discovery_settings_from(plain: Mapping[str, Any]):
             refit=tuple(refit), refit_fraction=float(cfg.get("refit_fraction")),
             points_per_parameter=cfg.get("points_per_parameter"), min_points=cfg.get("min_points"),
             alpha=float(cfg.get("alpha")), penalty=float(cfg.get("penalty")), margin=float(cfg.get("margin")),
-            always_score=bool(cfg.get("always_score")), ga=ga, kernel=str(cfg.get("kernel")), seed=base)
+            always_score=bool(cfg.get("always_score")), ga=ga, kernel=str(cfg.get("kernel")), seed=base,
+            ga_starts=cfg.get("ga_starts", 3))
         return settings.validate(where)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"config {where}: {exc}") from None

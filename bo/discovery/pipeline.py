@@ -117,7 +117,8 @@ class DiscoverySettings:
         alpha: significance of the discrepancy test. penalty: held-out chi^2 per added
             parameter. margin: held-out chi^2 a cause must gain over the parameters hypothesis.
         always_score: fit the hypotheses even without a significant discrepancy.
-        ga: GA on the surrogate means. kernel: GP kernel. seed: LHS and GA seed.
+        ga: GA on the surrogate means; ga_starts: independent GA runs per fit (seeds ``seed + k``),
+            the best kept. kernel: GP kernel. seed: LHS and GA seed.
     """
 
     kpis: tuple[str, ...]
@@ -135,6 +136,7 @@ class DiscoverySettings:
     ga: GASettings = GASettings(pop_size=200, n_generations=200, stall_generations=30)
     kernel: str = "matern52"
     seed: int = 0
+    ga_starts: int = 3
 
     def validate(self, source: str = "discovery") -> "DiscoverySettings":
         if not self.kpis or len(set(self.kpis)) != len(self.kpis):
@@ -150,6 +152,8 @@ class DiscoverySettings:
         for name in ("penalty", "margin"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise out_of_range(name, getattr(self, name), "a finite number >= 0", source)
+        if isinstance(self.ga_starts, bool) or not isinstance(self.ga_starts, int) or self.ga_starts < 1:
+            raise out_of_range("ga_starts", self.ga_starts, "an integer >= 1", source)
         for name in ("points_per_parameter", "min_points"):
             if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), int) \
                     or getattr(self, name) < 2:
@@ -477,7 +481,9 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
             mean, var = surrogate.predict_outputs(x)
             return _expected_chi2_terms(mean[:, mask], var[:, mask], dem_var[mask], lab_mean[mask],
                                         lab_var[mask]).sum(-1)
-        res = minimise_surrogate(chi2, b, settings.ga, seed=settings.seed)
+        # several GA starts: the verdict must not hinge on one search that stalled
+        runs = [minimise_surrogate(chi2, b, settings.ga, seed=settings.seed + k) for k in range(settings.ga_starts)]
+        res = min(runs, key=lambda r: r.fitness)
         return dict(zip(names, map(float, res.x)))
 
     predicted, without = {}, {}
