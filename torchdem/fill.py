@@ -235,5 +235,5 @@ def rain_positions(bounding_radius: np.ndarray, layer: np.ndarray, volume: np.nd
     if top > limit:
         raise ConfigError(f"fill: the loose stack reaches z = {top:.3f} m, above the allowed z = {limit:.3f} m; "
                           "raise geometry.upper_height, raise run.loose_fraction, pack by lobes "
-                          "(sim.fill_packing=lobes) or reduce the fill mass")
+                          "(run.fill_packing: lobes) or reduce the fill mass")
     return RainedFill(pos, orientation if orientation is not None else random_quaternions(N, rng), top, tuple(tops))
