@@ -1,0 +1,76 @@
+"""The smallest detectable effect and what to measure next (bo/discovery/detectable.py), against
+answers computed directly:
+
+- one cell, shift a t: the chi^2_1 test is |Z + sqrt(lambda)| > 1.96, so the power is
+  Phi(sqrt(lambda) - 1.96) + Phi(-sqrt(lambda) - 1.96), and 80 % needs sqrt(lambda) = 2.8016;
+  the smallest t is 2.8016 sigma / a;
+- the known-answer model (tests/_calibration_model.py) is linear in the density factor, so its
+  flow-rate shift is exact in t and the smallest detectable density change follows from the
+  non-centrality lambda* of 80 % power: t* = sqrt(lambda* / sum (slope / sigma)^2);
+- doubling the lab repeats or the DEM replicates, or adding a KPI, raises the power, and the
+  ranking puts the largest gain first.
+"""
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import optimize, stats
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _calibration_model as km  # noqa: E402
+
+from bo.discovery.detectable import CellUncertainty, detection_power, smallest_detectable, what_to_measure_next
+
+
+def test_one_cell_power_and_smallest_effect_match_the_normal_formula():
+    sigma, a = 0.5, 3.0
+    for t in (0.1, 0.3, 0.6):
+        root = a * t / sigma
+        expected = stats.norm.cdf(root - 1.959964) + stats.norm.cdf(-root - 1.959964)
+        assert detection_power([a * t], [sigma]) == pytest.approx(expected, rel=1e-6)
+    root80 = optimize.brentq(lambda r: stats.norm.cdf(r - 1.959964) + stats.norm.cdf(-r - 1.959964) - 0.8, 0, 10)
+    assert root80 == pytest.approx(2.8016, abs=1e-3)
+    assert smallest_detectable(lambda t: [a * t], [sigma]) == pytest.approx(root80 * sigma / a, rel=1e-4)
+    assert smallest_detectable(lambda t: [0.1 * t], [sigma]) is None  # never reaches 80 % within [0, 1]
+    assert detection_power([0.0], [sigma]) == pytest.approx(0.05)
+
+
+def _density_shift(t):
+    """Known model: flow and mass shifts of particles (1 - 0.3 t) x nominal density, per condition."""
+    out = {}
+    for c in ("50-50", "75-25", "25-75"):
+        base = km.known_kpis(km.TRUE, 0, c, noise=False)
+        rho = {f"density_{m}": (1 - 0.3 * t) * v for m, v in km.NOMINAL_DENSITY.items()}
+        now = km.known_kpis({**km.TRUE, **rho}, 0, c, noise=False)
+        for k in ("mass_flow_rate_full_kg_s", "max_heap_height_m", "angle_of_repose_deg"):
+            out[(c, k)] = now[k] - base[k]
+    return out
+
+
+def test_smallest_detectable_density_change_on_the_known_model():
+    cells = [CellUncertainty(c, "mass_flow_rate_full_kg_s", se=0.05, u=0.12, dem_replicates=3, lab_repeats=5)
+             for c in ("50-50", "75-25", "25-75")]
+    keys = [(c.condition, c.kpi) for c in cells]
+    sigma = np.array([c.sigma for c in cells])
+    slope = np.array([_density_shift(1.0)[k] for k in keys])  # linear in t
+    np.testing.assert_allclose([_density_shift(0.5)[k] for k in keys], 0.5 * slope, rtol=1e-9)
+    critical = stats.chi2.isf(0.05, 3)
+    lam = optimize.brentq(lambda x: stats.ncx2.sf(critical, 3, x) - 0.8, 1e-6, 100)
+    expected = math.sqrt(lam / np.sum((slope / sigma) ** 2))
+    got = smallest_detectable(lambda t: [_density_shift(t)[k] for k in keys], sigma)
+    assert got == pytest.approx(expected, rel=1e-4)
+    # the angle of repose does not see density in this model: no KPI of it adds power
+    ranked = what_to_measure_next(cells, _density_shift, reference=0.05,
+                                  new_kpis={"max_heap_height_m": (0.0005, 0.001), "angle_of_repose_deg": (0.1, 0.3)})
+    names = [a.name for a in ranked]
+    power = {a.name: a.power for a in ranked}
+    assert names[-1] in ("as is", "kpi:angle_of_repose_deg")
+    assert power["lab_repeats"] > power["as is"] and power["dem_replicates"] > power["as is"]
+    assert power["kpi:max_heap_height_m"] > power["as is"]
+    assert power["kpi:angle_of_repose_deg"] < power["as is"]  # a dead cell only adds degrees of freedom
+    assert [a.power for a in ranked] == sorted((a.power for a in ranked), reverse=True)
+    smallest = {a.name: a.smallest for a in ranked}
+    assert smallest["as is"] == pytest.approx(expected, rel=1e-4)
+    assert smallest["lab_repeats"] < smallest["as is"]
