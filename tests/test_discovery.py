@@ -294,6 +294,27 @@ def test_no_hidden_effect_invents_no_cause(tmp_path):
     md = files["md"].read_text()
     best = min((h for h in scored.hypotheses[1:]), key=lambda h: h.score)
     assert f"The best candidate, {best.name}, on held-out conditions (not named a cause)" in md
+    # what these data could have detected: the GP-based smallest density change against the one
+    # computed from the known model's own shifts with the same cell uncertainties
+    from bo.discovery.detectable import smallest_detectable
+
+    cells = [c for c in scored.discrepancy.cells if math.isfinite(c.dem_se)]
+    sigma = [math.sqrt(c.dem_se ** 2 + c.measured_u ** 2) for c in cells]
+    lab_name = {"mass_flow_rate_kg_s": "mass_flow_rate_full_kg_s", "mass_lower_box_kg": "mass_lower_box_full_kg"}
+
+    def direct(t):
+        rho = {f"density_{m}": (1 + 0.3 * t) * v for m, v in km.NOMINAL_DENSITY.items()}
+        return [km.known_kpis({**km.TRUE, **rho}, 0, c.condition, noise=False)[lab_name.get(c.kpi, c.kpi)]
+                - km.known_kpis(km.TRUE, 0, c.condition, noise=False)[lab_name.get(c.kpi, c.kpi)] for c in cells]
+
+    expected = smallest_detectable(direct, sigma)
+    density = next(h for h in scored.hypotheses if h.name == "density_per_material").detectable
+    assert density["high"]["smallest_fraction"] == pytest.approx(expected, rel=0.2)
+    assert density["high"]["values"]["density_sinter"] > km.NOMINAL_DENSITY["sinter"]
+    cohesion = next(h for h in scored.hypotheses if h.name == "cohesion").detectable
+    assert cohesion["high"]["smallest_fraction"] is None  # the known model has no cohesion
+    assert cohesion["high"]["power_at_prior_end"] < 0.1
+    assert "### What these data could have detected" in md and "| cohesion | high | not within the prior |" in md
     assert "DEM replicate scatter per KPI" in md and "gain.png" not in md
 
 

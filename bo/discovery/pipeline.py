@@ -89,7 +89,7 @@ from torchdem.measured import MeasuredData
 
 __all__ = ["PARAMETERS", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore", "GainRow",
            "DiscoveryResult", "discovery_stages", "explained_share", "gain_noise_sd", "gain_rows", "measure_discrepancy",
-           "run_discovery", "tied_with"]
+           "run_discovery", "tied_with", "detectability"]
 
 #: Name of the no-new-physics hypothesis (the calibrated parameters refitted).
 PARAMETERS = "parameters"
@@ -213,6 +213,11 @@ class HypothesisScore:
         skipped: why the hypothesis was not fitted (unavailable for this model), else None.
         gain_noise_sd: standard deviation of (score of ``parameters`` - this score) from DEM noise
             alone (step 3); NaN for ``parameters`` itself.
+        detectable: direction (``"high"``/``"low"``: towards that end of the prior from the
+            mechanism's no-effect values) -> the smallest effect the discrepancy test detects with
+            80 % probability with these data (``fraction`` of the way, ``values``), its power at the
+            prior's end and what would raise it (:func:`detectability`); empty for a mechanism
+            without no-effect values.
         held_out_failures: condition -> why its held-out runs gave no value for some measured KPI
             (the fitted parameters could not be simulated there, e.g. a fill that does not fit the
             box); that condition's held-out chi^2, hence the score, is then infinite: a hypothesis
@@ -235,6 +240,7 @@ class HypothesisScore:
     predicted_chi2: Mapping[str, float] = dataclasses.field(default_factory=dict)
     held_out_failures: Mapping[str, str] = dataclasses.field(default_factory=dict)
     gain_noise_sd: float = math.nan
+    detectable: Mapping[str, Mapping] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -423,6 +429,7 @@ class _Fitted:
     hypothesis: HypothesisScore
     held_reps: Mapping[str, np.ndarray]
     groups: tuple[np.ndarray, ...]
+    predict: Callable[[Mapping[str, float]], dict[tuple[str, str], float]] | None = None
 
 
 def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel, context: ModelContext,
@@ -519,7 +526,13 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     hypothesis = HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names},
                                  len(extra), {}, without, every, in_sample, math.nan, n_points,
                                  predicted_chi2=predicted, held_out_failures=failures)
-    return _Fitted(hypothesis, held, (reps, *(r[None] for r in held.values())))
+    keys = [(c, k) for _, c, _, k in cells]
+
+    def predict(x: Mapping[str, float]) -> dict[tuple[str, str], float]:
+        mean, _ = surrogate.predict_outputs(np.array([[float(x[n]) for n in names]]))
+        return dict(zip(keys, map(float, mean[0])))
+
+    return _Fitted(hypothesis, held, (reps, *(r[None] for r in held.values())), predict)
 
 
 def _score(f: _Fitted, kpis: Sequence[str], lab: Mapping[tuple[str, str], tuple[float, float]],
@@ -602,6 +615,10 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
              + ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in noise.to_dict().items())
              + f"; discrepancy chi^2 {discrepancy.chi2:.1f}, p = {discrepancy.p_value:.3g}")
         scored = {f.hypothesis.name: _score(f, kpis, lab, noise, settings.penalty) for f in fitted}
+        for f in fitted[1:]:
+            h = scored[f.hypothesis.name]
+            scored[h.name] = dataclasses.replace(h, detectable=detectability(
+                f, mechanisms[h.name], context, calibrated, discrepancy, measured, settings.alpha))
         scored.update({h.name: h for h in skipped})
         hypotheses = [scored[PARAMETERS]] + [scored[n] for n in names]
         for h in hypotheses:
@@ -659,6 +676,47 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
     evaluations["total"] = sum(evaluations.values())
     return DiscoveryResult(discrepancy, tuple(hypotheses), cause, explanation, tuple(gain), extension, evaluations,
                            tied=tuple(tied))
+
+
+def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calibrated: Mapping[str, float],
+                  discrepancy: Discrepancy, measured: MeasuredData, alpha: float) -> dict[str, dict]:
+    """For each direction from the mechanism's no-effect values to an end of its prior: the
+    smallest effect the discrepancy test would detect with 80 % probability with these data,
+    using the hypothesis's GP models for the shifts and the discrepancy cells' uncertainties
+    (``bo.discovery.detectable``), its power at the prior's end and the additions ranked."""
+    from bo.discovery.detectable import CellUncertainty, what_to_measure_next
+
+    null = mechanism.null(context)
+    if null is None or f.predict is None:
+        return {}
+    prior = mechanism.parameters(context)
+    cells = [CellUncertainty(c.condition, c.kpi, c.dem_se, c.measured_u, c.n, measured.condition(c.condition).replicates)
+             for c in discrepancy.cells if math.isfinite(c.dem_se) and c.dem_se + c.measured_u > 0]
+    if not cells:
+        return {}
+    base = {**{n: v for n, v in calibrated.items()}, **null}
+    reference = f.predict(base)
+    out = {}
+    for direction, side in (("high", 1), ("low", 0)):
+        end = {p: prior[p][side] for p in prior}
+        if all(abs(end[p] - null[p]) <= 1e-12 * max(1.0, abs(null[p])) for p in prior):
+            continue
+        at = lambda t: {p: null[p] + t * (end[p] - null[p]) for p in prior}  # noqa: E731
+        cache: dict[float, dict] = {}
+
+        def shift(t: float) -> dict[tuple[str, str], float]:
+            if t not in cache:
+                now = f.predict({**base, **at(t)})
+                cache[t] = {k: now[k] - reference[k] for k in reference}
+            return cache[t]
+
+        ranked = what_to_measure_next(cells, shift, reference=1.0, alpha=alpha)
+        now = next(a for a in ranked if a.name == "as is")
+        out[direction] = {"smallest_fraction": now.smallest,
+                          "values": None if now.smallest is None else at(now.smallest),
+                          "power_at_prior_end": now.power,
+                          "additions": [dataclasses.asdict(a) for a in ranked if a.name != "as is"]}
+    return out
 
 
 def tied_with(best: HypothesisScore, candidates: Sequence[HypothesisScore], reference: HypothesisScore,

@@ -57,7 +57,8 @@ def discovery_payload(result: DiscoveryResult) -> dict:
                                                                              h.fitted_without.items()},
                         "design_points": h.points, "skipped": h.skipped,
                         "held_out_failures": dict(h.held_out_failures),
-                        "held_out_cells": [c.to_dict() for c in h.held_out_cells]} for h in result.hypotheses],
+                        "held_out_cells": [c.to_dict() for c in h.held_out_cells],
+                        "detectable": dict(h.detectable)} for h in result.hypotheses],
         "errors": [g.to_dict() for g in result.gain],
         "extension": {"name": result.cause, "values": dict(result.extension)},
         "dem_evaluations": dict(result.evaluations),
@@ -163,6 +164,21 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                       "| condition | KPI | measured | calibrated model | with " + best.name + " | error before | "
                       "error after |", "| --- | --- | --- | --- | --- | ---: | ---: |"]
             lines += [_gain_line(g) for g in gain_rows(best, d)]
+    seen = [(h, direction, v) for h in result.hypotheses for direction, v in h.detectable.items()]
+    if seen:
+        lines += ["", "### What these data could have detected", "",
+                  "Smallest effect of each candidate, from its no-effect values towards an end of its prior, that "
+                  "the discrepancy test detects with 80 % probability (from the candidate's GP models and the "
+                  "cells' uncertainties), and the addition that raises the test's power at the prior's end most.",
+                  "", "| candidate | direction | smallest detectable effect | power at the prior's end | "
+                  "best addition (power) |", "| --- | --- | --- | ---: | --- |"]
+        for h, direction, v in seen:
+            effect = ("not within the prior" if v["smallest_fraction"] is None else
+                      f"{100 * v['smallest_fraction']:.0f} % of the way: "
+                      + ", ".join(f"{k} {x:.4g}" for k, x in v["values"].items()))
+            top = v["additions"][0] if v["additions"] else None
+            lines.append(f"| {h.name} | {direction} | {effect} | {v['power_at_prior_end']:.2f} | "
+                         + (f"{top['description']} ({top['power']:.2f})" if top else "-") + " |")
     if result.gain:
         lines += ["", "## 3. Extension", "", "Values fitted on every condition: "
                   + ", ".join(f"{k} = {v:.4g}" for k, v in result.extension.items()) + "."]

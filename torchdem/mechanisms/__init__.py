@@ -71,6 +71,9 @@ class Mechanism:
     parameters: Callable[[ModelContext], Mapping[str, tuple[float, float]]]
     apply: Callable = field(default=lambda model: model)
     available: Callable[[ModelContext], str | None] = field(default=lambda context: None)
+    #: The parameter values at which the mechanism changes nothing (None: it has none, e.g. a model
+    #: switch); discovery measures from there how large an effect the data could have detected.
+    null: Callable[[ModelContext], Mapping[str, float] | None] = field(default=lambda context: None)
 
 
 def registry() -> dict[str, Mechanism]:

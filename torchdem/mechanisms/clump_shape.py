@@ -22,6 +22,11 @@ def _trilobes(c):
     return [m for m in c.materials if c.shapes[m] == "sinter_trilobe" or c.shapes[m].startswith("trilobe_s")]
 
 
+def _spacing(shape: str) -> float:
+    """Lobe spacing of a trilobe shape key (the default sinter trilobe: 0.15)."""
+    return 0.15 if shape == "sinter_trilobe" else float(shape[len("trilobe_s"):])
+
+
 def _low(c, m) -> float:
     if c.period is None or m not in c.largest_size:
         return LOW
@@ -43,6 +48,7 @@ MECHANISM = Mechanism(
     description="shape of the three-sphere clumps (lobe spacing) free",
     parameters=lambda c: {f"lobe_spacing_{m}": (round(_low(c, m), 4), HIGH) for m in _trilobes(c)},
     available=_unavailable,
+    null=lambda c: {f"lobe_spacing_{m}": _spacing(c.shapes[m]) for m in _trilobes(c)},
     apply=lambda model: dataclasses.replace(
         model, settings=dataclasses.replace(model.settings, fill_packing="lobes")),
 )

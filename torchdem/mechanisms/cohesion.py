@@ -8,4 +8,5 @@ MECHANISM = Mechanism(
     name="cohesion",
     description="cohesion between particles (SJKR cohesion energy density per material pair)",
     parameters=lambda c: {f"coh_{c.letters[m]}{c.letters[m]}": (0.0, 0.01 * c.young_eff) for m in c.materials},
+    null=lambda c: {f"coh_{c.letters[m]}{c.letters[m]}": 0.0 for m in c.materials},
 )

@@ -9,4 +9,5 @@ MECHANISM = Mechanism(
     name="density_per_material",
     description="particle density of each material free (not the measured solid density)",
     parameters=lambda c: {f"density_{m}": (0.7 * c.densities[m], 1.3 * c.densities[m]) for m in c.materials},
+    null=lambda c: {f"density_{m}": float(c.densities[m]) for m in c.materials},
 )

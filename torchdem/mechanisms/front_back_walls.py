@@ -25,4 +25,6 @@ MECHANISM = Mechanism(
     description="front and back walls present, with a sliding friction of their own",
     parameters=lambda c: {f"mu_s_{c.letters[m]}w": (0.1, 1.0) for m in c.materials},
     apply=_apply,
+    null=lambda c: {f"mu_s_{c.letters[m]}w": float(c.calibrated[f"mu_s_{c.letters[m]}g"]) for m in c.materials
+                    if f"mu_s_{c.letters[m]}g" in c.calibrated} or None,
 )
