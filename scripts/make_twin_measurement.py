@@ -21,14 +21,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 
-import numpy as np
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
-from scipy import stats
 
+from bo.discovery.power import LAB_KPIS, twin_kpis
 from torchdem.model import DENSITY_PREFIX
 from torchdem.cli import CONF_DIR
 from torchdem.measured import load_measured
@@ -36,11 +34,6 @@ from torchdem.measured import load_measured
 #: The "true" contact parameters of the twin (inside the CPU profile's screening ranges, away
 #: from the reference values of Table 4).
 TRUE_PARAMETERS = {"mu_s_pp": 0.62, "mu_r_pp": 0.12, "mu_s_ss": 0.78, "mu_r_ss": 0.10}
-#: DEM KPI -> measured KPI name (full-box masses compare with the lab's masses).
-KPIS = {"angle_of_repose_deg": "angle_of_repose_deg", "shear_angle_deg": "shear_angle_deg",
-        "mass_flow_rate_full_kg_s": "mass_flow_rate_kg_s", "mass_lower_box_full_kg": "mass_lower_box_kg",
-        "segregation_rsd_vertical": "segregation_rsd_vertical",
-        "segregation_rsd_horizontal": "segregation_rsd_horizontal", "max_heap_height_m": "max_heap_height_m"}
 
 
 def main(argv=None) -> None:
@@ -64,14 +57,11 @@ def main(argv=None) -> None:
     started = time.perf_counter()
     for name in paper.names:
         result = model.test_for(name, [params]).run(replicates=len(seeds), seeds=seeds, device=model.device)
-        kpis = {}
-        for dem, lab in KPIS.items():
-            v = result.kpi_table(dem)
-            v = v[np.isfinite(v)]
-            if v.size < 2:
-                raise SystemExit(f"{name}: {dem} measured in {v.size} of {len(seeds)} replicates; need >= 2")
-            half = float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / math.sqrt(v.size))
-            kpis[lab] = {"mean": round(float(v.mean()), 6), "ci95": round(half, 6)}
+        measured = twin_kpis({dem: result.kpi_table(dem) for dem in LAB_KPIS})
+        missing = [dem for dem, (lab, _) in LAB_KPIS.items() if lab not in measured]
+        if missing:
+            raise SystemExit(f"{name}: {missing} measured in fewer than 2 of {len(seeds)} replicates; need >= 2")
+        kpis = {lab: {"mean": round(v.mean, 6), "ci95": round(v.ci95, 6)} for lab, v in measured.items()}
         c = paper.condition(name)
         conditions[name] = {"description": f"DEM twin of {c.description or name}", "pellet_mass_fraction":
                             c.pellet_mass_fraction, "layering": list(c.layering),

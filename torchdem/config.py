@@ -189,15 +189,8 @@ def run_settings_from(sim: Mapping[str, Any], run: Mapping[str, Any]) -> RunSett
                               allowed="(0, 2] of the largest sphere radius"),
         reorder_every=int(_number(sim, "reorder_every", "sim", 0.0, default=0,
                                   allowed="an int >= 0 (neighbour rebuilds between spatial reorders; 0: never)")),
-        fill_packing=_choice(run, "fill_packing", "run", ("bounding", "lobes"), "bounding"),
+        fill_packing=str(run.get("fill_packing", "bounding")),
     ).validate("sim/run")
-
-
-def _choice(cfg: Mapping[str, Any], key: str, where: str, allowed: tuple[str, ...], default: str) -> str:
-    value = cfg.get(key, default)
-    if value not in allowed:
-        raise out_of_range(key, value, " or ".join(repr(a) for a in allowed), where)
-    return str(value)
 
 
 def extension_from(cfg: Mapping[str, Any] | None, where: str = "extension") -> tuple[str | None, dict[str, float]]:

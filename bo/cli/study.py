@@ -16,7 +16,6 @@ directory. ``main()`` only builds typed objects and calls ``bo.studies.pipeline`
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,7 +63,7 @@ def _numbers(values, key: str, where: str, allowed: str) -> tuple[float, ...]:
 def _geometry_study_from(plain: Mapping[str, Any]) -> tuple[dict, dict]:
     """``geometries`` (name -> {slice_depth, mirror}, the reference first) and ``parameter_sets``
     (name -> contact parameters replacing the config's ``contact``) of the geometry study."""
-    from torchdem.config import parameter_range
+    from torchdem.config import contact_from
 
     geometries = plain.get("geometries")
     if not isinstance(geometries, Mapping) or len(geometries) < 2:
@@ -88,14 +87,7 @@ def _geometry_study_from(plain: Mapping[str, Any]) -> tuple[dict, dict]:
     for name, params in sets.items():
         if not isinstance(params, Mapping):
             raise out_of_range(f"parameter_sets.{name}", params, "a mapping of parameter -> value", "config")
-        checked = {}
-        for key, value in params.items():
-            low, high, open_low, allowed = parameter_range(str(key))
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) \
-                and (value > low if open_low else value >= low) and value <= high
-            if not ok:
-                raise out_of_range(f"parameter_sets.{name}.{key}", value, allowed, "config")
-            checked[str(key)] = float(value)
+        checked = contact_from(params, f"parameter_sets.{name}") if params else {}
         out_p[str(name)] = {**dict(plain.get("contact") or {}), **checked}
     return out_g, out_p
 

@@ -694,7 +694,7 @@ def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
              for c in discrepancy.cells if math.isfinite(c.dem_se) and c.dem_se + c.measured_u > 0]
     if not cells:
         return {}
-    base = {**{n: v for n, v in calibrated.items()}, **null}
+    base = {**calibrated, **null}
     reference = f.predict(base)
     out = {}
     for direction, side in (("high", 1), ("low", 0)):

@@ -53,7 +53,7 @@ from torchdem.mechanisms import apply_extension, get, model_context
 from torchdem.measured import Condition, KPIValue, MeasuredData
 from torchdem.model import DrawDownModel
 
-__all__ = ["NULL", "LAB_KPIS", "Effect", "TwinOutcome", "PowerRow", "power_stages", "twin_measurement",
+__all__ = ["NULL", "LAB_KPIS", "twin_kpis", "Effect", "TwinOutcome", "PowerRow", "power_stages", "twin_measurement",
            "run_power_study", "tabulate", "power_summary", "wilson"]
 
 #: Name of the no-mechanism twins.
@@ -135,6 +135,22 @@ def lab_seeds(lab: int, replicates: int, base: int) -> list[int]:
     return [base + lab * replicates + k for k in range(replicates)]
 
 
+def twin_kpis(values: Mapping[str, Sequence[float]]) -> dict[str, KPIValue]:
+    """Lab KPIs of a twin condition: DEM KPI -> its replicate values (finite ones), to measured
+    name -> mean and 95 % CI half-width ``t(0.975, n - 1) s / sqrt(n)``; KPIs with fewer than two
+    values are left out."""
+    out = {}
+    for k, v in values.items():
+        v = np.asarray(v, dtype=float)
+        v = v[np.isfinite(v)]
+        if v.size < 2:
+            continue
+        lab_name, unit = LAB_KPIS[k]
+        half = float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / math.sqrt(v.size))
+        out[lab_name] = KPIValue(float(v.mean()), half, unit)
+    return out
+
+
 def twin_measurement(store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor], model: DrawDownModel,
                      baseline: Mapping[str, float], template: MeasuredData, effect: Effect | None,
                      seeds: Sequence[int], kpis: Sequence[str]) -> MeasuredData:
@@ -166,14 +182,7 @@ def twin_measurement(store: CampaignStore, executor_for: Callable[[DrawDownModel
                 values.setdefault((rec.condition, k), []).append(v)
     out = []
     for c in template.conditions:
-        measured = {}
-        for k in kpis:
-            v = np.asarray(values.get((c.name, k), []))
-            if v.size < 2:
-                continue
-            lab_name, unit = LAB_KPIS[k]
-            half = float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / math.sqrt(v.size))
-            measured[lab_name] = KPIValue(float(v.mean()), half, unit)
+        measured = twin_kpis({k: values.get((c.name, k), []) for k in kpis})
         if not measured:
             raise ConfigError(f"power study: twin {name} lab seeds {list(seeds)}: no KPI of condition {c.name!r} "
                               f"was measured twice; see the store's stage {stage!r}")

@@ -169,20 +169,29 @@ def _run_study(store: CampaignStore, executor: Executor, stage: str, setting: st
     walls = np.full(len(values), np.nan)
     failed = np.zeros(len(values), dtype=np.int64)
     for i, (cond, key) in enumerate(zip(conditions, keys)):
-        times = []
-        for rec in store.records(stage, batch_key=key, condition=cond):
-            if rec.status == "failed":
-                failed[i] += 1
-            if rec.status != "done" or rec.kpis is None:
-                continue
-            out[i, seeds.index(rec.seed)] = [rec.kpis.get(k, math.nan) for k in kpis]
-            if rec.wall_time is not None:
-                times.append(rec.wall_time)
+        out[i], times, failed[i] = _collect(store, stage, key, cond, seeds, kpis)
         if times:
             walls[i] = float(np.mean(times))
-    out[~np.isfinite(out)] = np.nan
     return StudyRuns(setting=setting, values=tuple(values), conditions=conditions, seeds=tuple(seeds),
                      kpi_names=tuple(kpis), kpi_values=out, wall_time_s=walls, n_failed=failed)
+
+
+def _collect(store: CampaignStore, stage: str, key: str, condition: str, seeds: Sequence[int],
+             kpis: Sequence[str]) -> tuple[np.ndarray, list[float], int]:
+    """KPIs ``[seeds, kpis]`` of one batch's runs (NaN: failed or unmeasured), the wall times of
+    the runs that were computed, and the number of failures."""
+    out = np.full((len(seeds), len(kpis)), np.nan)
+    times, failed = [], 0
+    for rec in store.records(stage, batch_key=key, condition=condition):
+        if rec.status == "failed":
+            failed += 1
+        if rec.status != "done" or rec.kpis is None:
+            continue
+        out[list(seeds).index(rec.seed)] = [rec.kpis.get(k, math.nan) for k in kpis]
+        if rec.wall_time is not None:
+            times.append(rec.wall_time)
+    out[~np.isfinite(out)] = np.nan
+    return out, times, failed
 
 
 def run_time_step_study(store: CampaignStore, executor: Executor, *, condition: str,
@@ -403,17 +412,8 @@ def run_geometry_study(store: CampaignStore, executor: Executor, *, condition: s
     failed: dict[str, dict[str, int]] = {}
     walls: dict[str, list[float]] = {g: [] for g in geometries}
     for (pset, g), (key, cond) in keys.items():
-        out = np.full((len(seeds), len(kpis)), np.nan)
-        n_failed = 0
-        for rec in store.records(stage, batch_key=key, condition=cond):
-            if rec.status == "failed":
-                n_failed += 1
-            if rec.status != "done" or rec.kpis is None:
-                continue
-            out[seeds.index(rec.seed)] = [rec.kpis.get(k, math.nan) for k in kpis]
-            if rec.wall_time is not None:
-                walls[g].append(rec.wall_time)
-        out[~np.isfinite(out)] = np.nan
+        out, times, n_failed = _collect(store, stage, key, cond, seeds, kpis)
+        walls[g] += times
         values.setdefault(pset, {})[g] = out
         failed.setdefault(pset, {})[g] = n_failed
     # the executor fills an ensemble with runs of one condition, across parameter sets
