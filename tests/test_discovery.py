@@ -314,7 +314,30 @@ def test_no_hidden_effect_invents_no_cause(tmp_path):
     cohesion = next(h for h in scored.hypotheses if h.name == "cohesion").detectable
     assert cohesion["high"]["smallest_fraction"] is None  # the known model has no cohesion
     assert cohesion["high"]["power_at_prior_end"] < 0.1
+    # what to measure next: the heap height (a KPI this lab does not report; the known model's
+    # heap height goes as 1 / density with a replicate sd of 0.5 mm) is the best addition for a
+    # density change: its smallest detectable change agrees with the one from the known model's
+    # own shifts, the heap cells' sigma being what the report states; it cannot reveal the
+    # absent cohesion
+    top = density["high"]["additions"][0]
+    assert top["name"] == "kpi:max_heap_height_m", density["high"]["additions"]
+    se = float(top["description"].split("se ")[1].split(",")[0])
+    u = float(top["description"].split("u ")[1].rstrip(")"))
+    conditions = list(dict.fromkeys(c.condition for c in cells))
+
+    def direct_with_heap(t):
+        rho = {f"density_{m}": (1 + 0.3 * t) * v for m, v in km.NOMINAL_DENSITY.items()}
+        heap = [km.known_kpis({**km.TRUE, **rho}, 0, c, noise=False)["max_heap_height_m"]
+                - km.known_kpis(km.TRUE, 0, c, noise=False)["max_heap_height_m"] for c in conditions]
+        return direct(t) + heap
+
+    with_heap = smallest_detectable(direct_with_heap, sigma + [math.hypot(se, u)] * len(conditions))
+    assert top["smallest"] == pytest.approx(with_heap, rel=0.2)
+    assert with_heap < 0.6 * expected  # it does raise the power
+    heap = next(a for a in cohesion["high"]["additions"] if a["name"] == "kpi:max_heap_height_m")
+    assert heap["smallest"] is None and heap["power"] < 0.2  # GP wiggle only: far from 0.8
     assert "### What these data could have detected" in md and "| cohesion | high | not within the prior |" in md
+    assert "| max_heap_height_m: 1.00, " in md  # the density rows: the heap height would see it
     assert "DEM replicate scatter per KPI" in md and "gain.png" not in md
 
 
@@ -333,6 +356,8 @@ def test_calibration_paper_is_the_papers_table_8_restricted_set_over_the_config(
     ("discovery.candidates=[telepathy]", r"discovery: candidates = \['telepathy'\] is not allowed"),
     ("discovery.replicates=1", r"discovery: replicates = 1 is not allowed; expected an int >= 2"),
     ("discovery.kpis=[flow]", r"discovery: kpis = \['flow'\] is not allowed"),
+    ("discovery.proposed_kpis=[heap]", r"discovery: proposed_kpis = \['heap'\] is not allowed; expected distinct "
+                                       r"KPI names from .*'max_heap_height_m'.* \(unknown: \['heap'\]\) \(or \[\] for none\)"),
     ("discovery.alpha=2", r"discovery: alpha = 2.0 is not allowed; expected a probability in \(0, 1\)"),
     ("calibration=/nonexistent/calibration.json", r"calibration = '/nonexistent/calibration.json': cannot read it"),
     ("data=/nonexistent/lab.json", r"/nonexistent/lab.json: cannot read measured-data file"),

@@ -61,10 +61,22 @@ def discovery_settings_from(plain: Mapping[str, Any]):
             points_per_parameter=cfg.get("points_per_parameter"), min_points=cfg.get("min_points"),
             alpha=float(cfg.get("alpha")), penalty=float(cfg.get("penalty")), margin=float(cfg.get("margin")),
             always_score=bool(cfg.get("always_score")), ga=ga, kernel=str(cfg.get("kernel")), seed=base,
-            ga_starts=cfg.get("ga_starts", 3))
+            ga_starts=cfg.get("ga_starts", 3), proposed_kpis=_proposed(cfg.get("proposed_kpis"), where))
         return settings.validate(where)
+    except ConfigError:
+        raise
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"config {where}: {exc}") from None
+
+
+def _proposed(kpis, where: str) -> tuple[str, ...]:
+    """``discovery.proposed_kpis``: an empty list or distinct KPI names the draw down test reports."""
+    if kpis is None or (isinstance(kpis, (list, tuple)) and not kpis):
+        return ()
+    try:
+        return check_kpis(kpis, where)
+    except ConfigError as exc:
+        raise ConfigError(str(exc).replace("kpis", "proposed_kpis", 1) + " (or [] for none)") from None
 
 
 PAPER_DATA = "hadi2025_pellet_sinter.json"

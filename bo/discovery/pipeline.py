@@ -119,6 +119,9 @@ class DiscoverySettings:
         always_score: fit the hypotheses even without a significant discrepancy.
         ga: GA on the surrogate means; ga_starts: independent GA runs per fit (seeds ``seed + k``),
             the best kept. kernel: GP kernel. seed: LHS and GA seed.
+        proposed_kpis: DEM KPIs the lab does not report (the heap height, say) that "what to
+            measure next" weighs as additions; each candidate's design runs measure them, its GP
+            models them, and the lab is assumed to measure them as repeatably as the DEM does.
     """
 
     kpis: tuple[str, ...]
@@ -137,8 +140,11 @@ class DiscoverySettings:
     kernel: str = "matern52"
     seed: int = 0
     ga_starts: int = 3
+    proposed_kpis: tuple[str, ...] = ("max_heap_height_m",)
 
     def validate(self, source: str = "discovery") -> "DiscoverySettings":
+        if isinstance(self.proposed_kpis, str) or len(set(self.proposed_kpis)) != len(self.proposed_kpis):
+            raise out_of_range("proposed_kpis", self.proposed_kpis, "a list of distinct DEM KPI names", source)
         if not self.kpis or len(set(self.kpis)) != len(self.kpis):
             raise out_of_range("kpis", self.kpis, "a non-empty list of distinct DEM KPI names", source)
         for name in ("seeds", "fit_seeds"):
@@ -430,6 +436,7 @@ class _Fitted:
     held_reps: Mapping[str, np.ndarray]
     groups: tuple[np.ndarray, ...]
     predict: Callable[[Mapping[str, float]], dict[tuple[str, str], float]] | None = None
+    proposed_sd: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
 def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel, context: ModelContext,
@@ -527,12 +534,50 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                                  len(extra), {}, without, every, in_sample, math.nan, n_points,
                                  predicted_chi2=predicted, held_out_failures=failures)
     keys = [(c, k) for _, c, _, k in cells]
+    proposed, proposed_sd = _proposed_models(store, executor_for, hyp_model, name, design_key, points, X, b,
+                                             usable, conditions, settings)
 
     def predict(x: Mapping[str, float]) -> dict[tuple[str, str], float]:
-        mean, _ = surrogate.predict_outputs(np.array([[float(x[n]) for n in names]]))
-        return dict(zip(keys, map(float, mean[0])))
+        at = np.array([[float(x[n]) for n in names]])
+        mean, _ = surrogate.predict_outputs(at)
+        out = dict(zip(keys, map(float, mean[0])))
+        if proposed is not None:
+            extra, _ = proposed[0].predict_outputs(at)
+            out.update(zip(proposed[1], map(float, extra[0])))
+        return out
 
-    return _Fitted(hypothesis, held, (reps, *(r[None] for r in held.values())), predict)
+    return _Fitted(hypothesis, held, (reps, *(r[None] for r in held.values())), predict, proposed_sd)
+
+
+def _proposed_models(store, executor_for, hyp_model, name: str, design_key: str, points, X: np.ndarray,
+                     b: np.ndarray, usable: np.ndarray, conditions: Sequence[str], settings: DiscoverySettings):
+    """GP models of the KPIs the lab does not report (``settings.proposed_kpis``) on every
+    condition, from the hypothesis's design runs (read back from the store: nothing is rerun),
+    and each KPI's DEM replicate sd; ``(None, {})`` when there is none or too few points."""
+    proposed = [k for k in settings.proposed_kpis if k not in settings.kpis]
+    if not proposed or len(settings.fit_seeds) < 2:
+        return None, {}
+    with executor_for(hyp_model) as executor:
+        reps = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, proposed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i in range(len(conditions))
+                      for j in range(len(proposed))], axis=1)
+    ok = usable & np.isfinite(Y).all(axis=1)
+    if ok.sum() < max(4, X.shape[1] + 2):
+        return None, {}
+    noise = ReplicateNoise.of(proposed, [reps[ok]])
+    sd = {k: math.sqrt(noise.variance(k)) for k in proposed}
+    counts = np.stack([np.isfinite(reps[:, i, :, j]).sum(axis=1) for i in range(len(conditions))
+                       for j in range(len(proposed))], axis=1)
+    V = np.array([[sd[k] ** 2 for _ in conditions for k in proposed]]) / np.maximum(counts, 1)
+    keys = [(c, k) for c in conditions for k in proposed]
+    mean = Y[ok].mean(axis=0)
+    spec = ObjectiveSpec(tuple(f"{c}|{k}" for c, k in keys), tuple(np.where(mean == 0, 1.0, mean).tolist()),
+                         source=f"hypothesis {name} (proposed KPIs)")
+    model = fit_surrogate(X[ok], Y[ok], b, SurrogateConfig(kernel=settings.kernel, strategy="per_kpi"),
+                          y_var=np.where(np.isfinite(V[ok]), V[ok], 0.0), objective=spec)
+    return (model, keys), sd
 
 
 def _score(f: _Fitted, kpis: Sequence[str], lab: Mapping[tuple[str, str], tuple[float, float]],
@@ -618,7 +663,8 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         for f in fitted[1:]:
             h = scored[f.hypothesis.name]
             scored[h.name] = dataclasses.replace(h, detectable=detectability(
-                f, mechanisms[h.name], context, calibrated, discrepancy, measured, settings.alpha))
+                f, mechanisms[h.name], context, calibrated, discrepancy, measured, settings.alpha,
+                dem_replicates=len(settings.seeds)))
         scored.update({h.name: h for h in skipped})
         hypotheses = [scored[PARAMETERS]] + [scored[n] for n in names]
         for h in hypotheses:
@@ -679,11 +725,16 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
 
 
 def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calibrated: Mapping[str, float],
-                  discrepancy: Discrepancy, measured: MeasuredData, alpha: float) -> dict[str, dict]:
+                  discrepancy: Discrepancy, measured: MeasuredData, alpha: float, dem_replicates: int = 3
+                  ) -> dict[str, dict]:
     """For each direction from the mechanism's no-effect values to an end of its prior: the
     smallest effect the discrepancy test would detect with 80 % probability with these data,
     using the hypothesis's GP models for the shifts and the discrepancy cells' uncertainties
-    (``bo.discovery.detectable``), its power at the prior's end and the additions ranked."""
+    (``bo.discovery.detectable``), its power at the prior's end and the additions ranked. A
+    proposed KPI (``f.proposed_sd``: KPI -> DEM replicate sd) enters as measured on every
+    condition with the DEM's standard error over ``dem_replicates`` runs and a lab standard
+    uncertainty of the same sd over the lab's repeats (their number where the data state it,
+    else ``dem_replicates``)."""
     from bo.discovery.detectable import CellUncertainty, what_to_measure_next
 
     null = mechanism.null(context)
@@ -694,6 +745,10 @@ def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
              for c in discrepancy.cells if math.isfinite(c.dem_se) and c.dem_se + c.measured_u > 0]
     if not cells:
         return {}
+    repeats = [measured.condition(c).replicates for c in measured.names]
+    n_lab = min(repeats) if all(repeats) else dem_replicates
+    new_kpis = {k: (sd / math.sqrt(dem_replicates), sd / math.sqrt(n_lab)) for k, sd in f.proposed_sd.items()
+                if math.isfinite(sd) and sd > 0}
     base = {**calibrated, **null}
     reference = f.predict(base)
     out = {}
@@ -710,7 +765,7 @@ def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
                 cache[t] = {k: now[k] - reference[k] for k in reference}
             return cache[t]
 
-        ranked = what_to_measure_next(cells, shift, reference=1.0, alpha=alpha)
+        ranked = what_to_measure_next(cells, shift, reference=1.0, alpha=alpha, new_kpis=new_kpis)
         now = next(a for a in ranked if a.name == "as is")
         out[direction] = {"smallest_fraction": now.smallest,
                           "values": None if now.smallest is None else at(now.smallest),

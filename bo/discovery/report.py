@@ -169,16 +169,22 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
         lines += ["", "### What these data could have detected", "",
                   "Smallest effect of each candidate, from its no-effect values towards an end of its prior, that "
                   "the discrepancy test detects with 80 % probability (from the candidate's GP models and the "
-                  "cells' uncertainties), and the addition that raises the test's power at the prior's end most.",
+                  "cells' uncertainties), the addition that raises the test's power at the prior's end most, and "
+                  "what each KPI the lab does not report would add (measured on every condition, as repeatably as "
+                  "the DEM measures it).",
                   "", "| candidate | direction | smallest detectable effect | power at the prior's end | "
-                  "best addition (power) |", "| --- | --- | --- | ---: | --- |"]
+                  "best addition (power) | unreported KPIs: power, smallest effect |", "| --- | --- | --- | ---: | --- | --- |"]
         for h, direction, v in seen:
             effect = ("not within the prior" if v["smallest_fraction"] is None else
                       f"{100 * v['smallest_fraction']:.0f} % of the way: "
                       + ", ".join(f"{k} {x:.4g}" for k, x in v["values"].items()))
             top = v["additions"][0] if v["additions"] else None
+            proposed = [a for a in v["additions"] if a["name"].startswith("kpi:")]
+            extra = "; ".join(f"{a['name'][4:]}: {a['power']:.2f}, "
+                              + ("not within the prior" if a["smallest"] is None else f"{100 * a['smallest']:.0f} %")
+                              for a in proposed) or "-"
             lines.append(f"| {h.name} | {direction} | {effect} | {v['power_at_prior_end']:.2f} | "
-                         + (f"{top['description']} ({top['power']:.2f})" if top else "-") + " |")
+                         + (f"{top['description']} ({top['power']:.2f})" if top else "-") + f" | {extra} |")
     if result.gain:
         lines += ["", "## 3. Extension", "", "Values fitted on every condition: "
                   + ", ".join(f"{k} = {v:.4g}" for k, v in result.extension.items()) + "."]
