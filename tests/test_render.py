@@ -414,3 +414,35 @@ def test_render_state_of_a_tiny_system():
         render_state(system, state, 2, labels, view)
     with pytest.raises(ConfigError, match=r"no label for material 1 \('sinter'\)"):
         render_state(system, state, 0, {0: PELLET_LABEL}, view)
+
+
+def test_a_stream_falling_on_the_apex_tilts_the_heap_and_render_state_leaves_it_out():
+    """Why the draw down photographs only bodies at rest (torchdem.drawdown.AT_REST_SPEED_M_S):
+    a trickle still falling from the slot joins the heap's apex in the photo, the profile's
+    apex moves up into the stream and both fitted flanks steepen. The lab photographs after the
+    discharge has ended; ``render_state(shown=...)`` draws only the bodies asked for."""
+    heap = heap_centres()
+    apex_x, apex_z = 0.5 * sum(BOX_X), HEAP_HALF_BASE * math.tan(math.radians(HEAP_ANGLE_DEG))
+    zs = np.arange(apex_z + 1.9 * RADIUS, LOWER_Z[1] - RADIUS, 1.9 * RADIUS)  # a falling column
+    stream = np.stack([apex_x + 0.6 * RADIUS * np.sin(7.0 * zs / RADIUS), np.full(zs.size, RADIUS), zs], 1)
+    box = crop_box_for(VIEW, BOX_X[0], BOX_X[1], LOWER_Z[0], LOWER_Z[1])
+    centres = np.concatenate([heap, stream])
+    radius = np.full(len(centres), RADIUS)
+    labels = np.zeros(len(centres), dtype=np.int64)
+    with_stream = angle_of_repose(render_front(centres, radius, labels, VIEW), crop_box=box).angle_deg
+    at_rest = angle_of_repose(render_front(heap, radius[:len(heap)], labels[:len(heap)], VIEW), crop_box=box).angle_deg
+    assert at_rest == pytest.approx(HEAP_ANGLE_DEG, abs=ANGLE_TOLERANCE_DEG)
+    assert with_stream > at_rest + 1.0, (with_stream, at_rest)
+
+    system, state = _tiny_system()
+    view = View(-0.01, 0.11, -0.01, 0.11, metres_per_pixel=0.0005)
+    labels = {0: PELLET_LABEL, 1: SINTER_LABEL}
+    image = render_state(system, state, 0, labels, view, shown=torch.tensor([True, False, True]))
+
+    def at(x, z):
+        return tuple(image[int(round(float(view.row(z)))), int(round(float(view.column(x))))])
+
+    assert at(0.03, 0.02) == PELLET_BGR and at(0.05, 0.05) == SINTER_BGR
+    assert at(0.07, 0.02) == BACKGROUND_BGR  # the body left out
+    with pytest.raises(ConfigError, match=r"shown must be a bool mask of shape \(3,\)"):
+        render_state(system, state, 0, labels, view, shown=torch.tensor([1, 0, 1]))

@@ -457,6 +457,7 @@ def render_state(
     palette: Mapping[int, Sequence[int]] | None = None,
     wall_thickness: float | None = None,
     rim_darkening: float = 0.0,
+    shown=None,
     source: str = "render_state",
 ) -> np.ndarray:
     """Front view of ensemble member ``member`` of a torchdem ``(System, State)``.
@@ -469,6 +470,8 @@ def render_state(
         view: window and pixel size.
         walls: draw the system's walls that exist at the state's time (``step * dt``).
         palette, wall_thickness, rim_darkening: as in :func:`render_front`.
+        shown: optional ``[n_bodies]`` bool mask of the member's bodies to draw (e.g. the bodies at
+            rest); None draws every active body.
     """
     batch = system.batch
     if isinstance(member, bool) or not isinstance(member, numbers.Integral) or not 0 <= member < batch:
@@ -477,6 +480,12 @@ def render_state(
     with torch.no_grad():
         positions = sphere_positions(system, state.bodies).reshape(batch, system.n_spheres, 3)[member]
         active = sphere_active(system, state.bodies).reshape(batch, system.n_spheres)[member]
+        if shown is not None:
+            shown = torch.as_tensor(shown, device=active.device)
+            if shown.dtype != torch.bool or tuple(shown.shape) != (system.n_bodies,):
+                raise ConfigError(f"{source}: shown must be a bool mask of shape ({system.n_bodies},), got "
+                                  f"{shown.dtype} {tuple(shown.shape)}")
+            active = active & shown[system.sphere_body[member]]
         centres = positions[active].detach().cpu()
         radii = system.sphere_radius[member][active].detach().cpu()
         materials = system.sphere_material[member][active].detach().cpu().numpy()
