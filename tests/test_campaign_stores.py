@@ -33,4 +33,4 @@ def test_shipped_store_matches_its_command_config(entry):
 
 def test_every_shipped_store_is_in_the_manifest():
     listed = {e["store"] for e in MANIFEST["stores"]}
-    assert {p.name for p in CAMPAIGNS.glob("*.sqlite")} <= listed
+    assert {p.relative_to(CAMPAIGNS).as_posix() for p in CAMPAIGNS.rglob("*.sqlite")} <= listed
