@@ -90,5 +90,6 @@ def test_precision_study_app_runs_on_the_mini_box(tmp_path):
     doc = json.loads((out / "precision.json").read_text())
     assert doc["labels"] == ["float64", "float32"] and doc["conditions"] == ["50-50|dtype=float64",
                                                                               "50-50|dtype=float32"]
-    assert {r["kpi"] for r in doc["rows"]} >= {"angle_of_repose_deg", "mass_lower_box_full_kg"}
+    # (0.3 s of discharge leaves few bodies at rest for the photo's angle of repose)
+    assert {r["kpi"] for r in doc["rows"]} >= {"shear_angle_deg", "mass_lower_box_full_kg"}
     assert "Verdict:" in (out / "precision.md").read_text()
