@@ -357,7 +357,7 @@ def test_calibration_paper_is_the_papers_table_8_restricted_set_over_the_config(
     ("discovery.replicates=1", r"discovery: replicates = 1 is not allowed; expected an int >= 2"),
     ("discovery.kpis=[flow]", r"discovery: kpis = \['flow'\] is not allowed"),
     ("discovery.proposed_kpis=[heap]", r"discovery: proposed_kpis = \['heap'\] is not allowed; expected distinct "
-                                       r"KPI names from .*'max_heap_height_m'.* \(unknown: \['heap'\]\) \(or \[\] for none\)"),
+                                       r"KPI names from .*'max_heap_height_m'.* \(unknown: \['heap'\]\)"),
     ("discovery.alpha=2", r"discovery: alpha = 2.0 is not allowed; expected a probability in \(0, 1\)"),
     ("calibration=/nonexistent/calibration.json", r"calibration = '/nonexistent/calibration.json': cannot read it"),
     ("data=/nonexistent/lab.json", r"/nonexistent/lab.json: cannot read measured-data file"),

@@ -69,15 +69,15 @@ def replicate_seeds(plain: Mapping[str, Any]) -> list[int]:
     return [seed + k for k in range(replicates)]
 
 
-def check_kpis(kpis, where: str) -> tuple[str, ...]:
-    """KPI names the draw down test reports (``torchdem.drawdown.KPI_UNITS``)."""
+def check_kpis(kpis, where: str, name: str = "kpis") -> tuple[str, ...]:
+    """KPI names the draw down test reports (``torchdem.drawdown.KPI_UNITS``); ``name``: the config key."""
     from torchdem.drawdown import KPI_UNITS
 
     if isinstance(kpis, (str, bytes)) or not isinstance(kpis, (list, tuple)) or not kpis:
-        raise out_of_range("kpis", kpis, f"a non-empty list of KPI names from {sorted(KPI_UNITS)}", where)
+        raise out_of_range(name, kpis, f"a non-empty list of KPI names from {sorted(KPI_UNITS)}", where)
     unknown = [k for k in kpis if k not in KPI_UNITS]
     if unknown or len(set(kpis)) != len(kpis):
-        raise out_of_range("kpis", list(kpis), f"distinct KPI names from {sorted(KPI_UNITS)}"
+        raise out_of_range(name, list(kpis), f"distinct KPI names from {sorted(KPI_UNITS)}"
                            + (f" (unknown: {unknown})" if unknown else ""), where)
     return tuple(kpis)
 

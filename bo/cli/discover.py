@@ -73,10 +73,7 @@ def _proposed(kpis, where: str) -> tuple[str, ...]:
     """``discovery.proposed_kpis``: an empty list or distinct KPI names the draw down test reports."""
     if kpis is None or (isinstance(kpis, (list, tuple)) and not kpis):
         return ()
-    try:
-        return check_kpis(kpis, where)
-    except ConfigError as exc:
-        raise ConfigError(str(exc).replace("kpis", "proposed_kpis", 1) + " (or [] for none)") from None
+    return check_kpis(kpis, where, "proposed_kpis")
 
 
 PAPER_DATA = "hadi2025_pellet_sinter.json"

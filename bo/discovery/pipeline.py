@@ -461,7 +461,9 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     hyp_model = model if mechanism is None else mechanism.apply(model)
     design_key = f"lhs/{_key(names, b.tolist(), n_points, settings.seed)}"
     with executor_for(hyp_model) as executor:
-        reps = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, kpis)
+        read = kpis + [k for k in settings.proposed_kpis if k not in kpis and mechanism is not None]
+        every_kpi = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, read)
+    reps, proposed_reps = every_kpi[..., :len(kpis)], every_kpi[..., len(kpis):]
     # outputs: measured (condition, KPI) cells; y = replicate means, y_var = variance of the mean
     cells = [(i, c, j, k) for i, c in enumerate(conditions) for j, k in enumerate(kpis) if (c, k) in lab]
     counts = np.stack([np.isfinite(reps[:, i, :, j]).sum(axis=1) for i, _, j, _ in cells], axis=1)
@@ -534,8 +536,8 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                                  len(extra), {}, without, every, in_sample, math.nan, n_points,
                                  predicted_chi2=predicted, held_out_failures=failures)
     keys = [(c, k) for _, c, _, k in cells]
-    proposed, proposed_sd = _proposed_models(store, executor_for, hyp_model, name, design_key, points, X, b,
-                                             usable, conditions, settings)
+    proposed, proposed_sd = _proposed_models(name, proposed_reps, read[len(kpis):], X, b, usable, conditions,
+                                             settings)
 
     def predict(x: Mapping[str, float]) -> dict[tuple[str, str], float]:
         at = np.array([[float(x[n]) for n in names]])
@@ -549,16 +551,13 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     return _Fitted(hypothesis, held, (reps, *(r[None] for r in held.values())), predict, proposed_sd)
 
 
-def _proposed_models(store, executor_for, hyp_model, name: str, design_key: str, points, X: np.ndarray,
-                     b: np.ndarray, usable: np.ndarray, conditions: Sequence[str], settings: DiscoverySettings):
-    """GP models of the KPIs the lab does not report (``settings.proposed_kpis``) on every
-    condition, from the hypothesis's design runs (read back from the store: nothing is rerun),
-    and each KPI's DEM replicate sd; ``(None, {})`` when there is none or too few points."""
-    proposed = [k for k in settings.proposed_kpis if k not in settings.kpis]
+def _proposed_models(name: str, reps: np.ndarray, proposed: Sequence[str], X: np.ndarray, b: np.ndarray,
+                     usable: np.ndarray, conditions: Sequence[str], settings: DiscoverySettings):
+    """GP models of the KPIs the lab does not report (``proposed``, read with the design's runs:
+    ``reps [points, conditions, seeds, len(proposed)]``) on every condition, and each KPI's DEM
+    replicate sd; ``(None, {})`` when there is none or too few points."""
     if not proposed or len(settings.fit_seeds) < 2:
         return None, {}
-    with executor_for(hyp_model) as executor:
-        reps = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, proposed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i in range(len(conditions))
