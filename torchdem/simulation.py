@@ -36,6 +36,7 @@ from typing import Callable
 import torch
 
 from torchdem.errors import BlowUpError, ConfigError
+from torchdem.heap import keep_freed_memory
 from torchdem.integrate import Kernels, body_angular_velocity, evaluate_forces, step
 from torchdem.reorder import permute_system, reorder
 from torchdem.state import State, state_from_dict, to_dict
@@ -123,6 +124,9 @@ class Simulation:
             # x86 handles subnormals in microcode, 10-20x slower (measured on the pair kernel
             # in float32). Flushing them to zero changes nothing physical (< 1e-38 in float32).
             torch.set_flush_denormal(True)
+            # Rebuilds free and reallocate MBs every few steps: keep that memory in the process
+            # (torchdem.heap; 20-25 % of a dask worker's CPU went to page faults without it).
+            keep_freed_memory()
         if state.rebuilds == 0:
             state = evaluate_forces(system, state, state.step * system.dt, self.kernels)
         self.state = state

@@ -67,7 +67,9 @@ worker (one batch at a time) that books all the cores of the job::
     run_pending(store, executor, stage="round-3")
 
 Dask's nanny sets ``OMP_NUM_THREADS=1`` for its workers, so call ``torch.set_num_threads(8)``
-(the booked cores) inside ``evaluate_batch``. With an adaptive cluster the number of worker
+(the booked cores) inside ``evaluate_batch``. It also sets ``MALLOC_TRIM_THRESHOLD_=65536``, under
+which a draw down run spent 20-25 % of its CPU time page-faulting freed memory back; every
+:class:`torchdem.simulation.Simulation` raises the threshold again (:mod:`torchdem.heap`). With an adaptive cluster the number of worker
 threads at start-up can be zero, hence ``max_in_flight``. Only the campaign process touches
 the SQLite store (workers only evaluate), so the store file can stay on the submit host's
 local disk; SQLite's WAL mode does not work on network file systems (NFS, Lustre).
