@@ -165,6 +165,11 @@ def test_default_limits_follow_parameter_names():
     e = default_physical_limit("e_sg")
     assert not e.contains(0.0) and e.contains(1.0) and e.contains(1e-6)
     assert default_physical_limit("young_modulus_pa") is None
+    # the material parameters a campaign can calibrate: a trilobe's lobe spacing lies in (0, 0.3]
+    lobe = default_physical_limit("lobe_spacing_sinter")
+    assert lobe.contains(0.3) and not lobe.contains(0.31) and not lobe.contains(0.0)
+    density = default_physical_limit("density_pellet")
+    assert density.contains(3602.4) and not density.contains(0.0)
 
 
 # ---------------------------------------------------------------------------- bad input

@@ -48,6 +48,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bo.screening.stepwise import ScreeningResults, SignificanceTable
+from torchdem.config import parameter_range
 from torchdem.errors import ConfigError, out_of_range
 
 __all__ = [
@@ -95,12 +96,12 @@ RESTITUTION_LIMIT = PhysicalLimit(0.0, 1.0, low_open=True)
 
 
 def default_physical_limit(parameter: str) -> PhysicalLimit | None:
-    """Limit of a parameter named in this project's words, or None if the name is unknown."""
-    if parameter.startswith(("mu_s_", "mu_r_")):
-        return FRICTION_LIMIT
-    if parameter.startswith("e_"):
-        return RESTITUTION_LIMIT
-    return None
+    """Limit of a parameter named in this project's words (:func:`torchdem.config.parameter_range`:
+    frictions, restitutions, cohesion, densities, lobe spacings), or None if the name is unknown."""
+    low, high, open_low, _ = parameter_range(parameter)
+    if math.isinf(low) and math.isinf(high):
+        return None
+    return PhysicalLimit(low, high, low_open=open_low)
 
 
 @dataclass(frozen=True)
