@@ -192,6 +192,54 @@ def test_report_files_and_counts_match_the_store(known_campaign):
     assert "## 6. Validation" in md and "50-50-reverse" in md and "| mu_s_pp |" in md
 
 
+# -- make run: a shipped store, resumed, with the verification made again ----------------------
+
+def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(known_campaign, tmp_path):
+    """What `make run` does with campaigns/table2/lab.sqlite, on the known-answer campaign: the
+    shipped store is copied (and left as it is), every stage resumes from it, and the only DEM
+    runs made are the verification's, again, in a batch that takes nothing from the store."""
+    import functools
+    import hashlib
+
+    from bo.cli.calibrate import seed_store
+
+    result, _, shipped, _ = known_campaign
+    before = hashlib.sha256(Path(shipped.path).read_bytes()).hexdigest()
+    run_store = tmp_path / "run" / "campaign.sqlite"
+    assert seed_store({"store_from": str(shipped.path)}, run_store) == Path(shipped.path).resolve()
+    log = tmp_path / "log.jsonl"
+    executor = InProcessExecutor(functools.partial(km.known_batch, log_path=str(log)), batch_size=6)
+    settings = dataclasses.replace(km.small_settings(), fresh_verification=True)
+    again = run_calibration(CampaignStore(run_store, "known-answer", extra_stages=EXTRA_STAGES), executor, settings,
+                            km.known_measurement(), tmp_path / "out", km.NOMINAL_DENSITY, echo=lambda s: None)
+    runs = [json.loads(line) for line in log.read_text().splitlines()]
+    assert len(runs) == len(settings.verification_seeds)                  # nothing else was run
+    assert {r[1] for r in runs} == set(settings.verification_seeds)
+    assert all(dict(r[0]) == dict(result.ga.calibrated) and r[2] == "50-50" for r in runs)
+    assert again.final_parameters == result.final_parameters              # the GA was not rerun
+    assert again.verification == result.verification
+    # the known model's runs depend only on (parameters, seed, condition): remade, they agree
+    assert [a.dem_mean for a in again.fresh_verification] == [a.dem_mean for a in result.verification]
+    assert hashlib.sha256(Path(shipped.path).read_bytes()).hexdigest() == before
+    written = write_calibration_report(again, tmp_path / "out")
+    assert json.loads(written["json"].read_text())["fresh_verification"]
+    assert "none taken from the store" in written["md"].read_text()
+    # resumed again: the run's own store is kept (not copied over), and nothing runs
+    seed_store({"store_from": str(shipped.path)}, run_store)
+    run_calibration(CampaignStore(run_store, "known-answer", extra_stages=EXTRA_STAGES), executor, settings,
+                    km.known_measurement(), tmp_path / "out2", km.NOMINAL_DENSITY, echo=lambda s: None)
+    assert len(log.read_text().splitlines()) == len(runs)
+
+
+def test_store_from_must_name_a_store(tmp_path):
+    from bo.cli.calibrate import seed_store
+
+    with pytest.raises(ConfigError, match=r"store_from = '.*missing.sqlite' is not allowed; expected an existing "
+                                          r"campaign store file"):
+        seed_store({"store_from": str(tmp_path / "missing.sqlite")}, tmp_path / "run.sqlite")
+    assert seed_store({"store_from": None}, tmp_path / "run.sqlite") is None
+
+
 # -- kill and resume -------------------------------------------------------------------------
 
 def test_killed_campaign_resumes_without_losing_or_repeating_a_run(tmp_path):
@@ -246,6 +294,7 @@ def test_killed_campaign_resumes_without_losing_or_repeating_a_run(tmp_path):
     ("ga.mode=best", r"ga: mode = 'best' is not allowed; expected 'restricted' or 'unrestricted'"),
     ("surrogate.kernels=[gaussian]", r"surrogate: kernels = \['gaussian'\] is not allowed"),
     ("verification.replicates=0", r"verification: replicates = 0 is not allowed; expected an int >= 1"),
+    ("verification.fresh=maybe", r"verification: fresh = 'maybe' is not allowed; expected true or false"),
     ("validation.conditions=[60-40]", r"validation.conditions: \['60-40'\] are not in the measured data"),
     ("measured=/nonexistent/lab.json", r"/nonexistent/lab.json: cannot read measured-data file"),
 ])

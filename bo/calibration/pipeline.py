@@ -23,7 +23,10 @@ and the GA result is kept as a store artifact.
    (Table 9), restricted (parameters <= 0.9) and unrestricted (Table 8); the lowest fitness of
    the chosen mode is the calibrated set.
 4. ``verification`` (stage ``verification``): the calibrated set with the verification seeds;
-   relative error per KPI (Fig. 14, Table A.4).
+   relative error per KPI (Fig. 14, Table A.4). With ``fresh_verification`` the same runs are
+   made again in a batch of their own that takes nothing from the store (batch key
+   ``fresh/...``): a resumed campaign, such as a shipped store, is then verified on the machine
+   that resumes it, beside the campaign's own verification.
 5. ``density`` (stage ``density``): bulk density check (section 3.6): the DEM's maximum heap
    height in the lower box against the measured one; every particle density is multiplied by
    the mean ratio H_DEM / H_Exp and the calibrated set is verified again (Figs. 15-16,
@@ -134,6 +137,7 @@ class CalibrationSettings:
         validation_seeds: seeds of every validation condition.
         validate_with_density: validate with the recalibrated densities (when recalibrated).
         seed: seed of the GA repetitions.
+        fresh_verification: run the verification again, sharing no stored run (see stage 4).
     """
 
     condition: str
@@ -150,6 +154,7 @@ class CalibrationSettings:
     validation_seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     validate_with_density: bool = True
     seed: int = 0
+    fresh_verification: bool = False
 
     def validate(self, source: str = "calibration") -> "CalibrationSettings":
         if self.screening.condition != self.condition:
@@ -265,6 +270,7 @@ class CalibrationResult:
     final_parameters: Mapping[str, float]
     evaluations: Mapping[str, int]
     wall_time_s: Mapping[str, float]
+    fresh_verification: tuple[KPIAgreement, ...] | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -289,8 +295,8 @@ def _replicates(store: CampaignStore, stage: str, key: str, n_points: int, seeds
 
 def _run_batch(store: CampaignStore, executor: Executor, stage: str, key: str,
                make_points: Callable[[], Sequence[Mapping[str, float]]], seeds: Sequence[int],
-               conditions: Sequence[str]) -> list[dict[str, float]]:
-    points = store.batch(stage, key, make_points, seeds=list(seeds), conditions=list(conditions))
+               conditions: Sequence[str], share: bool = True) -> list[dict[str, float]]:
+    points = store.batch(stage, key, make_points, seeds=list(seeds), conditions=list(conditions), share=share)
     run_pending(store, executor, stage)
     return points
 
@@ -524,10 +530,13 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
 
 
 def verify(store: CampaignStore, executor: Executor, stage: str, params: Mapping[str, float],
-           seeds: Sequence[int], conditions: Sequence[str], kpis: Sequence[str]) -> dict[str, np.ndarray]:
-    """Run one parameter set on conditions with seeds (resumable); ``{condition: [r, M]}``."""
-    key = "set/" + _key(sorted(params.items()))
-    _run_batch(store, executor, stage, key, lambda: [dict(params)], seeds, conditions)
+           seeds: Sequence[int], conditions: Sequence[str], kpis: Sequence[str],
+           fresh: bool = False) -> dict[str, np.ndarray]:
+    """Run one parameter set on conditions with seeds (resumable); ``{condition: [r, M]}``.
+    ``fresh``: a batch of its own (key ``fresh/set/...``) whose runs are all computed here,
+    none taken from the same runs stored elsewhere."""
+    key = ("fresh/" if fresh else "") + "set/" + _key(sorted(params.items()))
+    _run_batch(store, executor, stage, key, lambda: [dict(params)], seeds, conditions, share=not fresh)
     return {c: _replicates(store, stage, key, 1, seeds, c, kpis)[0] for c in conditions}
 
 
@@ -631,6 +640,11 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     ver = verify(store, executor, "verification", ga.calibrated, settings.verification_seeds, [settings.condition],
                  kpis)[settings.condition]
     verification = agreement(ver, kpis, lab)
+    fresh = None
+    if settings.fresh_verification:
+        echo(f"      and again on this machine ({len(settings.verification_seeds)} runs, none taken from the store)")
+        fresh = agreement(verify(store, executor, "verification", ga.calibrated, settings.verification_seeds,
+                                 [settings.condition], kpis, fresh=True)[settings.condition], kpis, lab)
     lap("verification")
     echo("[5/6] bulk density check")
     density = density_stage(store, executor, settings, ga.calibrated, ver, kpis, measured, densities)
@@ -652,4 +666,5 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     evaluations["total"] = sum(evaluations.values())
     return CalibrationResult(settings=settings, screening=screening, objective=objective, parameter_choice_note=note,
                              surrogate=surrogate, ga=ga, verification=verification, density=density,
-                             validation=val, final_parameters=final, evaluations=evaluations, wall_time_s=walls)
+                             validation=val, final_parameters=final, evaluations=evaluations, wall_time_s=walls,
+                             fresh_verification=fresh)

@@ -83,6 +83,8 @@ def calibration_payload(result: CalibrationResult) -> dict:
                       "strategy_comparison": strategy_comparison(result)},
         "ga": _ga_json(result),
         "verification": [a.to_dict() for a in result.verification],
+        "fresh_verification": (None if result.fresh_verification is None
+                               else [a.to_dict() for a in result.fresh_verification]),
         "density": {"skipped_because": dens.skipped_because, "heap_dem_m": list(dens.heap_dem_m),
                     "heap_measured_m": dens.heap_measured_m, "ratio": dens.ratio, "densities": dict(dens.densities),
                     "verification": [a.to_dict() for a in dens.agreement]},
@@ -175,6 +177,9 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
     if "choice" in ga.notes:
         lines += [ga.notes["choice"], ""]
     lines += ["## 4. Verification (Fig. 14, Table A.4)", ""] + agreement_table(result.verification)
+    if result.fresh_verification is not None:
+        lines += ["", f"The same {len(s.verification_seeds)} runs made again on the machine that wrote this report "
+                  "(none taken from the store):", ""] + agreement_table(result.fresh_verification)
     if "fig14" in files:
         lines += ["", f"![Fig. 14]({files['fig14'].name})"]
     lines += ["", "## 5. Bulk density (Figs. 15-16, Table A.5)", ""]

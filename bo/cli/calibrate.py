@@ -51,6 +51,35 @@ def _floats(value, key: str, where: str, allowed: str) -> tuple[float, ...]:
     return out
 
 
+def _flag(value, key: str, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise out_of_range(key, value, "true or false", where)
+    return value
+
+
+def seed_store(plain: Mapping[str, Any], path: Path) -> Path | None:
+    """Copy ``store_from`` (a shipped campaign store) to the run's store ``path`` if that does
+    not exist yet, so the campaign resumes from it and the shipped file stays as it is; returns
+    the source, or None without ``store_from``. A run whose store exists already resumes its own."""
+    source = plain.get("store_from")
+    if source is None:
+        return None
+    if not isinstance(source, str) or not source:
+        raise out_of_range("store_from", source, "the path of a campaign store (.sqlite) or null", "config")
+    src = Path(source).expanduser().resolve()
+    if not src.is_file():
+        raise out_of_range("store_from", source, "an existing campaign store file", "config")
+    if src == path.resolve():
+        raise ConfigError(f"config: store_from = {source} is the run's own store; give a new store= (or none)")
+    if not path.exists():
+        import sqlite3
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with sqlite3.connect(f"file:{src}?mode=ro", uri=True) as read, sqlite3.connect(path) as write:
+            read.backup(write)  # a consistent copy even if another process writes the source
+    return src
+
+
 def _wrap(where: str, build):
     """Build a typed settings object; its ConfigError names the config block."""
     try:
@@ -166,7 +195,8 @@ def calibration_settings_from(plain: Mapping[str, Any]):
         verification_seeds=_seeds(ver, "verification", base),
         density_recalibration=bool((plain.get("density") or {}).get("recalibrate", True)),
         validation_conditions=conditions, validation_seeds=_seeds(val, "validation", base),
-        validate_with_density=bool(val.get("with_density", True)), seed=base)
+        validate_with_density=bool(val.get("with_density", True)), seed=base,
+        fresh_verification=_flag(ver.get("fresh", False), "fresh", "verification"))
     return _wrap("", settings.validate)
 
 
@@ -203,19 +233,21 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     validation_conditions(settings, measured)
     model, densities = calibration_model_from(plain, measured)
     path = store_path_from(plain, out)
+    source = seed_store(plain, path)
     # the measured data decide the conditions' mixtures, so they are part of the model
     store = CampaignStore(path, config_hash(plain, MODEL_KEYS + ("measured",)),
                           allow_config_mismatch=bool(plain.get("allow_config_mismatch")), extra_stages=EXTRA_STAGES)
     started = time.perf_counter()
-    echo(f"torchdem-calibrate: store {path}, output {out}")
+    echo(f"torchdem-calibrate: store {path}" + (f" (from {source})" if source else "") + f", output {out}")
     with executor_from(executor_settings, model) as executor:
         result = run_calibration(store, executor, settings, measured, out, densities, echo=echo)
     files = write_calibration_report(result, out)
     wall = time.perf_counter() - started
     echo(f"calibrated: " + ", ".join(f"{k} = {v:.4g}" for k, v in result.final_parameters.items()))
-    for a in result.verification:
-        echo(f"  verification {a.kpi:28s} DEM {a.dem_mean:.4g} vs lab {a.measured_mean:.4g}: "
-             f"{a.relative_error_pct:+.2f} %")
+    for label, rows in (("verification", result.verification), ("fresh       ", result.fresh_verification or ())):
+        for a in rows:
+            echo(f"  {label} {a.kpi:28s} DEM {a.dem_mean:.4g} vs lab {a.measured_mean:.4g} +- {a.measured_ci95:.3g}: "
+                 f"{a.relative_error_pct:+.2f} %" + ("" if a.within_ci else " (outside the lab's 95 % CI)"))
     echo(f"DEM evaluations {result.evaluations['total']}; wall {wall:.1f} s; wrote "
          f"{', '.join(sorted(p.name for p in files.values()))} to {out}")
     return {"store": str(path), "out_dir": str(out), "wall_time_s": round(wall, 2),
