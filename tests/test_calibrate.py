@@ -192,6 +192,30 @@ def test_report_files_and_counts_match_the_store(known_campaign):
     assert "## 6. Validation" in md and "50-50-reverse" in md and "| mu_s_pp |" in md
 
 
+def test_report_sets_the_campaign_beside_the_papers_tables(known_campaign, tmp_path):
+    from bo.calibration.report import PAPER_DEM_RUNS
+    from torchdem.measured import load_paper_tables
+
+    result, _, _, _ = known_campaign
+    files = write_calibration_report(result, tmp_path, paper=load_paper_tables())
+    c = json.loads(files["json"].read_text())["paper_comparison"]
+    assert c["parameters"]["mu_s_pp"] == {"ours": pytest.approx(result.final_parameters["mu_s_pp"]), "table8": 0.73}
+    assert c["parameters"]["mu_s_pg"]["ours"] is None and c["parameters"]["mu_s_pg"]["table8"] == 0.9
+    assert c["verification"]["table_a4"]["shear_angle_deg"] == -1.48
+    ours = {(cond, a.kpi.replace("_full_", "_")): a.relative_error_pct
+            for cond, rows in result.validation.items() for a in rows}
+    assert c["validation"]["ours"]["75-25"]["mass_flow_rate_kg_s"] == pytest.approx(ours[("75-25", "mass_flow_rate_kg_s")])
+    papers = {"angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_kg_s", "mass_lower_box_kg"}
+    assert c["largest_validation_error_pct"]["ours"] == pytest.approx(max(abs(e) for (_, k), e in ours.items()
+                                                                          if k in papers))
+    assert c["largest_validation_error_pct"]["table_a6"] == 7.23
+    assert c["dem_runs"] == {"ours": result.evaluations["total"], "paper": PAPER_DEM_RUNS}
+    md = files["md"].read_text()
+    assert "## Beside the paper (Hadi et al.)" in md and "| mu_s_pg | - | 0.9 |" in md
+    assert "the paper 7.23 %" in md
+    assert "paper_comparison" not in json.loads(write_calibration_report(result, tmp_path / "plain")["json"].read_text())
+
+
 # -- make run: a shipped store, resumed, with the verification made again ----------------------
 
 def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(known_campaign, tmp_path):

@@ -16,6 +16,11 @@ already written its own files into ``out_dir/screening/``):
 * ``fig13_actual_vs_predicted.png``, ``fig14_verification.png``, ``fig16_density.png`` (when the
   density check ran), ``fig18_validation.png`` (when validation conditions exist).
 
+With ``paper`` (``torchdem.measured.load_paper_tables()``, for a campaign on the paper's own
+Table 2) both files also set the result beside the paper's: calibrated parameters (Table 8),
+verification errors (Table A.4), densities (Table A.5), validation errors (Table A.6), the
+largest validation error and the DEM runs (:func:`paper_comparison`).
+
 Returns ``{name: path}`` of every file written.
 """
 from __future__ import annotations
@@ -32,7 +37,7 @@ from bo.calibration.pipeline import CalibrationResult, KPIAgreement
 from bo.report.plots import write_relative_error_plot
 from bo.screening.pipeline import json_ready
 
-__all__ = ["write_calibration_report", "calibration_payload", "agreement_table"]
+__all__ = ["write_calibration_report", "calibration_payload", "agreement_table", "paper_comparison"]
 
 
 def agreement_table(rows: Sequence[KPIAgreement]) -> list[str]:
@@ -107,7 +112,69 @@ def strategy_comparison(result: CalibrationResult) -> dict:
     return out
 
 
-def write_calibration_report(result: CalibrationResult, out_dir: str | Path) -> dict[str, Path]:
+#: The paper's DEM cost: 29 screening runs x 5, 110 surrogate points x 5, verification 5, the
+#: density step 5, validation 3 conditions x 5 (section 3, Table 7): whole-box runs.
+PAPER_DEM_RUNS = 29 * 5 + 110 * 5 + 5 + 5 + 3 * 5
+
+
+def _paper_kpi(kpi: str) -> str:
+    """The paper's name of a DEM KPI (a ``<x>_full_<unit>`` mass of a reduced box is its ``<x>_<unit>``)."""
+    return kpi.replace("_full_", "_")
+
+
+def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
+    """This campaign beside the paper's (see the module docstring), as plain data."""
+    dem = paper["dem_vs_experiment"]
+    table8 = paper["ga_calibration"][paper["ga_calibration"]["selected"]]
+
+    def errors(rows: Sequence[KPIAgreement]) -> dict[str, float]:
+        return {_paper_kpi(a.kpi): a.relative_error_pct for a in rows}
+
+    ours_val = {c: errors(rows) for c, rows in result.validation.items()}
+    paper_val = {c: v["relative_error_percent"] for c, v in dem["validation"]["conditions"].items()}
+    worst = [abs(e) for c, row in ours_val.items() for k, e in row.items() if k in paper_val.get(c, {})]
+    verification = result.fresh_verification if result.fresh_verification is not None else result.verification
+    return {
+        "parameters": {n: {"ours": result.final_parameters.get(n), "table8": table8.get(n)}
+                       for n in dict.fromkeys(list(result.final_parameters) + list(table8))},
+        "verification": {"ours": errors(verification), "within_ci": {_paper_kpi(a.kpi): a.within_ci
+                                                                      for a in verification},
+                         "table_a4": dem["calibration"]["relative_error_percent"]},
+        "densities": {"ours": {k[len("density_"):]: v for k, v in result.final_parameters.items()
+                               if k.startswith("density_")} or dict(result.density.densities),
+                      "table_a5": paper["bulk_density_recalibration"]["particle_density_kg_m3"]},
+        "validation": {"ours": ours_val, "table_a6": paper_val},
+        "largest_validation_error_pct": {"ours": max(worst) if worst else None,
+                                         "table_a6": max(abs(e) for row in paper_val.values() for e in row.values())},
+        "dem_runs": {"ours": result.evaluations.get("total"), "paper": PAPER_DEM_RUNS},
+    }
+
+
+def _paper_markdown(c: Mapping) -> list[str]:
+    f = lambda v, fmt=".3g": "-" if v is None else format(v, fmt)  # noqa: E731
+    lines = ["## Beside the paper (Hadi et al.)", "", "| parameter | this campaign | Table 8 |", "| --- | ---: | ---: |"]
+    lines += [f"| {n} | {f(v['ours'])} | {f(v['table8'])} |" for n, v in c["parameters"].items()]
+    ver = c["verification"]
+    lines += ["", "| verification, 50-50 | this campaign | within the lab's CI | Table A.4 |", "| --- | ---: | :---: | ---: |"]
+    lines += [f"| {k} | {f(ver['ours'].get(k), '+.2f')} % | {'yes' if ver['within_ci'].get(k) else 'no'} | "
+              f"{f(v, '+.2f')} % |" for k, v in ver["table_a4"].items()]
+    dens = c["densities"]
+    lines += ["", "Particle densities (kg/m^3): this campaign " + (", ".join(f"{m} {v:.0f}" for m, v in dens["ours"].items())
+                                                                   or "nominal") +
+              "; Table A.5 " + ", ".join(f"{m} {v:.0f}" for m, v in dens["table_a5"].items()) + ".", ""]
+    val = c["validation"]
+    lines += ["| validation | KPI | this campaign | Table A.6 |", "| --- | --- | ---: | ---: |"]
+    for cond, row in val["table_a6"].items():
+        lines += [f"| {cond} | {k} | {f(val['ours'].get(cond, {}).get(k), '+.2f')} % | {f(v, '+.2f')} % |"
+                  for k, v in row.items()]
+    worst, runs = c["largest_validation_error_pct"], c["dem_runs"]
+    lines += ["", f"Largest validation |error|: this campaign {f(worst['ours'], '.2f')} %, the paper {worst['table_a6']:.2f} %. "
+              f"DEM runs: this campaign {runs['ours']}, the paper about {runs['paper']} (whole box).", ""]
+    return lines
+
+
+def write_calibration_report(result: CalibrationResult, out_dir: str | Path,
+                             paper: Mapping | None = None) -> dict[str, Path]:
     """Write the report files (see the module docstring)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -126,6 +193,8 @@ def write_calibration_report(result: CalibrationResult, out_dir: str | Path) -> 
         files["fig18"] = write_relative_error_plot({c: rows for c, rows in result.validation.items() if rows},
                                                    out / "fig18_validation.png", "Validation (Fig. 18)")
     payload = calibration_payload(result)
+    if paper is not None:
+        payload["paper_comparison"] = json_ready(paper_comparison(result, paper))
     files["json"] = out / "calibration.json"
     files["json"].write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
     files["md"] = out / "report.md"
@@ -197,6 +266,8 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
         lines += [f"### {c}", ""] + agreement_table(rows) + [""]
     if "fig18" in files:
         lines += [f"![Fig. 18]({files['fig18'].name})", ""]
+    if "paper_comparison" in payload:
+        lines += _paper_markdown(payload["paper_comparison"])
     ev, wall = result.evaluations, result.wall_time_s
     lines += ["## Cost", "", "| stage | DEM evaluations |", "| --- | ---: |"]
     lines += [f"| {k} | {v} |" for k, v in ev.items()]

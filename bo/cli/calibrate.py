@@ -225,7 +225,7 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     from bo.calibration.pipeline import EXTRA_STAGES, run_calibration, validation_conditions
     from bo.calibration.report import write_calibration_report
     from bo.campaign.store import CampaignStore
-    from torchdem.measured import load_measured
+    from torchdem.measured import load_measured, load_paper_tables
 
     settings = calibration_settings_from(plain)
     executor_settings = executor_settings_from(plain.get("executor") or {})
@@ -241,7 +241,8 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     echo(f"torchdem-calibrate: store {path}" + (f" (from {source})" if source else "") + f", output {out}")
     with executor_from(executor_settings, model) as executor:
         result = run_calibration(store, executor, settings, measured, out, densities, echo=echo)
-    files = write_calibration_report(result, out)
+    paper = load_paper_tables() if plain.get("measured") is None else None  # the paper's own Table 2
+    files = write_calibration_report(result, out, paper=paper)
     wall = time.perf_counter() - started
     echo(f"calibrated: " + ", ".join(f"{k} = {v:.4g}" for k, v in result.final_parameters.items()))
     for label, rows in (("verification", result.verification), ("fresh       ", result.fresh_verification or ())):
