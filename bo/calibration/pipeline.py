@@ -93,6 +93,10 @@ _GA_MODES = ("restricted", "unrestricted")
 # Settings
 # --------------------------------------------------------------------------------------------
 
+#: The GP observation noise of points run once (``SurrogateStageSettings.noise``).
+NOISE_MODELS = ("learned", "pooled")
+
+
 @dataclass(frozen=True)
 class SurrogateStageSettings:
     """The surrogate stage.
@@ -108,6 +112,10 @@ class SurrogateStageSettings:
         compare_strategies: also cross-validate the other strategy after every round.
         added: name -> (low, high) of parameters calibrated besides ``parameters`` (or Table 5's
             selection): densities, a mechanism's parameters (``lobe_spacing_sinter``).
+        noise: the GP's observation noise where a point has one replicate: ``"learned"`` (one
+            noise level fitted with the GP) or ``"pooled"`` (fixed, from the replicate scatter of
+            the screening's runs pooled over its design: :func:`pooled_replicate_covariance`).
+            Points with two or more replicates always use their own replicate-mean variance.
     """
 
     parameters: tuple[str, ...] | None
@@ -117,6 +125,7 @@ class SurrogateStageSettings:
     config: SurrogateConfig = SurrogateConfig()
     compare_strategies: bool = True
     added: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    noise: str = "learned"
 
 
 @dataclass(frozen=True)
@@ -218,7 +227,8 @@ class SurrogateOutcome:
             included). dropped_points: points without a usable objective (fewer than
             ``min(2, r)`` finite replicates of some KPI).
         strategy_r2: strategy -> CV R^2 mean per round (the run's strategy and, when compared,
-            the other one on the same data).
+            the other one on the same data; with pooled noise also ``"<strategy>, learned noise"``:
+            the run's strategy with a learned noise level, on the same data).
     """
 
     parameters: tuple[str, ...]
@@ -320,9 +330,29 @@ def agreement(replicates: np.ndarray, kpis: Sequence[str], measured: Mapping) ->
     return tuple(out)
 
 
-def _objective_data(kpi_reps: np.ndarray, objective: ObjectiveSpec, strategy: str
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """``(usable [n] bool, y, y_var)`` from ``[n, r, M]`` replicates (finite ones only)."""
+def pooled_replicate_covariance(kpi_reps: np.ndarray) -> tuple[np.ndarray, int]:
+    """``([M, M] covariance, degrees of freedom)`` of single DEM runs about their point's mean,
+    pooled over every point of ``[n, r, M]`` replicates with two or more runs whose M KPIs are
+    all finite: sum of the deviations' outer products / sum of (runs - 1). Raises when no point
+    has two such runs."""
+    n, r, m = kpi_reps.shape
+    scatter, dof = np.zeros((m, m)), 0
+    for i in range(n):
+        rows = kpi_reps[i][np.isfinite(kpi_reps[i]).all(axis=1)]
+        if rows.shape[0] >= 2:
+            dev = rows - rows.mean(axis=0)
+            scatter += dev.T @ dev
+            dof += rows.shape[0] - 1
+    if dof == 0:
+        raise ConfigError(f"pooled replicate noise: none of {n} points has two runs with every KPI measured")
+    return scatter / dof, dof
+
+
+def _objective_data(kpi_reps: np.ndarray, objective: ObjectiveSpec, strategy: str,
+                    pooled: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(usable [n] bool, y, y_var)`` from ``[n, r, M]`` replicates (finite ones only).
+    ``pooled``: ``[M, M]`` covariance of one run (:func:`pooled_replicate_covariance`), the
+    noise of points measured once (else their noise is left to the GP)."""
     n, r, m = kpi_reps.shape
     need = min(2, r)
     finite = np.isfinite(kpi_reps)
@@ -334,17 +364,20 @@ def _objective_data(kpi_reps: np.ndarray, objective: ObjectiveSpec, strategy: st
             usable[i] = False
             continue
         mean = rows.mean(axis=0)
+        once = rows.shape[0] == 1
         if strategy == "per_kpi":
             ys.append(mean)
-            vs.append(rows.var(axis=0, ddof=1) / rows.shape[0] if rows.shape[0] > 1 else None)
+            vs.append((None if pooled is None else np.diag(pooled).copy()) if once
+                      else rows.var(axis=0, ddof=1) / rows.shape[0])
         else:
             measured, weights = np.asarray(objective.measured), np.asarray(objective.weights)
             ys.append(float(objective(mean)))
-            if rows.shape[0] > 1:  # delta method, as bo.surrogate.gp.objective_from_replicates
-                grad = weights * np.sign(mean - measured) / np.abs(measured)
+            # delta method, as bo.surrogate.gp.objective_from_replicates
+            grad = weights * np.sign(mean - measured) / np.abs(measured)
+            if not once:
                 vs.append(float((rows @ grad).var(ddof=1) / rows.shape[0]))
             else:
-                vs.append(None)
+                vs.append(None if pooled is None else float(grad @ pooled @ grad))
     y = np.asarray(ys, dtype=np.float64).reshape((-1,) if strategy == "scalar" else (-1, m))
     y_var = None if (not vs or any(v is None for v in vs)) else np.asarray(vs, dtype=np.float64).reshape(y.shape)
     return usable, y, y_var
@@ -407,8 +440,9 @@ def choose_parameters(screening: ScreeningReport, s: SurrogateStageSettings
 
 def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str, names: Sequence[str],
                     bounds: np.ndarray, objective: ObjectiveSpec, s: SurrogateStageSettings,
-                    echo: Callable[[str], None] = print) -> SurrogateOutcome:
-    """Stage 2: LHS then qLogEI rounds through the store until the target R^2 or the budget."""
+                    echo: Callable[[str], None] = print, pooled: np.ndarray | None = None) -> SurrogateOutcome:
+    """Stage 2: LHS then qLogEI rounds through the store until the target R^2 or the budget.
+    ``pooled``: ``[M, M]`` one-run covariance of the objective's KPIs for ``s.noise == "pooled"``."""
     names = tuple(names)
     d = len(names)
     a, config = s.adaptive, s.config
@@ -426,11 +460,13 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                         lambda: rows(latin_hypercube(bounds, n_initial, seed=a.seed)), s.seeds, [condition])
     X_all, reps_all = evaluated("initial", points)
     other = [t for t in STRATEGIES if t != config.strategy] if s.compare_strategies else []
-    r2: dict[str, list[float]] = {config.strategy: [], **{t: [] for t in other}}
+    # with fixed pooled noise, the GP that learns its noise is cross-validated on the same points too
+    learned = f"{config.strategy}, learned noise" if pooled is not None else None
+    r2: dict[str, list[float]] = {config.strategy: [], **{t: [] for t in other}, **({learned: []} if learned else {})}
     rounds: list[RoundRecord] = []
     k = 0
     while True:
-        usable, y, y_var = _objective_data(reps_all, objective, config.strategy)
+        usable, y, y_var = _objective_data(reps_all, objective, config.strategy, pooled)
         state = SamplingState(X_all[usable], y, y_var)
         if state.n < max(a.n_folds, 2):
             raise ConfigError(f"surrogate stage: only {state.n} of {X_all.shape[0]} points have usable KPIs "
@@ -442,12 +478,17 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
         rounds.append(record)
         r2[config.strategy].append(record.r2_mean)
         for t in other:
-            u, yy, vv = _objective_data(reps_all, objective, t)
+            u, yy, vv = _objective_data(reps_all, objective, t, pooled)
             summary = cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, strategy=t,
                                          kernel=record.kernel), y_var=vv, objective=objective,
                                          n_folds=a.n_folds, seeds=a.cv_seeds)
             r2[t].append(summary.mean)
-        extra = "".join(f", {t} {r2[t][-1]:.3f}" for t in other)
+        if learned:
+            u, yy, _ = _objective_data(reps_all, objective, config.strategy)
+            r2[learned].append(cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, kernel=record.kernel),
+                                                  y_var=None, objective=objective, n_folds=a.n_folds,
+                                                  seeds=a.cv_seeds).mean)
+        extra = "".join(f", {t} {r2[t][-1]:.3f}" for t in r2 if t != config.strategy)
         echo(f"surrogate round {k}: {X_all.shape[0]} points ({state.n} usable), CV R^2 {record.r2_mean:.3f} "
              f"+/- {record.r2_std:.3f} ({record.kernel}, {config.strategy}{extra})")
         if record.r2_mean >= a.target_r2:
@@ -466,7 +507,7 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
         X_new, reps_new = evaluated(stage, batch)
         X_all = np.concatenate([X_all, X_new])
         reps_all = np.concatenate([reps_all, reps_new])
-    usable, _, _ = _objective_data(reps_all, objective, config.strategy)
+    usable, _, _ = _objective_data(reps_all, objective, config.strategy, pooled)
     return SurrogateOutcome(parameters=names, bounds=bounds, state=state, kpi_replicates=reps_all[usable],
                             rounds=tuple(rounds), stopped_because=reason, points_run=int(X_all.shape[0]),
                             dropped_points=int((~usable).sum()),
@@ -628,8 +669,15 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     objective = objective_for(settings, screening, lab)
     names, bounds, note = choose_parameters(screening, settings.surrogate)
     echo(f"[2/6] surrogate: {note}; objective KPIs {list(objective.kpi_names)}")
+    pooled = None
+    if settings.surrogate.noise == "pooled":
+        table = screening.results
+        reps = table.kpi_values[:, :, [table.kpi_index(k) for k in objective.kpi_names]]
+        pooled, dof = pooled_replicate_covariance(reps)
+        echo(f"      GP noise of single runs pooled from the screening's replicates ({dof} degrees of freedom): "
+             + ", ".join(f"{k} sd {math.sqrt(pooled[j, j]):.3g}" for j, k in enumerate(objective.kpi_names)))
     surrogate = surrogate_stage(store, executor, condition=settings.condition, names=names, bounds=bounds,
-                                objective=objective, s=settings.surrogate, echo=echo)
+                                objective=objective, s=settings.surrogate, echo=echo, pooled=pooled)
     lap("surrogate")
     echo("[3/6] genetic algorithm on the surrogate")
     ga = ga_stage(store, surrogate, objective, settings, echo)

@@ -79,7 +79,7 @@ def calibration_payload(result: CalibrationResult) -> dict:
                                  for j, n in enumerate(sur.parameters)},
                       "choice": result.parameter_choice_note,
                       "strategy": s.surrogate.config.strategy,
-                      "replicates_per_point": len(s.surrogate.seeds),
+                      "replicates_per_point": len(s.surrogate.seeds), "noise": s.surrogate.noise,
                       "points_run": sur.points_run, "dropped_points": sur.dropped_points,
                       "stopped_because": sur.stopped_because, "target_r2": s.surrogate.adaptive.target_r2,
                       "rounds": [{"round": r.index, "n_points": r.n_points, "kernel": r.kernel,
@@ -213,7 +213,8 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
     lines += ["## 1. Screening", "", f"See [screening/screening.md](screening/screening.md). Kept KPIs: "
               f"{list(result.screening.calibration_kpis)}. {result.parameter_choice_note}.", ""]
     lines += ["## 2. Surrogate (Table 7, Fig. 13)", "",
-              f"{len(sur.parameters)} parameters, {len(s.surrogate.seeds)} replicates per point, strategy "
+              f"{len(sur.parameters)} parameters, {len(s.surrogate.seeds)} replicates per point"
+              + (f" (noise of single runs: {s.surrogate.noise})" if len(s.surrogate.seeds) == 1 else "") + ", strategy "
               f"`{s.surrogate.config.strategy}`; {sur.points_run} points run ({sur.dropped_points} without usable "
               f"KPIs); stopped because: {sur.stopped_because}.", "",
               "| parameter | low | high |", "| --- | ---: | ---: |"]
@@ -230,7 +231,7 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
                      + (f"after {c['points_to_target']} points ({c['dem_runs_to_target']} DEM runs)"
                         if c["points_to_target"] is not None else "in no round") for t, c in comp.items()]
     if len(strategies) > 1:
-        lines.append("  (both strategies cross-validated on the points the run's strategy sampled)")
+        lines.append("  (every variant cross-validated on the points the run's strategy sampled)")
     lines += ["", f"![Fig. 13]({files['fig13'].name})", "", "## 3. Genetic algorithm (Tables 8, 9)", ""]
     for mode, summary in ga.summaries.items():
         if summary is None:

@@ -92,7 +92,7 @@ def _wrap(where: str, build):
 
 def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     from bo.surrogate.acquisition import AcquisitionSettings, AdaptiveSettings
-    from bo.calibration.pipeline import SurrogateStageSettings
+    from bo.calibration.pipeline import NOISE_MODELS, SurrogateStageSettings
     from bo.surrogate.gp import KERNELS, STRATEGIES, SurrogateConfig
 
     where = "surrogate"
@@ -147,9 +147,13 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     if names is not None:
         _wrap(where, lambda: adaptive.initial_size(len(names) + len(checked_added)))  # budget vs initial design, up front
     config = _wrap(where, lambda: SurrogateConfig(kernel=kernels[0], strategy=strategy))
+    noise = cfg.get("noise", "learned")
+    if noise not in NOISE_MODELS:
+        raise out_of_range("noise", noise, f"one of {list(NOISE_MODELS)}", where)
     return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=_seeds(cfg, where, base_seed),
                                   adaptive=adaptive, config=config,
-                                  compare_strategies=bool(cfg.get("compare_strategies")), added=checked_added)
+                                  compare_strategies=bool(cfg.get("compare_strategies")), added=checked_added,
+                                  noise=noise)
 
 
 def calibration_settings_from(plain: Mapping[str, Any]):
