@@ -14,7 +14,6 @@ Usage::
 """
 from __future__ import annotations
 
-import functools
 import json
 import math
 import time
@@ -79,7 +78,7 @@ def effects_from(plain: Mapping[str, Any], context) -> list:
 
 def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     from bo.cli.calibrate import calibration_model_from
-    from bo.cli.common import executor_from
+    from bo.cli.common import executor_factory
     from bo.cli.discover import calibrated_from, discovery_settings_from
     from bo.campaign.store import CampaignStore
     from bo.discovery.pipeline import discovery_stages
@@ -108,10 +107,11 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     echo(f"power study: {len(effects)} effects x {numbers['labs']} labs + {numbers['null_labs']} null labs; "
          f"baseline from {source}; store {store.path}")
     started = time.perf_counter()
-    outcomes = run_power_study(store, functools.partial(executor_from, executor_settings), model, baseline, template,
-                               effects, settings, labs=numbers["labs"], null_labs=numbers["null_labs"],
-                               lab_replicates=numbers["lab_replicates"], lab_seed=numbers["lab_seed"],
-                               discovery_seed=numbers["discovery_seed"], echo=echo)
+    with executor_factory(executor_settings) as executor_for:
+        outcomes = run_power_study(store, executor_for, model, baseline, template, effects, settings,
+                                   labs=numbers["labs"], null_labs=numbers["null_labs"],
+                                   lab_replicates=numbers["lab_replicates"], lab_seed=numbers["lab_seed"],
+                                   discovery_seed=numbers["discovery_seed"], echo=echo)
     rows = tabulate(outcomes, effects)
     summary = power_summary(rows, target)
     wall = time.perf_counter() - started

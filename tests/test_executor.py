@@ -183,3 +183,19 @@ def test_dask_executor_matches_in_process(tmp_path):
         assert executor.client.status == "running"
         cluster = executor._cluster
     assert executor.client.status == "closed" and cluster.status.name == "closed"
+
+
+def test_executor_factory_serves_every_model_from_one_cluster():
+    """Discovery and the power study make an executor per model (hypothesis, twin): with dask they
+    share one local cluster, whose worker processes live until the factory closes."""
+    from bo.cli.common import ExecutorSettings, executor_factory
+
+    with executor_factory(ExecutorSettings("dask", batch_size=2, n_workers=1)) as executor_for:
+        with executor_for("model A") as first:
+            pids = set(first.client.run(os.getpid).values())
+        with executor_for("model B") as second:
+            assert second.client is first.client and set(second.client.run(os.getpid).values()) == pids
+        assert first.client.status == "running"                  # an executor leaves the shared client open
+    assert first.client.status == "closed"
+    with executor_factory(ExecutorSettings("inprocess", batch_size=2)) as executor_for:
+        assert isinstance(executor_for("model"), InProcessExecutor)

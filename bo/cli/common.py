@@ -4,8 +4,10 @@ store's config hash and path. Every bad value raises ``ConfigError`` naming its 
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
+import os
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -118,16 +120,39 @@ def model_from(plain: Mapping[str, Any]):
                           *config.extension_from(plain.get("extension")))
 
 
-def executor_from(settings: ExecutorSettings, model):
-    """The executor running ``bo.campaign.dem.evaluate_batch`` on ``model``."""
+def executor_from(settings: ExecutorSettings, model, client=None):
+    """The executor running ``bo.campaign.dem.evaluate_batch`` on ``model`` (dask: on ``client``
+    when given, see :func:`executor_factory`)."""
     from bo.campaign.dem import evaluate_batch
     from bo.campaign.executor import DaskExecutor, InProcessExecutor
 
     evaluate = functools.partial(evaluate_batch, model)
     if settings.kind == "inprocess":
         return InProcessExecutor(evaluate, settings.batch_size)
+    if client is not None:
+        return DaskExecutor(evaluate, settings.batch_size, client=client, max_in_flight=settings.max_in_flight)
     return DaskExecutor(evaluate, settings.batch_size, address=settings.address,
                         n_workers=settings.n_workers, max_in_flight=settings.max_in_flight)
+
+
+@contextlib.contextmanager
+def executor_factory(settings: ExecutorSettings):
+    """``model -> executor`` for the commands that run many models (discovery, the power study:
+    every hypothesis and twin is a model of its own). With ``executor=dask`` and no ``address``,
+    one local cluster serves them all; a cluster per model restarted its worker processes (torch,
+    the C++ kernels) for each of them."""
+    if settings.kind != "dask" or settings.address is not None:
+        yield functools.partial(executor_from, settings)
+        return
+    from dask.distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=settings.n_workers or os.cpu_count() or 1, threads_per_worker=1,
+                           processes=True, dashboard_address=":0")
+    try:
+        with Client(cluster) as client:
+            yield functools.partial(executor_from, settings, client=client)
+    finally:
+        cluster.close()
 
 
 def store_path_from(plain: Mapping[str, Any], out: Path) -> Path:

@@ -15,7 +15,6 @@ config errors are raised before the store is opened or any DEM run starts.
 """
 from __future__ import annotations
 
-import functools
 import json
 import time
 from pathlib import Path
@@ -118,7 +117,7 @@ def extension_command(name: str | None, values: Mapping[str, float]) -> str | No
 def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     """The whole app on a plain config: check, run (resume), report. Returns a summary."""
     from bo.cli.calibrate import calibration_model_from
-    from bo.cli.common import executor_from
+    from bo.cli.common import executor_factory
     from bo.discovery.pipeline import discovery_stages, run_discovery
     from bo.discovery.report import write_discovery_report
     from bo.campaign.store import CampaignStore
@@ -145,8 +144,8 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     echo(f"torchdem-discover: {len(measured.names)} conditions of {measured.origin}; calibrated set from {source}; "
          f"store {path}")
     started = time.perf_counter()
-    result = run_discovery(store, functools.partial(executor_from, executor_settings), model, calibrated, measured,
-                           settings, echo=echo)
+    with executor_factory(executor_settings) as executor_for:
+        result = run_discovery(store, executor_for, model, calibrated, measured, settings, echo=echo)
     command = extension_command(result.cause, result.extension)
     files = write_discovery_report(result, out, command)
     wall = time.perf_counter() - started
