@@ -293,6 +293,12 @@ def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(k
     assert {r[1] for r in runs} == set(settings.verification_seeds)
     assert all(dict(r[0]) == dict(result.ga.calibrated) and r[2] == "50-50" for r in runs)
     assert again.final_parameters == result.final_parameters              # the GA was not rerun
+    # every round's cross-validation is read from the store, not fitted again
+    cv = [n for n in CampaignStore(run_store, "known-answer", extra_stages=EXTRA_STAGES).artifact_names()
+          if n.startswith("surrogate-cv/")]
+    assert len(cv) == len(result.surrogate.rounds)
+    assert again.surrogate.strategy_r2 == result.surrogate.strategy_r2
+    assert [r.r2_per_seed for r in again.surrogate.rounds] == [r.r2_per_seed for r in result.surrogate.rounds]
     assert again.verification == result.verification
     # the known model's runs depend only on (parameters, seed, condition): remade, they agree
     assert [a.dem_mean for a in again.fresh_verification] == [a.dem_mean for a in result.verification]

@@ -57,12 +57,13 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from bo.surrogate.acquisition import (AdaptiveSettings, RoundRecord, SamplingState, best_kernel_cv, latin_hypercube,
-                            propose_batch, record_from_cv)
+                            propose_batch)
 from torchdem.model import DENSITY_PREFIX
 from bo.campaign.executor import Executor, run_pending
 from bo.surrogate.ga import GASettings, GASummary, repeated_ga
 from bo.surrogate.objective import ObjectiveSpec
-from bo.screening.pipeline import ScreeningReport, ScreenSettings, analyse_and_report, measured_for, run_screening
+from bo.screening.pipeline import (ScreeningReport, ScreenSettings, analyse_and_report, json_ready, measured_for,
+                                   run_screening)
 from bo.campaign.store import CampaignStore
 from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2
 from torchdem.errors import ConfigError, out_of_range
@@ -291,6 +292,15 @@ def _key(*parts) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=repr).encode()).hexdigest()[:12]
 
 
+def _stored(store: CampaignStore, name: str, compute: Callable[[], dict]) -> dict:
+    """The artifact ``name``, computed (and stored) when the store does not hold it yet."""
+    value = store.get_artifact(name, None)
+    if value is None:
+        value = compute()
+        store.put_artifact(name, value)
+    return value
+
+
 def _replicates(store: CampaignStore, stage: str, key: str, n_points: int, seeds: Sequence[int],
                 condition: str, kpis: Sequence[str]) -> np.ndarray:
     """``[n_points, r, M]`` KPI values of a stored batch (NaN: failed or unmeasured)."""
@@ -473,21 +483,40 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                               f"{list(kpis)} (the rest failed or could not be measured); the GP needs at least "
                               f"{max(a.n_folds, 2)}. Check the DEM runs in {store.path}")
         start = n_initial + (k - 1) * a.q if k else 0  # the round's first point
-        best = best_kernel_cv(state, bounds, a, config, objective)
-        record = record_from_cv(best, k, state.n, X_all[start:][usable[start:]], y[int(usable[:start].sum()):])
+
+        def cross_validate_round() -> dict:
+            best = best_kernel_cv(state, bounds, a, config, objective)
+            variants = {}
+            for t in other:
+                u, yy, vv = _objective_data(reps_all, objective, t, pooled)
+                variants[t] = cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, strategy=t,
+                                                 kernel=best.kernel), y_var=vv, objective=objective,
+                                                 n_folds=a.n_folds, seeds=a.cv_seeds).mean
+            if learned:
+                u, yy, _ = _objective_data(reps_all, objective, config.strategy)
+                variants[learned] = cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, kernel=best.kernel),
+                                                       y_var=None, objective=objective, n_folds=a.n_folds,
+                                                       seeds=a.cv_seeds).mean
+            first = best.results[0]
+            return json_ready({"kernel": best.kernel, "mean": best.mean, "std": best.std, "per_seed": list(best.per_seed),
+                               "actual": first.actual.tolist(), "predicted": first.predicted.tolist(),
+                               "variants": variants})  # NaN as null (strict JSON)
+
+        # A round's cross-validation (hundreds of GP fits) is kept in the store, keyed by its data, so
+        # a resumed campaign (make run on the shipped store) does not fit them again.
+        cv = _stored(store, f"surrogate-cv/{key}/{k}/" + _key(
+            state.X.tolist(), np.asarray(state.y).tolist(), None if state.y_var is None else np.asarray(state.y_var).tolist(),
+            list(a.kernels), list(a.cv_seeds), a.n_folds, sorted(r2)), cross_validate_round)
+        num = lambda v: math.nan if v is None else float(v)  # noqa: E731
+        record = RoundRecord(index=k, n_points=state.n, X=X_all[start:][usable[start:]].copy(),
+                             y=np.array(y[int(usable[:start].sum()):], copy=True), kernel=cv["kernel"],
+                             r2_mean=num(cv["mean"]), r2_std=num(cv["std"]), r2_per_seed=tuple(map(num, cv["per_seed"])),
+                             actual=np.array(cv["actual"], dtype=np.float64),
+                             predicted=np.array(cv["predicted"], dtype=np.float64))
         rounds.append(record)
         r2[config.strategy].append(record.r2_mean)
-        for t in other:
-            u, yy, vv = _objective_data(reps_all, objective, t, pooled)
-            summary = cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, strategy=t,
-                                         kernel=record.kernel), y_var=vv, objective=objective,
-                                         n_folds=a.n_folds, seeds=a.cv_seeds)
-            r2[t].append(summary.mean)
-        if learned:
-            u, yy, _ = _objective_data(reps_all, objective, config.strategy)
-            r2[learned].append(cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, kernel=record.kernel),
-                                                  y_var=None, objective=objective, n_folds=a.n_folds,
-                                                  seeds=a.cv_seeds).mean)
+        for t, value in cv["variants"].items():
+            r2[t].append(num(value))
         extra = "".join(f", {t} {r2[t][-1]:.3f}" for t in r2 if t != config.strategy)
         echo(f"surrogate round {k}: {X_all.shape[0]} points ({state.n} usable), CV R^2 {record.r2_mean:.3f} "
              f"+/- {record.r2_std:.3f} ({record.kernel}, {config.strategy}{extra})")
