@@ -69,8 +69,8 @@ worker (one batch at a time) that books all the cores of the job::
 Dask's nanny sets ``OMP_NUM_THREADS=1`` for its workers, so call ``torch.set_num_threads(8)``
 (the booked cores) inside ``evaluate_batch``. It also sets ``MALLOC_TRIM_THRESHOLD_=65536``, under
 which a draw down run spent 20-25 % of its CPU time page-faulting freed memory back; every
-:class:`torchdem.simulation.Simulation` raises the threshold again (:mod:`torchdem.heap`). With an adaptive cluster the number of worker
-threads at start-up can be zero, hence ``max_in_flight``. Only the campaign process touches
+:class:`torchdem.simulation.Simulation` raises the threshold again (:mod:`torchdem.heap`). With
+an adaptive cluster the number of worker threads at start-up can be zero, hence ``max_in_flight``. Only the campaign process touches
 the SQLite store (workers only evaluate), so the store file can stay on the submit host's
 local disk; SQLite's WAL mode does not work on network file systems (NFS, Lustre).
 """
@@ -312,6 +312,17 @@ class InProcessExecutor(Executor):
             yield list(zip(batch, evaluate_checked(self.evaluate_batch, batch)))
 
 
+def local_cluster(n_workers: int | None = None, cluster_kwargs: Mapping | None = None):
+    """The ``LocalCluster`` a :class:`DaskExecutor` starts: ``n_workers`` processes (default
+    ``os.cpu_count()``) of one thread each, the dashboard on a free port; ``cluster_kwargs`` override."""
+    from dask.distributed import LocalCluster  # optional at import time
+
+    kwargs = {"n_workers": n_workers or os.cpu_count() or 1, "threads_per_worker": 1,
+              "processes": True, "dashboard_address": ":0"}  # a free port, never 8787
+    kwargs.update(cluster_kwargs or {})
+    return LocalCluster(**kwargs)
+
+
 class DaskExecutor(Executor):
     """Runs the batches as dask.distributed futures; see the module docstring.
 
@@ -332,7 +343,7 @@ class DaskExecutor(Executor):
                  address: str | None = None, n_workers: int | None = None,
                  max_in_flight: int | None = None, cluster_kwargs: Mapping | None = None):
         super().__init__(evaluate_batch, batch_size)
-        from dask.distributed import Client, LocalCluster  # optional at import time
+        from dask.distributed import Client  # optional at import time
 
         if client is not None and address is not None:
             raise ConfigError("DaskExecutor: give either client or address, not both "
@@ -348,10 +359,7 @@ class DaskExecutor(Executor):
         elif address is not None:
             self.client = Client(address)
         else:
-            kwargs = {"n_workers": n_workers or os.cpu_count() or 1, "threads_per_worker": 1,
-                      "processes": True, "dashboard_address": ":0"}  # a free port, never 8787
-            kwargs.update(cluster_kwargs or {})
-            self._cluster = LocalCluster(**kwargs)
+            self._cluster = local_cluster(n_workers, cluster_kwargs)
             try:
                 self.client = Client(self._cluster)
             except BaseException:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import hashlib
-import os
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,10 +143,11 @@ def executor_factory(settings: ExecutorSettings):
     if settings.kind != "dask" or settings.address is not None:
         yield functools.partial(executor_from, settings)
         return
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client
 
-    cluster = LocalCluster(n_workers=settings.n_workers or os.cpu_count() or 1, threads_per_worker=1,
-                           processes=True, dashboard_address=":0")
+    from bo.campaign.executor import local_cluster
+
+    cluster = local_cluster(settings.n_workers)
     try:
         with Client(cluster) as client:
             yield functools.partial(executor_from, settings, client=client)
