@@ -11,6 +11,7 @@ Usage::
 
     python scripts/discovery_power.py store=campaigns/power_mini.sqlite
     python scripts/discovery_power.py power.labs=3 power.null_labs=10 'power.mechanisms=[cohesion]'
+    python scripts/discovery_power.py store=campaigns/power_mini.sqlite power.rules=1   # the outcomes of rules 1
 """
 from __future__ import annotations
 
@@ -111,14 +112,17 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
         outcomes = run_power_study(store, executor_for, model, baseline, template, effects, settings,
                                    labs=numbers["labs"], null_labs=numbers["null_labs"],
                                    lab_replicates=numbers["lab_replicates"], lab_seed=numbers["lab_seed"],
-                                   discovery_seed=numbers["discovery_seed"], echo=echo)
+                                   discovery_seed=numbers["discovery_seed"], echo=echo, rules=cfg.get("rules"))
     rows = tabulate(outcomes, effects)
     summary = power_summary(rows, target)
     wall = time.perf_counter() - started
     computed = store.counts(computed_only=True)["done"]
     total = store.counts()["done"]
+    from bo.discovery.pipeline import VERDICT_RULES
+
+    rules = VERDICT_RULES if cfg.get("rules") is None else cfg.get("rules")
     files = write_power_report(rows, summary, out, cost={"dem_runs_computed": computed, "dem_runs_used": total,
-                                                          "wall_time_s": round(wall, 1)})
+                                                          "wall_time_s": round(wall, 1), "verdict_rules": rules})
     echo(files["md"].read_text())
     return {"files": {k: str(v) for k, v in files.items()}, "computed": computed, "used": total}
 
@@ -135,7 +139,8 @@ def write_power_report(rows, summary, out: Path, cost: Mapping[str, float]) -> d
     out.mkdir(parents=True, exist_ok=True)
     lines = ["# Discovery power study", "",
              f"DEM runs computed {cost['dem_runs_computed']}, used {cost['dem_runs_used']} (the rest shared), "
-             f"wall time {cost['wall_time_s']} s.", "",
+             f"wall time {cost['wall_time_s']} s. Verdict rules {cost.get('verdict_rules', '-')} "
+             "(bo.discovery.pipeline.VERDICT_RULES).", "",
              "| mechanism | effect | fraction of prior | labs | detected | right cause | other cause (which) |",
              "| --- | --- | ---: | ---: | --- | --- | --- |"]
     for r in rows:

@@ -4,13 +4,20 @@
   the DEM noise of their difference are tied (no cause is named); a clear winner is not tied;
 - a named cause reports the share of the calibrated model's chi^2 it removes on the held-out
   cells (computed by hand here), and is called partial, with the largest remaining cells, when
-  the extended model still misses beyond noise.
+  the extended model still misses beyond noise;
+- the fit check: a fit consistent with its cells, or one whose GP mean misses with a certain GP,
+  is resolved; one that misses because the GP's own uncertainty exceeds the data's is not (the
+  chi^2 quantile computed by hand).
 """
 import math
 
 import pytest
 
-from bo.discovery.pipeline import Cell, Discrepancy, HypothesisScore, explained_share, tied_with
+import dataclasses
+
+from scipy import stats
+
+from bo.discovery.pipeline import Cell, Discrepancy, HypothesisScore, explained_share, fit_check, tied_with
 from bo.discovery.replicate_noise import ReplicateNoise
 
 
@@ -48,3 +55,19 @@ def test_explained_share_and_partial_cause():
     share, partial, remaining = explained_share(half, before, alpha=0.05)
     assert share == pytest.approx(1 - (12.25 + 12.25 + 0.25) / 75.0)
     assert partial and "on a" in remaining and "z +3.5" in remaining
+
+
+def test_fit_check_flags_a_fit_left_uncertain_by_its_surrogate():
+    h = _hyp("A", 10.0, (1.0, 1.0, 1.0))  # one parameter, 16 cells fitted: 15 degrees of freedom
+    limit = stats.chi2.isf(0.05, 15)  # 25.0
+    fits = lambda misfit, gp: dataclasses.replace(h, fit_misfit_chi2=misfit, fit_surrogate_chi2=gp,  # noqa: E731
+                                                  fit_cells=16)
+    assert fit_check(fits(10.0, 14.0), 0.05) == (True, "")          # reproduces its data (24 < 25)
+    assert fit_check(fits(60.0, 3.0), 0.05) == (True, "")           # the hypothesis misses, the GP is sure
+    assert fit_check(fits(limit - 16.6, 16.5), 0.05)[0] is True      # just consistent
+    assert fit_check(fits(limit - 16.4, 16.5), 0.05)[0] is False     # just not, GP to blame
+    resolved, why = fit_check(fits(30.0, 95.0), 0.05)                # the GP knows less than the data
+    assert not resolved
+    assert "expected chi^2 125.0 on 15 degrees of freedom" in why and "95.0 is the GP's own uncertainty" in why
+    assert fit_check(fits(10.0, 17.0), 0.05)[0] is False             # 27 > 25 and 17 > 16 cells
+    assert fit_check(dataclasses.replace(h, parameters=()), 0.05) == (True, "")  # nothing fitted

@@ -39,13 +39,19 @@ returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model
    ``parameters`` hypothesis) (an AIC-like penalty). Every held-out chi^2, and the discrepancy
    reported, use one noise estimate ``s_k`` pooled over every run of the discovery (discrepancy,
    design points, held-out runs of every hypothesis), so no hypothesis is scored with a luckier
-   noise estimate than another. The GP's noise is the design's pooled ``s_k^2 / fit replicates``.
+   noise estimate than another. The GP's noise is the design's pooled ``s_k^2 / fit replicates``
+   (learned by the GP when the design runs each point once). The fits minimise the chi^2 the
+   held-out runs are scored by: per cell ``((mu - y)^2 + sigma_GP^2) / (s_k^2 / r + u^2)`` with r
+   the held-out replicates and ``s_k`` pooled over the discrepancy runs and the design's replicates.
 3. Cause: the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
    than ``max(margin, 2 x gain_noise_sd)``; else none: no candidate explains the discrepancy
    better than the parameters and noise. If another candidate also beats it so and lies within
    ``max(margin, 2 sd)`` of the best (sd: the DEM-noise sd of the two scores' difference), the
    candidates cannot be told apart: none is named and ``DiscoveryResult.tied`` lists them
-   (:func:`tied_with`). A named cause comes with the share of the calibrated model's chi^2 it
+   (:func:`tied_with`). Nor is one named while another candidate's fit is unresolved: its
+   surrogate, at the parameters fitted on every condition, cannot reproduce those conditions
+   and its own uncertainty there exceeds the data's (:func:`fit_check`); its held-out runs were
+   made at a guess and cannot rule it out (``DiscoveryResult.unresolved``). A named cause comes with the share of the calibrated model's chi^2 it
    removes on the held-out cells and, when the extended model still misses there beyond noise,
    the statement that it is partial and what remains (:func:`explained_share`). ``gain_noise_sd`` is the standard deviation the score
    difference would have from DEM noise alone if both hypotheses predicted the same means: per
@@ -93,6 +99,14 @@ __all__ = ["PARAMETERS", "DiscoverySettings", "Cell", "Discrepancy", "Hypothesis
 
 #: Name of the no-new-physics hypothesis (the calibrated parameters refitted).
 PARAMETERS = "parameters"
+
+
+#: Version of the rules from the discrepancy to the verdict. A power study keys each twin's outcome
+#: by it (``bo.discovery.power``), so outcomes of older rules are neither mixed with newer ones nor
+#: silently reused. 1: the fits weighed each cell by the lab's uncertainty alone when the design
+#: ran each point once, and there was no fit check; 2: the DEM noise of the held-out mean in every
+#: fit's chi^2, and :func:`fit_check`.
+VERDICT_RULES = 2
 
 
 def discovery_stages(names: Sequence[str] | None = None) -> tuple[str, ...]:
@@ -228,6 +242,9 @@ class HypothesisScore:
             (the fitted parameters could not be simulated there, e.g. a fill that does not fit the
             box); that condition's held-out chi^2, hence the score, is then infinite: a hypothesis
             that cannot predict a condition does not explain it.
+        fit_misfit_chi2, fit_surrogate_chi2: the in-sample chi^2 at ``fitted_all`` split into the
+            GP mean's misfit, ``sum (mu - y)^2 / (s^2 + u^2)``, and the GP's own uncertainty,
+            ``sum sigma_GP^2 / (s^2 + u^2)``; fit_cells: the cells fitted (:func:`fit_check`).
     """
 
     name: str
@@ -247,6 +264,9 @@ class HypothesisScore:
     held_out_failures: Mapping[str, str] = dataclasses.field(default_factory=dict)
     gain_noise_sd: float = math.nan
     detectable: Mapping[str, Mapping] = dataclasses.field(default_factory=dict)
+    fit_misfit_chi2: float = math.nan
+    fit_surrogate_chi2: float = math.nan
+    fit_cells: int = 0
 
 
 @dataclass(frozen=True)
@@ -273,7 +293,9 @@ class GainRow:
 @dataclass(frozen=True)
 class DiscoveryResult:
     """Everything ``run_discovery`` found (plain data); ``tied``: the candidates that each explain
-    the discrepancy but that the data cannot tell apart (no cause is then named)."""
+    the discrepancy but that the data cannot tell apart (no cause is then named); ``unresolved``:
+    the candidates whose surrogate could not reproduce the conditions it was fitted on
+    (:func:`fit_check`), which therefore cannot be ruled out."""
 
     discrepancy: Discrepancy
     hypotheses: tuple[HypothesisScore, ...]
@@ -283,6 +305,7 @@ class DiscoveryResult:
     extension: Mapping[str, float]
     evaluations: Mapping[str, int]
     tied: tuple[str, ...] = ()
+    unresolved: tuple[str, ...] = ()
 
 
 # --------------------------------------------------------------------------------------------
@@ -489,7 +512,14 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     spec = ObjectiveSpec(output_names, tuple(np.where(lab_mean == 0, 1.0, lab_mean)), source=f"hypothesis {name}")
     surrogate = fit_surrogate(X[usable], Y[usable], b, SurrogateConfig(kernel=settings.kernel, strategy="per_kpi"),
                               y_var=None if V is None else V[usable], objective=spec)
-    dem_var = V[usable].mean(axis=0) if V is not None else np.zeros(len(cells))
+    # The fits minimise the chi^2 that the held-out runs will be scored by: a mean of
+    # len(settings.seeds) DEM runs against the lab, so each cell's denominator carries that mean's
+    # variance, the DEM noise pooled over the discrepancy runs and the design's replicates (with one
+    # run per design point the design has none; leaving the DEM noise out then weighed the KPIs by
+    # the lab's uncertainty alone and made every surrogate fit look far off its data).
+    fit_noise = ReplicateNoise.of(kpis, [baseline_reps] + ([reps[usable]] if len(settings.fit_seeds) > 1 else []))
+    dem_var = np.array([fit_noise.variance(k) for _, _, _, k in cells]) / len(settings.seeds)
+    dem_var = np.where(np.isfinite(dem_var), dem_var, 0.0)
     cond_of = np.array([c for _, c, _, _ in cells])
 
     def fit(mask: np.ndarray) -> dict[str, float]:
@@ -516,6 +546,7 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     every = fit(np.ones(len(cells), dtype=bool))
     mean, var = surrogate.predict_outputs(np.array([[every[n] for n in names]]))
     in_sample = float(_expected_chi2_terms(mean[0], var[0], dem_var, lab_mean, lab_var).sum())
+    misfit = float((((mean[0] - lab_mean) ** 2) / (dem_var + lab_var)).sum())
     # the held-out predictions checked with the DEM: each condition run with the parameters
     # fitted without it
     held: dict[str, np.ndarray] = {}
@@ -534,7 +565,8 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
          + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items()))
     hypothesis = HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names},
                                  len(extra), {}, without, every, in_sample, math.nan, n_points,
-                                 predicted_chi2=predicted, held_out_failures=failures)
+                                 predicted_chi2=predicted, held_out_failures=failures,
+                                 fit_misfit_chi2=misfit, fit_surrogate_chi2=in_sample - misfit, fit_cells=len(cells))
     keys = [(c, k) for _, c, _, k in cells]
     proposed, proposed_sd = _proposed_models(name, proposed_reps, read[len(kpis):], X, b, usable, conditions,
                                              settings)
@@ -628,7 +660,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
          f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise; noise pooled "
          f"over these runs)")
     hypotheses: list[HypothesisScore] = []
-    cause, explanation, tied = None, "", ()
+    cause, explanation, tied, unresolved = None, "", (), ()
     if not names:
         explanation = (f"discovery.candidates = []: only the discrepancy was measured (chi^2 = {discrepancy.chi2:.1f} "
                        f"on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g}); no candidate was scored.")
@@ -680,6 +712,8 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         rule = (f"held-out chi^2 + {settings.penalty:g} per added parameter; a cause must gain more than "
                 f"max(margin {settings.margin:g}, 2 x the gain's DEM-noise sd) = {need:.1f}")
         rivals = tied_with(best, candidates, reference, settings.margin) if best is not None else []
+        unresolved = tuple(h.name for h in candidates if not fit_check(h, settings.alpha)[0])
+        blocking = [n for n in unresolved if best is None or n != best.name]
         if best is not None and best.score < reference.score - need and rivals:
             tied = (best.name, *(r.name for r in rivals))
             explanation = (f"The candidates {list(tied)} cannot be told apart: each beats refitting the calibrated "
@@ -687,6 +721,14 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
                            + ", ".join(f"{h.name} {h.score:.1f}" for h in (best, *rivals))
                            + ") differ by less than max(margin, 2 x the DEM-noise sd of their difference). No cause "
                            "is named: a condition or KPI that separates them, or more replicates, would decide.")
+        elif best is not None and best.score < reference.score - need and blocking:
+            explanation = (f"{best.name} predicts the held-out conditions best (score {best.score:.1f} against "
+                           f"{reference.score:.1f}; {rule}), but it cannot be named: "
+                           + "; ".join(fit_check(next(h for h in candidates if h.name == n), settings.alpha)[1]
+                                       for n in blocking)
+                           + f". A candidate whose fit is this uncertain is not ruled out by its held-out runs. "
+                           f"More design points per parameter (discovery.points_per_parameter, now "
+                           f"{settings.points_per_parameter}) or fit replicates would decide.")
         elif best is not None and best.score < reference.score - need:
             cause = best.name
             explanation = (f"{best.name} ({best.description}) predicts the held-out conditions best: score "
@@ -720,7 +762,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
             evaluations[stage] = c["done"] + c["failed"]
     evaluations["total"] = sum(evaluations.values())
     return DiscoveryResult(discrepancy, tuple(hypotheses), cause, explanation, tuple(gain), extension, evaluations,
-                           tied=tuple(tied))
+                           tied=tuple(tied), unresolved=unresolved)
 
 
 def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calibrated: Mapping[str, float],
@@ -771,6 +813,31 @@ def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
                           "power_at_prior_end": now.power,
                           "additions": [dataclasses.asdict(a) for a in ranked if a.name != "as is"]}
     return out
+
+
+def fit_check(h: HypothesisScore, alpha: float) -> tuple[bool, str]:
+    """Does ``h``'s fit reproduce the conditions it was fitted on, and if not, is its surrogate to
+    blame? Returns ``(resolved, why)``.
+
+    At the parameters fitted on every condition the surrogate's expected chi^2 is
+    ``fit_misfit_chi2 + fit_surrogate_chi2`` over ``fit_cells`` cells. When that is consistent with
+    ``fit_cells - d`` degrees of freedom (p >= ``alpha``) the fit reproduces its data. When it is
+    not and the GP mean's misfit dominates, the hypothesis itself cannot reproduce them (resolved:
+    its held-out runs judge it fairly). When it is not and the GP's own uncertainty exceeds the
+    data's (``fit_surrogate_chi2 > fit_cells``: per cell, sigma_GP^2 > s^2 + u^2), the design is
+    too sparse to say where the hypothesis fits best; its held-out runs were made at a guess, so
+    they cannot rule it out (unresolved)."""
+    if not h.parameters or h.fit_cells == 0 or not (math.isfinite(h.fit_misfit_chi2)
+                                                    and math.isfinite(h.fit_surrogate_chi2)):
+        return True, ""
+    dof = max(h.fit_cells - len(h.parameters), 1)
+    p = float(stats.chi2.sf(h.fit_misfit_chi2 + h.fit_surrogate_chi2, dof))
+    if p >= alpha or h.fit_surrogate_chi2 <= h.fit_cells:
+        return True, ""
+    return False, (f"{h.name}'s surrogate cannot reproduce the conditions it was fitted on (expected chi^2 "
+                   f"{h.fit_misfit_chi2 + h.fit_surrogate_chi2:.1f} on {dof} degrees of freedom, p = {p:.2g}, of "
+                   f"which {h.fit_surrogate_chi2:.1f} is the GP's own uncertainty at the fit, more than the "
+                   f"{h.fit_cells} cells' measurement and DEM uncertainty; {h.points} design points)")
 
 
 def tied_with(best: HypothesisScore, candidates: Sequence[HypothesisScore], reference: HypothesisScore,

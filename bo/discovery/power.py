@@ -21,7 +21,11 @@ Everything goes through one campaign store, so a study resumes, and it is afford
 the store shares runs within a stage (``bo.campaign.store``, "Shared runs"): every hypothesis's
 design is the same for every twin and runs once, and lab r's discrepancy runs serve every
 effect's lab r; only the held-out runs (fitted to each twin) and the twins themselves are new. A twin's outcome is an artifact (``power/<mechanism>/<effect index>/<lab>``), so a finished
-twin is not re-analysed either.
+twin is not re-analysed either. Outcome artifacts are keyed by the verdict rules they were reached
+with (``bo.discovery.pipeline.VERDICT_RULES``; rules 1 under ``power/<mechanism>/...``, later
+ones under ``power/rules<k>/<mechanism>/...``): a study under new rules analyses every twin again,
+reusing every DEM run whose parameters are unchanged, and keeps the old outcomes for the
+before-and-after.
 
 :func:`tabulate` counts per mechanism and effect: detection (the discrepancy is significant),
 right cause (the mechanism itself is named), wrong cause (another mechanism is named), no cause,
@@ -96,7 +100,8 @@ class Effect:
 @dataclass(frozen=True)
 class TwinOutcome:
     """Discovery on one twin: discrepancy p-value and chi^2, significant or not, the cause named
-    (None: none) and every hypothesis's score."""
+    (None: none), every hypothesis's score, the candidates tied and those whose fit was unresolved
+    (empty for outcomes of rules 1, which did not record them)."""
 
     mechanism: str
     effect_index: int
@@ -106,6 +111,8 @@ class TwinOutcome:
     significant: bool
     cause: str | None
     scores: Mapping[str, float] = field(default_factory=dict)
+    tied: tuple[str, ...] = ()
+    unresolved: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -193,13 +200,25 @@ def twin_measurement(store: CampaignStore, executor_for: Callable[[DrawDownModel
     return MeasuredData(source=f"power-study twin ({name})", conditions=tuple(out))
 
 
+def outcome_artifact(name: str, index: int, lab: int, rules: int) -> str:
+    """Store artifact of one twin's outcome under verdict rules ``rules``."""
+    return f"power/{name}/{index}/{lab}" if rules == 1 else f"power/rules{rules}/{name}/{index}/{lab}"
+
+
 def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor], model: DrawDownModel,
                     baseline: Mapping[str, float], template: MeasuredData, effects: Sequence[Effect],
                     settings, *, labs: int, null_labs: int, lab_replicates: int, lab_seed: int,
-                    discovery_seed: int = 500_000, echo: Callable[[str], None] = print) -> list[TwinOutcome]:
+                    discovery_seed: int = 500_000, echo: Callable[[str], None] = print,
+                    rules: int | None = None) -> list[TwinOutcome]:
     """Twins and discovery for the null (``null_labs`` labs) and every effect (``labs`` labs each),
-    resuming from the store's artifacts; returns every outcome (null first)."""
-    from bo.discovery.pipeline import run_discovery
+    resuming from the store's artifacts; returns every outcome (null first). ``rules`` (default the
+    current ``VERDICT_RULES``) below the current ones only reads the outcomes the store holds."""
+    from bo.discovery.pipeline import VERDICT_RULES, run_discovery
+
+    rules = VERDICT_RULES if rules is None else rules
+    if isinstance(rules, bool) or not isinstance(rules, int) or not 1 <= rules <= VERDICT_RULES:
+        raise out_of_range("power.rules", rules, f"an int in [1, {VERDICT_RULES}] (the verdict rules' versions)",
+                           "power study")
 
     if labs < 1 or null_labs < 0:
         raise out_of_range("(labs, null_labs)", (labs, null_labs), "labs >= 1, null_labs >= 0", "power study")
@@ -210,8 +229,11 @@ def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel]
     kpis = list(settings.kpis)
     outcomes = []
     for n, (name, index, effect, lab) in enumerate(jobs):
-        artifact = f"power/{name}/{index}/{lab}"
+        artifact = outcome_artifact(name, index, lab, rules)
         found = store.get_artifact(artifact, None)
+        if found is None and rules != VERDICT_RULES:
+            raise ConfigError(f"power study: the store {store.path} holds no outcome of {name} effect {index} lab {lab} "
+                              f"under verdict rules {rules}; only the current rules ({VERDICT_RULES}) can analyse a twin")
         if found is None:
             seeds = lab_seeds(lab, lab_replicates, lab_seed)
             twin = twin_measurement(store, executor_for, model, baseline, template, effect, seeds, kpis)
@@ -221,10 +243,13 @@ def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel]
             found = {"mechanism": name, "effect_index": index, "lab": lab, "p_value": float(d.p_value),
                      "chi2": float(d.chi2), "significant": bool(d.significant), "cause": result.cause,
                      "scores": {h.name: (float(h.score) if math.isfinite(h.score) else None)
-                                for h in result.hypotheses}}
+                                for h in result.hypotheses},
+                     "tied": list(result.tied), "unresolved": list(result.unresolved)}
             store.put_artifact(artifact, found)
         outcome = TwinOutcome(**{**found, "scores": {k: (math.inf if v is None else v)
-                                                      for k, v in found["scores"].items()}})
+                                                      for k, v in found["scores"].items()},
+                                 "tied": tuple(found.get("tied", ())),
+                                 "unresolved": tuple(found.get("unresolved", ()))})
         outcomes.append(outcome)
         echo(f"[{n + 1}/{len(jobs)}] {name} effect {index} lab {lab}: p = {outcome.p_value:.3g}, "
              f"cause {outcome.cause}")

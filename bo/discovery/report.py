@@ -11,8 +11,10 @@ Contract
   standard uncertainty, z, relative error), ``candidates`` (every hypothesis: name,
   description, parameters, bounds, parameters added, held-out chi^2 per condition of the DEM
   runs and as the surrogate predicted it, score, ``gain_noise_sd`` (the sd of its gain over
-  ``parameters`` from DEM noise alone), in-sample chi^2, fitted values, the cells of its held-out
-  runs, or why it was skipped),
+  ``parameters`` from DEM noise alone), in-sample chi^2, ``fit_check`` (the fit on every
+  condition: the GP mean's misfit and the GP's own uncertainty as chi^2, the cells, resolved or
+  not: ``bo.discovery.pipeline.fit_check``), fitted values, the cells of its held-out
+  runs, or why it was skipped), ``unresolved`` (the candidates whose fit is unresolved),
   ``errors`` (per held-out condition and KPI: measured, before and after with standard errors,
   relative errors and z), ``extension`` (the chosen mechanism's values fitted on every
   condition) and ``dem_evaluations`` (per stage and total);
@@ -46,6 +48,7 @@ def discovery_payload(result: DiscoveryResult) -> dict:
         "cause": result.cause,
         "explanation": result.explanation,
         "tied": list(result.tied),
+        "unresolved": list(result.unresolved),
         "discrepancy": {"chi2": d.chi2, "chi2_equivalent": d.chi2_equivalent, "dof": d.dof, "p_value": d.p_value,
                         "significant": d.significant,
                         "dem_noise": d.noise.to_dict(), "cells": [c.to_dict() for c in d.cells]},
@@ -53,6 +56,8 @@ def discovery_payload(result: DiscoveryResult) -> dict:
                         "bounds": {k: list(v) for k, v in h.bounds.items()}, "added_parameters": h.added,
                         "held_out_chi2": dict(h.held_out_chi2), "predicted_held_out_chi2": dict(h.predicted_chi2),
                         "score": h.score, "gain_noise_sd": h.gain_noise_sd, "in_sample_chi2": h.in_sample_chi2,
+                        "fit_check": {"misfit_chi2": h.fit_misfit_chi2, "surrogate_chi2": h.fit_surrogate_chi2,
+                                      "cells": h.fit_cells, "resolved": h.name not in result.unresolved},
                         "fitted_all": dict(h.fitted_all), "fitted_without": {c: dict(v) for c, v in
                                                                              h.fitted_without.items()},
                         "design_points": h.points, "skipped": h.skipped,
@@ -145,15 +150,18 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
     else:
         conds = list(dict.fromkeys(c for h in result.hypotheses for c in h.held_out_chi2))
         lines += ["| hypothesis | added parameters | " + " | ".join(f"held-out chi^2 {c}" for c in conds)
-                  + " | score | gain's noise sd |", "| --- | ---: | " + " | ".join("---:" for _ in conds)
-                  + " | ---: | ---: |"]
+                  + " | score | gain's noise sd | fit on all conditions: misfit + surrogate chi^2 (cells) |",
+                  "| --- | ---: | " + " | ".join("---:" for _ in conds) + " | ---: | ---: | --- |"]
         for h in result.hypotheses:
             if h.skipped:
-                lines.append(f"| {h.name} | - | " + " | ".join("-" for _ in conds) + f" | skipped: {h.skipped} | - |")
+                lines.append(f"| {h.name} | - | " + " | ".join("-" for _ in conds) + f" | skipped: {h.skipped} | - | - |")
                 continue
+            fit = ("-" if not h.fit_cells else f"{h.fit_misfit_chi2:.1f} + {h.fit_surrogate_chi2:.1f} ({h.fit_cells})"
+                   + (" unresolved" if h.name in result.unresolved else ""))
             lines.append(f"| {h.name}{' **cause**' if h.name == result.cause else ''} | {h.added} | "
                          + " | ".join(f"{h.held_out_chi2.get(c, float('nan')):.1f}" for c in conds)
-                         + f" | {h.score:.1f} | {'-' if math.isnan(h.gain_noise_sd) else f'{h.gain_noise_sd:.1f}'} |")
+                         + f" | {h.score:.1f} | {'-' if math.isnan(h.gain_noise_sd) else f'{h.gain_noise_sd:.1f}'} | "
+                         + f"{fit} |")
         failed = [f"- {h.name}: the held-out runs on {c} failed ({why})"
                   for h in result.hypotheses for c, why in h.held_out_failures.items()]
         lines += [""] + failed if failed else []
