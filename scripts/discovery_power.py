@@ -141,12 +141,14 @@ def write_power_report(rows, summary, out: Path, cost: Mapping[str, float]) -> d
              f"DEM runs computed {cost['dem_runs_computed']}, used {cost['dem_runs_used']} (the rest shared), "
              f"wall time {cost['wall_time_s']} s. Verdict rules {cost.get('verdict_rules', '-')} "
              "(bo.discovery.pipeline.VERDICT_RULES).", "",
-             "| mechanism | effect | fraction of prior | labs | detected | right cause | other cause (which) |",
-             "| --- | --- | ---: | ---: | --- | --- | --- |"]
+             "| mechanism | effect | fraction of prior | labs | detected | right cause | other cause (which) | "
+             "no cause: tied, unresolved |",
+             "| --- | --- | ---: | ---: | --- | --- | --- | --- |"]
     for r in rows:
         which = ", ".join(f"{k} {v}" for k, v in r.wrong_causes.items()) or "-"
         lines.append(f"| {r.mechanism} | {r.effect} | {r.fraction:.2f} | {r.n} | {_pct(r.detection)} | "
-                     f"{'-' if r.mechanism == NULL else _pct(r.right_rate)} | {_pct(r.wrong_rate)} ({which}) |")
+                     f"{'-' if r.mechanism == NULL else _pct(r.right_rate)} | {_pct(r.wrong_rate)} ({which}) | "
+                     f"{r.tied}, {r.unresolved} |")
     lines.append("")
     for name, s in summary.items():
         if name == NULL:

@@ -7,7 +7,8 @@
   detected and named right in every lab.
 - Design runs are reused, not repeated: each hypothesis's design is run once for all twins, and
   lab r's discrepancy runs once for the null and the effect (40 labs, 46 twins).
-- A finished twin is not analysed again (artifacts), and Wilson intervals match statsmodels.
+- A finished twin is not analysed again (artifacts, keyed by the verdict rules: outcomes of older
+  rules are only read), and Wilson intervals match statsmodels.
 """
 from __future__ import annotations
 
@@ -23,14 +24,16 @@ from test_discovery import KPIS, _known_model  # noqa: E402
 
 from bo.campaign.executor import InProcessExecutor
 from bo.campaign.store import CampaignStore
-from bo.discovery.pipeline import DiscoverySettings, discovery_stages
-from bo.discovery.power import (NULL, Effect, power_stages, power_summary, run_power_study, tabulate, wilson)
+from bo.discovery.pipeline import VERDICT_RULES, DiscoverySettings, discovery_stages
+from bo.discovery.power import (NULL, Effect, outcome_artifact, power_stages, power_summary, run_power_study, tabulate,
+                                wilson)
+from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
 
 CANDIDATES = ("density_per_material", "cohesion")
 
 
-def _study(tmp_path, null_labs, labs, effects):
+def _study(tmp_path, null_labs, labs, effects, rules=None):
     model = _known_model()
     template = load_measured().subset(["50-50", "75-25", "25-75"], "test")
     store = CampaignStore(tmp_path / "power.sqlite", "known",
@@ -46,7 +49,7 @@ def _study(tmp_path, null_labs, labs, effects):
     baseline = {**model.fixed, **km.TRUE}
     settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1), candidates=CANDIDATES)
     out = run_power_study(store, executor_for, model, baseline, template, effects, settings, labs=labs,
-                          null_labs=null_labs, lab_replicates=5, lab_seed=1000, echo=lambda s: None)
+                          null_labs=null_labs, lab_replicates=5, lab_seed=1000, echo=lambda s: None, rules=rules)
     return store, out, calls
 
 
@@ -81,6 +84,14 @@ def test_power_study_recovers_the_null_rate_names_a_strong_effect_and_reuses_des
     n_calls = len(calls)
     _, again, _ = _study(tmp_path, null_labs=40, labs=6, effects=[strong])
     assert again == outcomes and len(calls) == n_calls
+    # outcomes are keyed by the verdict rules: those of older rules are read, never made or mixed
+    assert store.get_artifact(outcome_artifact(NULL, 0, 0, VERDICT_RULES), None) is not None
+    assert store.get_artifact(outcome_artifact(NULL, 0, 0, 1), None) is None
+    with pytest.raises(ConfigError, match=r"holds no outcome of null effect 0 lab 0 under verdict rules 1"):
+        _study(tmp_path, null_labs=40, labs=6, effects=[strong], rules=1)
+    with pytest.raises(ConfigError, match=r"power.rules"):
+        _study(tmp_path, null_labs=40, labs=6, effects=[strong], rules=VERDICT_RULES + 1)
+    assert sum(r.tied + r.unresolved for r in rows) <= sum(r.n - r.right - r.wrong for r in rows)
 
 
 def test_wilson_interval():

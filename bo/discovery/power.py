@@ -118,7 +118,8 @@ class TwinOutcome:
 @dataclass(frozen=True)
 class PowerRow:
     """Rates of one mechanism at one effect size (null: ``mechanism == "null"``), with Wilson 95 %
-    intervals ``(low, high)``."""
+    intervals ``(low, high)``; ``tied`` and ``unresolved``: twins where no cause was named because
+    candidates tied or a candidate's fit was unresolved (recorded from verdict rules 2)."""
 
     mechanism: str
     effect: str
@@ -131,6 +132,8 @@ class PowerRow:
     right_rate: tuple[float, float, float]
     wrong_rate: tuple[float, float, float]
     wrong_causes: Mapping[str, int]
+    tied: int = 0
+    unresolved: int = 0
 
 
 def _hash(*parts) -> str:
@@ -277,7 +280,8 @@ def tabulate(outcomes: Sequence[TwinOutcome], effects: Sequence[Effect]) -> list
         rows.append(PowerRow(mechanism=name, effect=effect.label if effect else "none",
                              fraction=effect.fraction if effect else 0.0, n=n, detected=detected, right=right,
                              wrong=wrong, detection=rate(detected), right_rate=rate(right), wrong_rate=rate(wrong),
-                             wrong_causes=wrong_causes))
+                             wrong_causes=wrong_causes, tied=sum(bool(o.tied) for o in group if o.cause is None),
+                             unresolved=sum(bool(o.unresolved) and not o.tied for o in group if o.cause is None)))
     return rows
 
 
