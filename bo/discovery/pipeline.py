@@ -822,11 +822,12 @@ def fit_check(h: HypothesisScore, alpha: float) -> tuple[bool, str]:
     At the parameters fitted on every condition the surrogate's expected chi^2 is
     ``fit_misfit_chi2 + fit_surrogate_chi2`` over ``fit_cells`` cells. When that is consistent with
     ``fit_cells - d`` degrees of freedom (p >= ``alpha``) the fit reproduces its data. When it is
-    not and the GP mean's misfit dominates, the hypothesis itself cannot reproduce them (resolved:
-    its held-out runs judge it fairly). When it is not and the GP's own uncertainty exceeds the
-    data's (``fit_surrogate_chi2 > fit_cells``: per cell, sigma_GP^2 > s^2 + u^2), the design is
-    too sparse to say where the hypothesis fits best; its held-out runs were made at a guess, so
-    they cannot rule it out (unresolved)."""
+    not, the GP's own uncertainty decides. If it is no larger than the data's
+    (``fit_surrogate_chi2 <= fit_cells``), the GP knows where the hypothesis fits best and the
+    hypothesis itself cannot reproduce the data (resolved: its held-out runs judge it fairly). If
+    it is larger (per cell on average, sigma_GP^2 > s^2 / r + u^2), the design is too sparse to
+    say where the hypothesis fits best; its held-out runs were made at a guess, so they cannot rule
+    it out (unresolved)."""
     if not h.parameters or h.fit_cells == 0 or not (math.isfinite(h.fit_misfit_chi2)
                                                     and math.isfinite(h.fit_surrogate_chi2)):
         return True, ""
