@@ -545,8 +545,9 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
         without[c] = x
     every = fit(np.ones(len(cells), dtype=bool))
     mean, var = surrogate.predict_outputs(np.array([[every[n] for n in names]]))
-    in_sample = float(_expected_chi2_terms(mean[0], var[0], dem_var, lab_mean, lab_var).sum())
     misfit = float((((mean[0] - lab_mean) ** 2) / (dem_var + lab_var)).sum())
+    surrogate_chi2 = float((var[0] / (dem_var + lab_var)).sum())
+    in_sample = misfit + surrogate_chi2  # _expected_chi2_terms, split in its two parts
     # the held-out predictions checked with the DEM: each condition run with the parameters
     # fitted without it
     held: dict[str, np.ndarray] = {}
@@ -566,7 +567,7 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     hypothesis = HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names},
                                  len(extra), {}, without, every, in_sample, math.nan, n_points,
                                  predicted_chi2=predicted, held_out_failures=failures,
-                                 fit_misfit_chi2=misfit, fit_surrogate_chi2=in_sample - misfit, fit_cells=len(cells))
+                                 fit_misfit_chi2=misfit, fit_surrogate_chi2=surrogate_chi2, fit_cells=len(cells))
     keys = [(c, k) for _, c, _, k in cells]
     proposed, proposed_sd = _proposed_models(name, proposed_reps, read[len(kpis):], X, b, usable, conditions,
                                              settings)
@@ -712,7 +713,8 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         rule = (f"held-out chi^2 + {settings.penalty:g} per added parameter; a cause must gain more than "
                 f"max(margin {settings.margin:g}, 2 x the gain's DEM-noise sd) = {need:.1f}")
         rivals = tied_with(best, candidates, reference, settings.margin) if best is not None else []
-        unresolved = tuple(h.name for h in candidates if not fit_check(h, settings.alpha)[0])
+        checks = {h.name: fit_check(h, settings.alpha) for h in candidates}
+        unresolved = tuple(n for n, (resolved, _) in checks.items() if not resolved)
         blocking = [n for n in unresolved if best is None or n != best.name]
         if best is not None and best.score < reference.score - need and rivals:
             tied = (best.name, *(r.name for r in rivals))
@@ -724,8 +726,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         elif best is not None and best.score < reference.score - need and blocking:
             explanation = (f"{best.name} predicts the held-out conditions best (score {best.score:.1f} against "
                            f"{reference.score:.1f}; {rule}), but it cannot be named: "
-                           + "; ".join(fit_check(next(h for h in candidates if h.name == n), settings.alpha)[1]
-                                       for n in blocking)
+                           + "; ".join(checks[n][1] for n in blocking)
                            + f". A candidate whose fit is this uncertain is not ruled out by its held-out runs. "
                            f"More design points per parameter (discovery.points_per_parameter, now "
                            f"{settings.points_per_parameter}) or fit replicates would decide.")
