@@ -268,6 +268,76 @@ def test_single_run_points_with_pooled_noise_calibrate_and_compare_with_learned_
     assert _noise_free_objective(result, x) < best.fun + 0.004
 
 
+def test_screening_points_project_onto_the_calibrated_parameters():
+    from bo.calibration.pipeline import screening_points
+    from bo.screening.stepwise import ScreeningResults
+
+    coded = np.array([[0, 1, -1], [1, 0, 1], [-1, -1, 0], [1, 1, 1], [-1, 1, 0], [0, -1, -1], [1, -1, 0]], float)
+    physical = 0.5 + 0.2 * coded
+    values = np.arange(7 * 2 * 3, dtype=float).reshape(7, 2, 3)
+    results = ScreeningResults(("mu_s_pp", "mu_r_pp", "e_pp"), coded, physical, (0, 1), ("a", "b", "c"), values)
+    bounds = np.array([[0.3, 3000.0, 0.3], [0.7, 4000.0, 0.65]])     # mu_s_pp, density_pellet, mu_r_pp
+    X, reps, note = screening_points(results, ("mu_s_pp", "density_pellet", "mu_r_pp"), bounds, ("c", "a"),
+                                     {"density_pellet": 3602.4})
+    inside = physical[:, 1] <= 0.65                                   # mu_r_pp at 0.7 lies outside
+    assert X.tolist() == np.column_stack([physical[inside, 0], np.full(inside.sum(), 3602.4),
+                                          physical[inside, 1]]).tolist()
+    assert reps.shape == (inside.sum(), 2, 2) and reps.tolist() == values[inside][:, :, [2, 0]].tolist()
+    assert note.startswith(f"{inside.sum()} of the screening's 7 design points reused") and "3 left out" in note
+    assert "['e_pp'] vary over them" in note
+    with pytest.raises(ConfigError, match=r"'density_sinter' was not screened.*no nominal value.*reuse_screening=false"):
+        screening_points(results, ("mu_s_pp", "density_sinter"), bounds[:, :2], ("a",), {"density_pellet": 3602.4})
+
+
+def test_pooled_noise_of_a_point_is_divided_by_its_runs():
+    objective = ObjectiveSpec(("a", "b"), (10.0, 2.0), (0.5, 0.5))
+    pooled = np.array([[0.25, 0.06], [0.06, 0.04]])
+    reps = np.array([[[11.0, 2.1], [12.0, 2.3], [np.nan, np.nan]],     # two runs
+                     [[9.0, 1.9], [np.nan, np.nan], [np.nan, np.nan]]])  # one run: usable with need = 1
+    usable, y, y_var = _objective_data(reps, objective, "per_kpi", pooled, need=1)
+    assert usable.tolist() == [True, True]
+    assert y_var == pytest.approx(np.array([np.diag(pooled) / 2, np.diag(pooled)]))
+    assert _objective_data(reps, objective, "per_kpi", pooled)[0].tolist() == [True, False]  # need: min(2, r)
+
+
+def test_screening_points_as_surrogate_data_cut_the_initial_design_and_still_calibrate(tmp_path):
+    """``surrogate.reuse_screening`` (the lab profile's setting): the screening's 13 design points
+    of 3 runs enter the surrogate's data, the initial design shrinks from 24 points to 12 (half,
+    its floor), and the campaign still finds the known optimum with fewer DEM runs."""
+    import functools
+
+    base = km.small_settings()
+    settings = dataclasses.replace(base, surrogate=dataclasses.replace(base.surrogate, seeds=(0,), noise="pooled",
+                                                                       reuse_screening=True))
+    store = CampaignStore(tmp_path / "c.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
+    log = tmp_path / "log.jsonl"
+    lines = []
+    result = run_calibration(store, InProcessExecutor(functools.partial(km.known_batch, log_path=str(log)),
+                                                      batch_size=6),
+                             settings, km.known_measurement(), tmp_path / "out", km.NOMINAL_DENSITY, echo=lines.append)
+    sur = result.surrogate
+    assert sur.reused_points == 13 and result.evaluations["initial"] == 12
+    assert any("13 of the screening's 13 design points reused" in line and "instead of 24" in line for line in lines)
+    assert sur.rounds[0].n_points == 25
+    # the reused points lead the data at their screened values, with the pooled noise of 3 runs
+    table = result.screening.results
+    cols = [table.parameter_names.index(n) for n in sur.parameters]
+    assert sur.state.X[:13].tolist() == table.physical[:, cols].tolist()
+    assert sur.points_run == sum(result.evaluations[k] for k in result.evaluations
+                                 if k == "initial" or k.startswith("round-"))
+    logged = Counter(log.read_text().splitlines())
+    assert max(logged.values()) == 1 and sum(logged.values()) == result.evaluations["total"]
+    from scipy.optimize import differential_evolution
+
+    b = sur.bounds
+    best = differential_evolution(lambda x: _noise_free_objective(result, x), list(zip(b[0], np.minimum(b[1], 0.9))),
+                                  seed=0, tol=1e-10)
+    x = [result.ga.calibrated[n] for n in sur.parameters]
+    assert _noise_free_objective(result, x) < best.fun + 0.004
+    doc = json.loads(write_calibration_report(result, tmp_path / "out")["json"].read_text())
+    assert doc["surrogate"]["reused_screening_points"] == 13
+
+
 # -- make run: a shipped store, resumed, with the verification made again ----------------------
 
 def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(known_campaign, tmp_path):
@@ -378,6 +448,7 @@ def test_killed_campaign_resumes_without_losing_or_repeating_a_run(tmp_path):
     ("verification.replicates=0", r"verification: replicates = 0 is not allowed; expected an int >= 1"),
     ("verification.fresh=maybe", r"verification: fresh = 'maybe' is not allowed; expected true or false"),
     ("surrogate.noise=guessed", r"surrogate: noise = 'guessed' is not allowed; expected one of \['learned', 'pooled'\]"),
+    ("surrogate.reuse_screening=maybe", r"surrogate: reuse_screening = 'maybe' is not allowed; expected true or false"),
     ("validation.conditions=[60-40]", r"validation.conditions: \['60-40'\] are not in the measured data"),
     ("measured=/nonexistent/lab.json", r"/nonexistent/lab.json: cannot read measured-data file"),
 ])

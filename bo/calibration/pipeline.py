@@ -18,7 +18,9 @@ and the GA result is kept as a store artifact.
    KPIs with the delta-method variance of the replicate mean as GP observation noise
    (strategy ``scalar``), or one GP per KPI composed by Eq. 7 (``per_kpi``). Optionally the
    other strategy is cross-validated on the same data after every round, which answers
-   "which strategy reaches R^2 >= 0.95 with fewer DEM runs" on equal data.
+   "which strategy reaches R^2 >= 0.95 with fewer DEM runs" on equal data. With
+   ``reuse_screening`` the screening's design points are data too (:func:`screening_points`) and
+   the Latin hypercube shrinks by as many points, to no less than half its size.
 3. ``ga`` (artifact): the GA on the surrogate mean over ``ga_repetitions`` surrogate trainings
    (Table 9), restricted (parameters <= 0.9) and unrestricted (Table 8); the lowest fitness of
    the chosen mode is the calibrated set.
@@ -64,6 +66,7 @@ from bo.surrogate.ga import GASettings, GASummary, repeated_ga
 from bo.surrogate.objective import ObjectiveSpec
 from bo.screening.pipeline import (ScreeningReport, ScreenSettings, analyse_and_report, json_ready, measured_for,
                                    run_screening)
+from bo.screening.stepwise import ScreeningResults
 from bo.campaign.store import CampaignStore
 from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2
 from torchdem.errors import ConfigError, out_of_range
@@ -113,10 +116,13 @@ class SurrogateStageSettings:
         compare_strategies: also cross-validate the other strategy after every round.
         added: name -> (low, high) of parameters calibrated besides ``parameters`` (or Table 5's
             selection): densities, a mechanism's parameters (``lobe_spacing_sinter``).
-        noise: the GP's observation noise where a point has one replicate: ``"learned"`` (one
-            noise level fitted with the GP) or ``"pooled"`` (fixed, from the replicate scatter of
-            the screening's runs pooled over its design: :func:`pooled_replicate_covariance`).
-            Points with two or more replicates always use their own replicate-mean variance.
+        noise: the GP's observation noise: ``"learned"`` (one noise level fitted with the GP where
+            points have one replicate; a point's own replicate-mean variance where it has more) or
+            ``"pooled"`` (fixed: the replicate scatter of the screening's runs pooled over its
+            design, :func:`pooled_replicate_covariance`, divided by each point's number of runs).
+        reuse_screening: the screening's design points enter the surrogate's data as points already
+            run (:func:`screening_points`), and the initial Latin hypercube shrinks by as many
+            points, to no less than half its size.
     """
 
     parameters: tuple[str, ...] | None
@@ -127,6 +133,7 @@ class SurrogateStageSettings:
     compare_strategies: bool = True
     added: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     noise: str = "learned"
+    reuse_screening: bool = False
 
 
 @dataclass(frozen=True)
@@ -223,10 +230,12 @@ class SurrogateOutcome:
         parameters: names of the ``d`` calibrated parameters; bounds: ``[2, d]``.
         state: points with a usable objective (``X [n, d]``, ``y``, ``y_var``).
         kpi_replicates: ``[n, r, M]`` KPI values of those points (objective KPIs).
-        rounds: one ``RoundRecord`` per round (round 0: the LHS). stopped_because:
-            ``"target_r2"`` or ``"budget"``. points_run: design points evaluated (failed ones
-            included). dropped_points: points without a usable objective (fewer than
-            ``min(2, r)`` finite replicates of some KPI).
+        rounds: one ``RoundRecord`` per round (round 0: the reused screening points and the
+            LHS). stopped_because: ``"target_r2"`` or ``"budget"``. points_run: design points this
+            stage evaluated (failed ones included; the reused ones not). dropped_points: points
+            without a usable objective (fewer than ``min(2, r)`` finite replicates of some KPI).
+        reused_points: screening points among the data (``reuse_screening``); reuse_note: what
+            was reused and what was left out, for the report.
         strategy_r2: strategy -> CV R^2 mean per round (the run's strategy and, when compared,
             the other one on the same data; with pooled noise also ``"<strategy>, learned noise"``:
             the run's strategy with a learned noise level, on the same data).
@@ -241,6 +250,8 @@ class SurrogateOutcome:
     points_run: int
     dropped_points: int
     strategy_r2: Mapping[str, tuple[float, ...]]
+    reused_points: int = 0
+    reuse_note: str = ""
 
 
 @dataclass(frozen=True)
@@ -359,12 +370,15 @@ def pooled_replicate_covariance(kpi_reps: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def _objective_data(kpi_reps: np.ndarray, objective: ObjectiveSpec, strategy: str,
-                    pooled: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+                    pooled: np.ndarray | None = None, need: int | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``(usable [n] bool, y, y_var)`` from ``[n, r, M]`` replicates (finite ones only).
-    ``pooled``: ``[M, M]`` covariance of one run (:func:`pooled_replicate_covariance`), the
-    noise of points measured once (else their noise is left to the GP)."""
+    ``pooled``: ``[M, M]`` covariance of one run (:func:`pooled_replicate_covariance`); a point
+    of ``k`` finite runs then has the noise ``pooled / k``. Without it a point's noise is its own
+    replicate-mean variance, and the noise of points measured once is left to the GP.
+    ``need``: finite runs a point needs to be usable (default ``min(2, r)``)."""
     n, r, m = kpi_reps.shape
-    need = min(2, r)
+    need = min(2, r) if need is None else need
     finite = np.isfinite(kpi_reps)
     usable = (finite.sum(axis=1) >= need).all(axis=1)
     ys, vs = [], []
@@ -374,20 +388,18 @@ def _objective_data(kpi_reps: np.ndarray, objective: ObjectiveSpec, strategy: st
             usable[i] = False
             continue
         mean = rows.mean(axis=0)
-        once = rows.shape[0] == 1
+        k = rows.shape[0]
         if strategy == "per_kpi":
             ys.append(mean)
-            vs.append((None if pooled is None else np.diag(pooled).copy()) if once
-                      else rows.var(axis=0, ddof=1) / rows.shape[0])
+            vs.append(np.diag(pooled) / k if pooled is not None
+                      else None if k == 1 else rows.var(axis=0, ddof=1) / k)
         else:
             measured, weights = np.asarray(objective.measured), np.asarray(objective.weights)
             ys.append(float(objective(mean)))
             # delta method, as bo.surrogate.gp.objective_from_replicates
             grad = weights * np.sign(mean - measured) / np.abs(measured)
-            if not once:
-                vs.append(float((rows @ grad).var(ddof=1) / rows.shape[0]))
-            else:
-                vs.append(None if pooled is None else float(grad @ pooled @ grad))
+            vs.append(float(grad @ pooled @ grad) / k if pooled is not None
+                      else None if k == 1 else float((rows @ grad).var(ddof=1) / k))
     y = np.asarray(ys, dtype=np.float64).reshape((-1,) if strategy == "scalar" else (-1, m))
     y_var = None if (not vs or any(v is None for v in vs)) else np.asarray(vs, dtype=np.float64).reshape(y.shape)
     return usable, y, y_var
@@ -448,27 +460,85 @@ def choose_parameters(screening: ScreeningReport, s: SurrogateStageSettings
     return names, bounds, f"{note}; bounds from {where}"
 
 
+def screening_points(results: ScreeningResults, names: Sequence[str], bounds: np.ndarray, kpis: Sequence[str],
+                     nominal: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, str]:
+    """The screening's design points as surrogate data: ``(X [n, d], reps [n, r, M], note)``.
+
+    Each calibrated parameter (``names``, ``d``) takes the point's screened value or, where the
+    screening did not vary it, ``nominal[name]``: the value every screening run had (a
+    ``density_<material>``'s nominal density). ``reps`` are the screening's replicate values of
+    ``kpis`` (``M``). Points outside ``bounds [2, d]`` (the Table-6 rule may move a bound inside
+    the screened range) are left out. The parameters screened but not calibrated vary over these
+    points as in the screening; Table 5 found no effect of theirs significant, so what they add
+    is scatter, which the points' noise does not count. Raises ConfigError for a calibrated
+    parameter that was neither screened nor has a nominal value."""
+    screened = list(results.parameter_names)
+    cols = []
+    for n in names:
+        if n in screened:
+            cols.append(results.physical[:, screened.index(n)])
+        elif n in nominal:
+            cols.append(np.full(results.n_runs, float(nominal[n])))
+        else:
+            raise ConfigError(f"surrogate.reuse_screening: calibrated parameter {n!r} was not screened (screened: "
+                              f"{screened}) and has no nominal value (known: {sorted(nominal)}), so the screening's "
+                              f"points do not say where they lie in it; set surrogate.reuse_screening=false")
+    X = np.stack(cols, axis=1).astype(np.float64).reshape(results.n_runs, len(names))
+    tol = 1e-9 * (bounds[1] - bounds[0])
+    inside = ((X >= bounds[0] - tol) & (X <= bounds[1] + tol)).all(axis=1)
+    reps = results.kpi_values[:, :, [results.kpi_index(k) for k in kpis]]
+    varied = [n for n in screened if n not in names]
+    note = (f"{int(inside.sum())} of the screening's {results.n_runs} design points reused as surrogate data "
+            f"({results.n_replicates} runs each)"
+            + (f"; {int((~inside).sum())} left out, outside the bounds" if not inside.all() else "")
+            + (f"; {varied} vary over them as screened" if varied else ""))
+    return X[inside], np.array(reps[inside]), note
+
+
 def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str, names: Sequence[str],
                     bounds: np.ndarray, objective: ObjectiveSpec, s: SurrogateStageSettings,
-                    echo: Callable[[str], None] = print, pooled: np.ndarray | None = None) -> SurrogateOutcome:
+                    echo: Callable[[str], None] = print, pooled: np.ndarray | None = None,
+                    prior: tuple[np.ndarray, np.ndarray, str] | None = None) -> SurrogateOutcome:
     """Stage 2: LHS then qLogEI rounds through the store until the target R^2 or the budget.
-    ``pooled``: ``[M, M]`` one-run covariance of the objective's KPIs for ``s.noise == "pooled"``."""
+    ``pooled``: ``[M, M]`` one-run covariance of the objective's KPIs for ``s.noise == "pooled"``.
+    ``prior``: points already run, ``(X [n0, d], reps [n0, r0, M], note)`` (:func:`screening_points`):
+    they join the data before the LHS, which shrinks by the usable ones to no less than half its
+    size; the budget counts the points this stage runs."""
     names = tuple(names)
     d = len(names)
     a, config = s.adaptive, s.config
-    n_initial = a.initial_size(d)
     kpis = objective.kpi_names
+    need = min(2, len(s.seeds))
+    full = a.initial_size(d)
+    if prior is not None:
+        X0, reps0, reuse_note = prior
+        n0 = X0.shape[0]
+        n0_usable = int(_objective_data(reps0, objective, config.strategy, pooled, need=1)[0].sum()) if n0 else 0
+        n_initial = max(full - n0_usable, math.ceil(full / 2))
+    else:
+        X0, reps0, reuse_note, n0 = np.zeros((0, d)), np.zeros((0, len(s.seeds), len(kpis))), "", 0
+        n_initial = full
     key = _key("surrogate", names, bounds.tolist(), list(s.seeds), a.seed, n_initial, a.q, config.strategy,
-               list(kpis), list(objective.measured), list(objective.weights))
+               list(kpis), list(objective.measured), list(objective.weights),
+               *([X0.tolist(), np.where(np.isfinite(reps0), reps0, None).tolist()] if prior is not None else []))
     rows = lambda X: [dict(zip(names, map(float, x))) for x in X]  # noqa: E731
+    width = max(len(s.seeds), reps0.shape[1])
+
+    def padded(reps: np.ndarray) -> np.ndarray:
+        out = np.full((reps.shape[0], width, len(kpis)), np.nan)
+        out[:, :reps.shape[1]] = reps
+        return out
 
     def evaluated(stage: str, points: Sequence[Mapping[str, float]]) -> tuple[np.ndarray, np.ndarray]:
         X = np.array([[p[n] for n in names] for p in points], dtype=np.float64).reshape(len(points), d)
-        return X, _replicates(store, stage, f"{key}", len(points), s.seeds, condition, kpis)
+        return X, padded(_replicates(store, stage, f"{key}", len(points), s.seeds, condition, kpis))
 
+    if prior is not None:
+        echo(f"      {reuse_note}; initial design {n_initial} points instead of {full}")
     points = _run_batch(store, executor, "initial", key,
                         lambda: rows(latin_hypercube(bounds, n_initial, seed=a.seed)), s.seeds, [condition])
-    X_all, reps_all = evaluated("initial", points)
+    X_new, reps_new = evaluated("initial", points)
+    X_all, reps_all = np.concatenate([X0, X_new]), np.concatenate([padded(reps0), reps_new])
     other = [t for t in STRATEGIES if t != config.strategy] if s.compare_strategies else []
     # with fixed pooled noise, the GP that learns its noise is cross-validated on the same points too
     learned = f"{config.strategy}, learned noise" if pooled is not None else None
@@ -476,24 +546,24 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
     rounds: list[RoundRecord] = []
     k = 0
     while True:
-        usable, y, y_var = _objective_data(reps_all, objective, config.strategy, pooled)
+        usable, y, y_var = _objective_data(reps_all, objective, config.strategy, pooled, need)
         state = SamplingState(X_all[usable], y, y_var)
         if state.n < max(a.n_folds, 2):
             raise ConfigError(f"surrogate stage: only {state.n} of {X_all.shape[0]} points have usable KPIs "
                               f"{list(kpis)} (the rest failed or could not be measured); the GP needs at least "
                               f"{max(a.n_folds, 2)}. Check the DEM runs in {store.path}")
-        start = n_initial + (k - 1) * a.q if k else 0  # the round's first point
+        start = n0 + n_initial + (k - 1) * a.q if k else 0  # the round's first point
 
         def cross_validate_round() -> dict:
             best = best_kernel_cv(state, bounds, a, config, objective)
             variants = {}
             for t in other:
-                u, yy, vv = _objective_data(reps_all, objective, t, pooled)
+                u, yy, vv = _objective_data(reps_all, objective, t, pooled, need)
                 variants[t] = cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, strategy=t,
                                                  kernel=best.kernel), y_var=vv, objective=objective,
                                                  n_folds=a.n_folds, seeds=a.cv_seeds).mean
             if learned:
-                u, yy, _ = _objective_data(reps_all, objective, config.strategy)
+                u, yy, _ = _objective_data(reps_all, objective, config.strategy, need=need)
                 variants[learned] = cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, kernel=best.kernel),
                                                        y_var=None, objective=objective, n_folds=a.n_folds,
                                                        seeds=a.cv_seeds).mean
@@ -523,11 +593,11 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
         if record.r2_mean >= a.target_r2:
             reason = "target_r2"
             break
-        if X_all.shape[0] >= a.budget:
+        if X_all.shape[0] - n0 >= a.budget:
             reason = "budget"
             break
         k += 1
-        q = min(a.q, a.budget - X_all.shape[0])
+        q = min(a.q, a.budget - (X_all.shape[0] - n0))
         seed = a.seed + X_all.shape[0]
         stage = f"round-{k}"
         batch = _run_batch(store, executor, stage, key, lambda: rows(propose_batch(
@@ -536,11 +606,12 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
         X_new, reps_new = evaluated(stage, batch)
         X_all = np.concatenate([X_all, X_new])
         reps_all = np.concatenate([reps_all, reps_new])
-    usable, _, _ = _objective_data(reps_all, objective, config.strategy, pooled)
+    usable, _, _ = _objective_data(reps_all, objective, config.strategy, pooled, need)
     return SurrogateOutcome(parameters=names, bounds=bounds, state=state, kpi_replicates=reps_all[usable],
-                            rounds=tuple(rounds), stopped_because=reason, points_run=int(X_all.shape[0]),
+                            rounds=tuple(rounds), stopped_because=reason, points_run=int(X_all.shape[0]) - n0,
                             dropped_points=int((~usable).sum()),
-                            strategy_r2={t: tuple(v) for t, v in r2.items()})
+                            strategy_r2={t: tuple(v) for t, v in r2.items()}, reused_points=n0,
+                            reuse_note=reuse_note)
 
 
 def _summary_to_json(summary: GASummary) -> dict:
@@ -705,8 +776,12 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
         pooled, dof = pooled_replicate_covariance(reps)
         echo(f"      GP noise of single runs pooled from the screening's replicates ({dof} degrees of freedom): "
              + ", ".join(f"{k} sd {math.sqrt(pooled[j, j]):.3g}" for j, k in enumerate(objective.kpi_names)))
+    prior = None
+    if settings.surrogate.reuse_screening:
+        nominal = {DENSITY_PREFIX + m: float(rho) for m, rho in densities.items()}
+        prior = screening_points(screening.results, names, bounds, objective.kpi_names, nominal)
     surrogate = surrogate_stage(store, executor, condition=settings.condition, names=names, bounds=bounds,
-                                objective=objective, s=settings.surrogate, echo=echo, pooled=pooled)
+                                objective=objective, s=settings.surrogate, echo=echo, pooled=pooled, prior=prior)
     lap("surrogate")
     echo("[3/6] genetic algorithm on the surrogate")
     ga = ga_stage(store, surrogate, objective, settings, echo)

@@ -81,6 +81,7 @@ def calibration_payload(result: CalibrationResult) -> dict:
                       "strategy": s.surrogate.config.strategy,
                       "replicates_per_point": len(s.surrogate.seeds), "noise": s.surrogate.noise,
                       "points_run": sur.points_run, "dropped_points": sur.dropped_points,
+                      "reused_screening_points": sur.reused_points, "reuse_note": sur.reuse_note,
                       "stopped_because": sur.stopped_because, "target_r2": s.surrogate.adaptive.target_r2,
                       "rounds": [{"round": r.index, "n_points": r.n_points, "kernel": r.kernel,
                                   "r2_mean": r.r2_mean, "r2_std": r.r2_std} for r in sur.rounds],
@@ -100,15 +101,16 @@ def calibration_payload(result: CalibrationResult) -> dict:
 
 
 def strategy_comparison(result: CalibrationResult) -> dict:
-    """Per strategy: the CV R^2 after every round and the DEM runs (points x replicates) it took
-    to first reach the target (None if it never did), on the same sampled data."""
+    """Per strategy: the CV R^2 after every round and the surrogate stage's DEM runs (its own
+    points x replicates; reused screening points cost none) it took to first reach the target
+    (None if it never did), on the same sampled data."""
     sur, s = result.surrogate, result.settings.surrogate
     r = len(s.seeds)
     out = {}
     for strategy, values in sur.strategy_r2.items():
         reached = next((rec.n_points for rec, v in zip(sur.rounds, values) if v >= s.adaptive.target_r2), None)
         out[strategy] = {"r2_per_round": list(values), "points_to_target": reached,
-                         "dem_runs_to_target": None if reached is None else reached * r}
+                         "dem_runs_to_target": None if reached is None else max(reached - sur.reused_points, 0) * r}
     return out
 
 
@@ -216,7 +218,8 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
               f"{len(sur.parameters)} parameters, {len(s.surrogate.seeds)} replicates per point"
               + (f" (noise of single runs: {s.surrogate.noise})" if len(s.surrogate.seeds) == 1 else "") + ", strategy "
               f"`{s.surrogate.config.strategy}`; {sur.points_run} points run ({sur.dropped_points} without usable "
-              f"KPIs); stopped because: {sur.stopped_because}.", "",
+              f"KPIs); stopped because: {sur.stopped_because}."
+              + (f" {sur.reuse_note[0].upper()}{sur.reuse_note[1:]}." if sur.reuse_note else ""), "",
               "| parameter | low | high |", "| --- | ---: | ---: |"]
     lines += [f"| {n} | {sur.bounds[0, j]:.4g} | {sur.bounds[1, j]:.4g} |" for j, n in enumerate(sur.parameters)]
     strategies = list(sur.strategy_r2)

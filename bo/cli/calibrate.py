@@ -150,10 +150,13 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     noise = cfg.get("noise", "learned")
     if noise not in NOISE_MODELS:
         raise out_of_range("noise", noise, f"one of {list(NOISE_MODELS)}", where)
+    reuse = cfg.get("reuse_screening", False)
+    if not isinstance(reuse, bool):
+        raise out_of_range("reuse_screening", reuse, "true or false (the screening's points as surrogate data)", where)
     return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=_seeds(cfg, where, base_seed),
                                   adaptive=adaptive, config=config,
                                   compare_strategies=bool(cfg.get("compare_strategies")), added=checked_added,
-                                  noise=noise)
+                                  noise=noise, reuse_screening=reuse)
 
 
 def calibration_settings_from(plain: Mapping[str, Any]):
