@@ -479,6 +479,36 @@ def test_a_member_that_cannot_be_built_fails_alone():
     assert out[0].kpis != out[2].kpis
 
 
+def test_a_batch_killed_mid_run_resumes_from_its_checkpoint(tmp_path):
+    """With a checkpoint directory (what torchdem-calibrate, -screen and -study give their
+    executors: ``<store>.runs/``) an interrupted batch resumes where its last checkpoint stood:
+    the KPIs equal those of an uninterrupted batch exactly, and the file is gone afterwards."""
+    from bo.campaign.dem import checkpoint_path, evaluate_batch
+    from bo.campaign.executor import EvalTask
+
+    model, _ = _dem_model()
+    tasks = [EvalTask({"mu_s_pp": 0.5}, 0, "50-50"), EvalTask({"mu_s_pp": 0.3}, 1, "50-50")]
+    plain = evaluate_batch(model, tasks)
+    path = checkpoint_path(tmp_path, model, tasks)
+    assert checkpoint_path(tmp_path, model, tasks[::-1]) != path
+    assert checkpoint_path(tmp_path, model, [EvalTask({"mu_s_pp": 0.5}, 2, "50-50"), tasks[1]]) != path
+
+    class Killed(Exception):
+        pass
+
+    def kill(simulated: float, wall: float) -> None:
+        if simulated > 1.2:
+            raise Killed
+
+    test = model.test_for("50-50", [dict(t.params) for t in tasks])
+    with pytest.raises(Killed):
+        test.run_members([(0, 0, 0), (1, 1, 1)], checkpoint=path, checkpoint_every=0.5, progress=kill)
+    assert path.exists()
+    resumed = evaluate_batch(model, tasks, checkpoint_dir=str(tmp_path))
+    assert not path.exists()
+    assert [o.kpis for o in resumed] == [o.kpis for o in plain]
+
+
 def test_clump_shape_prior_fits_the_periodic_slice():
     """On the paper's 4 cm periodic slice the lobe spacing prior starts where the largest sinter
     (25 mm) still fits the minimum image (s > 0.5 - 0.95 x 0.04 / (4 x 0.025) = 0.12), and the

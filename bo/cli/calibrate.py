@@ -29,8 +29,9 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, check_kpis, config_hash, executor_from, executor_settings_from, plain_config,
-                           replicate_seeds, screen_settings_from, store_path_from)
+from bo.cli.common import (MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, config_hash, executor_from,
+                           executor_settings_from, plain_config, replicate_seeds, screen_settings_from,
+                           store_path_from)
 from torchdem.config import parameter_range
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
@@ -246,7 +247,7 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
                           allow_config_mismatch=bool(plain.get("allow_config_mismatch")), extra_stages=EXTRA_STAGES)
     started = time.perf_counter()
     echo(f"torchdem-calibrate: store {path}" + (f" (from {source})" if source else "") + f", output {out}")
-    with executor_from(executor_settings, model) as executor:
+    with executor_from(executor_settings, model, checkpoints=checkpoint_dir_for(path)) as executor:
         result = run_calibration(store, executor, settings, measured, out, densities, echo=echo)
     paper = load_paper_tables() if plain.get("measured") is None else None  # the paper's own Table 2
     files = write_calibration_report(result, out, paper=paper)

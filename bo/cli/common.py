@@ -119,13 +119,15 @@ def model_from(plain: Mapping[str, Any]):
                           *config.extension_from(plain.get("extension")))
 
 
-def executor_from(settings: ExecutorSettings, model, client=None):
+def executor_from(settings: ExecutorSettings, model, client=None, checkpoints: Path | None = None):
     """The executor running ``bo.campaign.dem.evaluate_batch`` on ``model`` (dask: on ``client``
-    when given, see :func:`executor_factory`)."""
+    when given, see :func:`executor_factory`); ``checkpoints``: the directory where its batches
+    checkpoint and resume (:func:`checkpoint_dir_for`)."""
     from bo.campaign.dem import evaluate_batch
     from bo.campaign.executor import DaskExecutor, InProcessExecutor
 
-    evaluate = functools.partial(evaluate_batch, model)
+    evaluate = functools.partial(evaluate_batch, model,
+                                 checkpoint_dir=None if checkpoints is None else str(checkpoints))
     if settings.kind == "inprocess":
         return InProcessExecutor(evaluate, settings.batch_size)
     if client is not None:
@@ -153,6 +155,12 @@ def executor_factory(settings: ExecutorSettings):
             yield functools.partial(executor_from, settings, client=client)
     finally:
         cluster.close()
+
+
+def checkpoint_dir_for(store_path: Path) -> Path:
+    """Where a store's DEM batches keep their checkpoints while they run: ``<store>.runs/``
+    beside the store (not committed: a checkpoint resumes a run on the machine that made it)."""
+    return Path(str(store_path) + ".runs")
 
 
 def store_path_from(plain: Mapping[str, Any], out: Path) -> Path:

@@ -26,8 +26,8 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (config_hash, executor_from, executor_settings_from, measured_kpis_from, model_from,
-                           plain_config, screen_settings_from, store_path_from)
+from bo.cli.common import (checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
+                           measured_kpis_from, model_from, plain_config, screen_settings_from, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 
 
@@ -45,7 +45,7 @@ def screen(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     stage = "screening"
     before = store.counts(stage)["done"] + store.counts(stage)["failed"]
     started = time.perf_counter()
-    with executor_from(executor_settings, model) as executor:
+    with executor_from(executor_settings, model, checkpoints=checkpoint_dir_for(path)) as executor:
         results = run_screening(store, executor, settings.table, n_fake=settings.n_fake,
                                 seeds=list(settings.seeds), condition=settings.condition,
                                 kpis=list(settings.kpis), stage=stage)

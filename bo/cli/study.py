@@ -24,8 +24,8 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (_int, check_kpis, config_hash, executor_from, executor_settings_from, measured_kpis_from,
-                           model_from, plain_config, replicate_seeds, store_path_from)
+from bo.cli.common import (_int, check_kpis, checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
+                           measured_kpis_from, model_from, plain_config, replicate_seeds, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 
@@ -172,7 +172,7 @@ def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     counts = store.counts(stage)
     before = counts["done"] + counts["failed"]
     started = time.perf_counter()
-    with executor_from(executor_settings, model) as executor:
+    with executor_from(executor_settings, model, checkpoints=checkpoint_dir_for(path)) as executor:
         if s.study == "timestep":
             runs = run_time_step_study(store, executor, condition=s.condition, params=params, fractions=s.values,
                                        seeds=list(s.seeds), kpis=list(s.kpis), stage=stage)
