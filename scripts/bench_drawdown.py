@@ -11,18 +11,14 @@ its share of the replicates (its own seeds) as one ensemble: the same split as
 ``executor=dask executor.n_workers=W``. Its wall time runs from the first submission to the
 last result, process start-up and extension loading included. For each it prints the bodies and spheres
 per member, steps, time step, wall time split into fill (particle placement) and simulation,
-particle-steps per second, the neighbour-list builds (rebuild events, and member lists built
-per member-step: each member rebuilds its own lists when they expire), and the CPU other
-processes used meanwhile (figures taken with ``other cores`` above ~0.1 are low).
-``--all-member-rebuilds`` rebuilds every member whenever one needs it, the rule before
-(same trajectories, bit for bit): the A/B of the per-member rebuild. ``--json`` prints one
-JSON object.
+particle-steps per second, and the CPU other processes used meanwhile (figures taken with
+``other cores`` above ~0.1 are low). ``--json`` prints one JSON object.
 
 Issue target on the 2-core reference machine: one run within 2 minutes, a batch of 10 within
 10 minutes.
 
 Usage: ``python scripts/bench_drawdown.py [--batch 10] [--workers 2] [--json] [--skip-single | --skip-batch]
-[--all-member-rebuilds] [-- sim.compile=true ...]``
+[-- sim.compile=true ...]``
 """
 from __future__ import annotations
 
@@ -38,29 +34,10 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from torchdem import config, integrate
+from torchdem import config
 from torchdem.cli import CONF_DIR
 from torchdem.cpu_monitor import CpuMonitor
 from torchdem.drawdown import DrawDownTest
-
-
-#: Neighbour-list builds of the process: ``[rebuild events, member lists built]``.
-LIST_BUILDS = [0, 0]
-
-
-def count_list_builds(all_members: bool = False) -> None:
-    """Count the neighbour-list builds of this process (``LIST_BUILDS``). With ``all_members``
-    every rebuild rebuilds every ensemble member, as before each member rebuilt its own lists
-    (the trajectories are the same bit for bit: tests/test_member_rebuild.py): the A/B of
-    ``--all-member-rebuilds``."""
-    original = integrate.rebuild
-
-    def counted(system, state, xs, time, members=None):
-        LIST_BUILDS[0] += 1
-        LIST_BUILDS[1] += system.batch if all_members or members is None else sum(map(bool, members))
-        return original(system, state, xs, time, None if all_members else members)
-
-    integrate.rebuild = counted
 
 
 def make_test(overrides: list[str]) -> DrawDownTest:
@@ -74,10 +51,7 @@ def _figures(result, members: int) -> dict:
     """What one ensemble run reports (both modes)."""
     spheres, steps, fill_s = result.spheres, int(result.steps), result.build_time_s
     sim_s = result.wall_time_s - fill_s
-    events, lists = LIST_BUILDS
-    LIST_BUILDS[:] = [0, 0]
     return {"members": members, "bodies_per_member": result.particles, "spheres_per_member": spheres, "steps": steps,
-            "rebuild_events": events, "member_lists_built_per_step": lists / max(members * steps, 1),
             "dt_s": result.dt, "wall_s": result.wall_time_s, "fill_s": fill_s, "simulation_s": sim_s,
             "particle_steps_per_s": members * spheres * steps / max(sim_s, 1e-9),
             "kpis_member0": result.kpis[0], "not_measured_member0": result.errors[0],
@@ -90,14 +64,13 @@ def time_run(test: DrawDownTest, members: int) -> dict:
     return {**_figures(result, members), "other_cores": cpu.other_cores}
 
 
-def _worker_run(overrides: list[str], seeds: list[int], threads: int, all_members: bool = False) -> dict:
+def _worker_run(overrides: list[str], seeds: list[int], threads: int) -> dict:
     """One worker of ``--workers``: its replicates (``seeds``) as one ensemble on ``threads`` threads."""
     torch.set_num_threads(threads)
-    count_list_builds(all_members)
     return _figures(make_test(overrides).run(replicates=len(seeds), seeds=seeds), len(seeds))
 
 
-def time_workers(overrides: list[str], members: int, workers: int, all_members: bool = False) -> dict:
+def time_workers(overrides: list[str], members: int, workers: int) -> dict:
     """The batch split over ``workers`` processes (see the module docstring)."""
     cores = os.cpu_count() or 1
     threads = max(1, cores // workers)
@@ -107,16 +80,13 @@ def time_workers(overrides: list[str], members: int, workers: int, all_members: 
     with CpuMonitor() as cpu:
         started = time.perf_counter()
         with concurrent.futures.ProcessPoolExecutor(len(shares), mp_context=context) as pool:
-            parts = list(pool.map(_worker_run, [overrides] * len(shares), shares, [threads] * len(shares),
-                                  [all_members] * len(shares)))
+            parts = list(pool.map(_worker_run, [overrides] * len(shares), shares, [threads] * len(shares)))
         wall = time.perf_counter() - started
     first = parts[0]
     work = sum(p["members"] * p["spheres_per_member"] * p["steps"] for p in parts)
     return {"members": members, "workers": len(shares), "threads_per_worker": threads,
             "bodies_per_member": first["bodies_per_member"], "spheres_per_member": first["spheres_per_member"],
             "steps": first["steps"], "dt_s": first["dt_s"], "wall_s": wall,
-            "rebuild_events": sum(p["rebuild_events"] for p in parts),
-            "member_lists_built_per_step": sum(p["member_lists_built_per_step"] * p["members"] for p in parts) / members,
             "fill_s": max(p["fill_s"] for p in parts), "simulation_s": max(p["wall_s"] - p["fill_s"] for p in parts),
             "particle_steps_per_s": work / max(wall - max(p["fill_s"] for p in parts), 1e-9),
             "other_cores": cpu.other_cores,
@@ -133,12 +103,8 @@ def main(argv=None) -> None:
     parser.add_argument("--skip-batch", action="store_true")
     parser.add_argument("--workers", type=int, default=1,
                         help="split the batch over this many processes (threads: cores // workers each)")
-    parser.add_argument("--all-member-rebuilds", action="store_true",
-                        help="rebuild every member's lists whenever one member's expire (the rule before "
-                             "members rebuilt their own; same trajectories): the A/B of the per-member rebuild")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. sim.compile=true")
     args = parser.parse_args(argv)
-    count_list_builds(args.all_member_rebuilds)
     if args.workers < 1 or args.workers > args.batch:
         parser.error(f"--workers {args.workers}: expected 1 .. --batch ({args.batch})")
     test = make_test(args.overrides)
@@ -150,14 +116,12 @@ def main(argv=None) -> None:
         if (name == "single" and args.skip_single) or (name == "batch" and args.skip_batch):
             continue
         split = name == "batch" and args.workers > 1
-        r = time_workers(args.overrides, members, args.workers, args.all_member_rebuilds) if split \
-            else time_run(test, members)
+        r = time_workers(args.overrides, members, args.workers) if split else time_run(test, members)
         figures[name] = r
         how = f" in {r['workers']} processes x {r['threads_per_worker']} threads" if split else ""
         log(f"{name:6s} B={members:3d}{how}: {r['spheres_per_member']} spheres/member, {r['steps']} steps of "
             f"{r['dt_s']:.3g} s; wall {r['wall_s']:.1f} s (fill {r['fill_s']:.1f} s, simulation "
-            f"{r['simulation_s']:.1f} s); {r['particle_steps_per_s']:.3g} particle-steps/s; "
-            f"{r['member_lists_built_per_step']:.3f} lists built per member-step; other cores "
+            f"{r['simulation_s']:.1f} s); {r['particle_steps_per_s']:.3g} particle-steps/s; other cores "
             f"{r['other_cores'] if r['other_cores'] is None else round(r['other_cores'], 2)}")
     if args.json:
         print(json.dumps(figures, indent=2, default=float))

@@ -5,9 +5,8 @@ Contract: ``step(system, state) -> state``. Per step:
 
 1. half kick  v += dt/2 F/m,  L += dt/2 tau    (forces of the previous evaluation)
 2. drift      x += dt v,  q <- exp(dt omega_mid) q
-3. sphere positions from body pose; the neighbour lists of each ensemble member whose skin
-   criterion fires are rebuilt (contact history carried over by key), every member's when the
-   walls changed
+3. sphere positions from body pose; neighbour lists rebuilt if the skin criterion fires
+   (contact history carried over by key)
 4. forces: Hertz-Mindlin + EPSD rolling (+ SJKR cohesion where a pair has it) for sphere pairs
    and sphere-wall pairs, gravity
 5. half kick with the new forces
@@ -17,8 +16,6 @@ Forces are evaluated with the half-step velocities, as in LIGGGHTS. The wiring h
 contact laws in :mod:`torchdem.contact`, which are pure functions.
 """
 from __future__ import annotations
-
-import dataclasses
 
 import torch
 
@@ -47,19 +44,12 @@ def sphere_active(system: System, bodies: Bodies) -> Tensor:
     return bodies.active.reshape(-1)[system.sphere_body_flat] & (system.sphere_radius.reshape(-1) > 0)
 
 
-def rebuild(system: System, state: State, xs: Tensor, time: float,
-            members: "list[bool] | None" = None) -> tuple[State, Tensor]:
+def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[State, Tensor]:
     """Rebuild both neighbour lists at the current positions and carry contact history.
 
     On periodic axes, body positions are wrapped back into the domain first; returns the new
-    state and the (wrapped) sphere positions ``[B * Ns, 3]``. ``members`` (``[B]`` bools; None:
-    all) rebuilds only the lists of those ensemble members and keeps the others' lists, history
-    and reference positions as they are (:func:`_rebuild_members`); the walls' shift and
-    activity recorded for the lists are shared by all members, so a partial rebuild is only
-    right while the walls have not moved or changed since the last full one.
+    state and the (wrapped) sphere positions ``[B * Ns, 3]``.
     """
-    if members is not None and not all(members):
-        return _rebuild_members(system, state, xs, time, members)
     B, Ns = system.batch, system.n_spheres
     if system.grid.is_periodic:
         x = state.bodies.position
@@ -92,63 +82,6 @@ def rebuild(system: System, state: State, xs: Tensor, time: float,
     )
     state = state.set(pairs=pairs, walls=wall_contacts, reference=xs.clone(), wall_shift=shift,
                       wall_active=wall_active, rebuilds=state.rebuilds + 1)
-    return state, xs
-
-
-def _merged(old, keep: Tensor, new, key: str):
-    """The contacts of ``old`` where ``keep`` and all of ``new`` (same dataclass), sorted by
-    ``key``: the lists of different members never share a key."""
-    fields = [f.name for f in dataclasses.fields(old)]
-    cat = {f: torch.cat([getattr(old, f)[keep], getattr(new, f)]) for f in fields}
-    order = torch.argsort(cat[key])
-    return type(old)(**{f: v[order] for f, v in cat.items()})
-
-
-def _rebuild_members(system: System, state: State, xs: Tensor, time: float,
-                     members: "list[bool]") -> tuple[State, Tensor]:
-    """:func:`rebuild` of the members flagged in ``members`` only: their pairs and wall contacts
-    are searched again (history carried by key as in a full rebuild), every other member keeps
-    its lists. A pair list holds pairs within contact distance plus the skin, and springs reset
-    when a pair does not touch, so when a member's list was built changes no force: the
-    trajectories are those of rebuilding every member."""
-    B, Nb, Ns = system.batch, system.n_bodies, system.n_spheres
-    device = xs.device
-    chosen = torch.tensor(members, dtype=torch.bool, device=device)           # [B]
-    sphere_chosen = chosen.repeat_interleave(Ns)                               # [B * Ns]
-    if system.grid.is_periodic:
-        x = state.bodies.position
-        xw = torch.where(chosen[:, None, None], neighbors.wrap(x, system.grid.lower, system.grid.period), x)
-        xs = xs + (xw - x).reshape(-1, 3)[system.sphere_body_flat]
-        state = state.set(bodies=state.bodies.set(position=xw))
-    active = sphere_active(system, state.bodies) & sphere_chosen
-    radius = system.sphere_radius.reshape(-1)
-    body = system.sphere_body_flat
-    mat = system.sphere_material.reshape(-1)
-    mass, inertia_r, pair_row = system.sphere_mass, system.sphere_rolling_inertia, system.sphere_pair_row
-    t = system.tables
-
-    old = state.pairs
-    i, j = neighbors.find_pairs(xs, radius, body, active, Ns, system.grid, system.skin)
-    constants = pair_constants(i, j, radius, mass, inertia_r, body, pair_row, mat, t)
-    tang, roll = neighbors.carry_history(old.key, [old.tangential, old.rolling], constants["key"])
-    pairs = _merged(old, ~sphere_chosen[old.i], PairContacts(i=i, j=j, tangential=tang, rolling=roll, **constants),
-                    "key")
-
-    W = system.walls.n
-    shift = system.walls.shift(time)
-    wall_active = system.walls.active_at(time)
-    ow = state.walls
-    s, w = neighbors.find_wall_pairs(xs, radius, active, system.walls, shift, wall_active, system.skin)
-    wkey = s * max(W, 1) + w
-    wt, wr = neighbors.carry_history(ow.key, [ow.tangential, ow.rolling], wkey)
-    new_walls = WallContacts(
-        sphere=s, body=body[s], wall=w, key=wkey, tangential=wt, rolling=wr, radius=radius[s], mass_eff=mass[s],
-        rolling_inertia=inertia_r[s], **t.gather(pair_row[s] + system.walls.material[w]),
-    )
-    walls = _merged(ow, ~sphere_chosen[ow.sphere], new_walls, "key")
-    reference = torch.where(sphere_chosen[:, None], xs, state.reference)
-    state = state.set(pairs=pairs, walls=walls, reference=reference, wall_shift=shift, wall_active=wall_active,
-                      rebuilds=state.rebuilds + 1)
     return state, xs
 
 
@@ -466,19 +399,15 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
                       step=state.step + 1)
     time = state.step * dt
     displacement = displacement.tolist()
-    # Each member rebuilds when its own lists expire. A change of the walls (one appears or
-    # disappears, or they moved since the lists were built) rebuilds every member: the walls'
-    # shift and activity at the last build are one record for the whole ensemble.
-    expired = neighbors.expired_members(displacement, system.skin, 0.0 if system.walls.n else None)
-    everyone = False
-    if system.walls.n and system.wall_events and any((time - dt) < e <= time for e in system.wall_events):
-        everyone = bool((system.walls.active_at(time) != state.wall_active).any())
-    if not everyone and system.walls.n and system.walls_move:
-        wall_move = float((system.walls.shift(time) - state.wall_shift).norm(dim=-1).max())
-        if wall_move > 0:
-            everyone = any(neighbors.expired_members(displacement, system.skin, wall_move))
-    if everyone or any(expired):
-        state, xs = rebuild(system, state, xs, time, None if everyone else expired)
+    rebuild_now = neighbors.lists_expired(displacement, system.skin, 0.0 if system.walls.n else None)
+    if system.walls.n and not rebuild_now and system.wall_events:
+        if any((time - dt) < e <= time for e in system.wall_events):
+            rebuild_now = bool((system.walls.active_at(time) != state.wall_active).any())
+        if not rebuild_now and system.walls_move:
+            wall_move = float((system.walls.shift(time) - state.wall_shift).norm(dim=-1).max())
+            rebuild_now = neighbors.lists_expired(displacement, system.skin, wall_move)
+    if rebuild_now:
+        state, xs = rebuild(system, state, xs, time)
     return forces_and_kick(system, state, xs, omega, time, kernels)
 
 

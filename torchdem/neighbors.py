@@ -15,10 +15,10 @@ Contract:
 - :func:`find_wall_pairs` returns every (sphere, wall) closer than ``r + skin``.
 - :func:`carry_history` copies spring history from an old list to a new one by matching
   sorted int64 keys (pairs that persist keep their springs; new pairs start at zero).
-- :func:`expired_members` is the skin criterion, per ensemble member: rebuild when the box of a
-  member's sphere displacements since the last build has a diagonal above the skin (two of its
-  spheres may then have closed the skin between them), or, with walls, when the largest
-  displacement plus how far any wall moved is above it. :func:`lists_expired`: any member.
+- :func:`lists_expired` is the skin criterion: rebuild when the box of a member's sphere
+  displacements since the last build has a diagonal above the skin (two of its spheres may
+  then have closed the skin between them), or, with walls, when the largest displacement plus
+  how far any wall moved is above it.
 """
 from __future__ import annotations
 
@@ -249,14 +249,8 @@ def displacement_box(position: Tensor, reference: Tensor, members: int = 1) -> T
 
 
 def lists_expired(displacement: Sequence[Sequence[float]], skin: float, wall_move: float | None = None) -> bool:
-    """Whether some member's lists expired (:func:`expired_members`)."""
-    return any(expired_members(displacement, skin, wall_move))
-
-
-def expired_members(displacement: Sequence[Sequence[float]], skin: float,
-                    wall_move: float | None = None) -> list[bool]:
-    """Skin criterion from a :func:`displacement_box` (one row per member): per member, whether
-    a contact may now be missing from its lists.
+    """Skin criterion from a :func:`displacement_box` (one row per member): whether a contact
+    may now be missing.
 
     Two spheres of a member not listed were at least r_i + r_j + skin apart at the build; since
     then they approached by at most |d_i - d_j|, which is at most both the diagonal of the
@@ -268,12 +262,12 @@ def expired_members(displacement: Sequence[Sequence[float]], skin: float,
     when spheres move alike: a discharge stream falls together past resting spheres, so the
     diagonal is about the largest displacement, not twice it.
     """
-    out = []
     for row in displacement:
         diagonal = math.sqrt(sum((row[a + 3] - row[a]) ** 2 for a in range(3)))
         largest = math.sqrt(row[6])
-        out.append(min(diagonal, 2 * largest) > skin or (wall_move is not None and largest + wall_move > skin))
-    return out
+        if min(diagonal, 2 * largest) > skin or (wall_move is not None and largest + wall_move > skin):
+            return True
+    return False
 
 
 def needs_rebuild(position: Tensor, reference: Tensor, skin: float, wall_move: float | None = None,
