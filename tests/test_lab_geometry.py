@@ -13,6 +13,7 @@ Checks:
 - on a small box, the mirrored half and the whole box give the same KPIs within replicate
   noise (slow: 3 seeds each).
 """
+import dataclasses
 import math
 
 import numpy as np
@@ -148,10 +149,14 @@ def test_mirrored_half_box_matches_the_whole_small_box_within_replicate_noise():
     (Welch) plus 3 % of the whole box's mean (the mirror is a smooth plane where the whole box has
     a rough layer of particles: a small bias is allowed, a lost wall is not)."""
     seeds = [11, 12, 13]
+    # 2.5 s of discharge: with 2.0 s, seed 13 of the mirrored box still trickled at 1.77 s (inside
+    # the 0.3 s final window) on one machine, while the same code passed on another: runs differ
+    # at round-off between machines, and a draw down amplifies it
+    settings = dataclasses.replace(SETTINGS, discharge_time=2.5)
     out = {}
     for mirror in (False, True):
         mix, g = _mini(mirror=mirror)
-        res = DrawDownTest(mix, g, settings=SETTINGS).run(replicates=3, seeds=seeds)
+        res = DrawDownTest(mix, g, settings=settings).run(replicates=3, seeds=seeds)
         assert res.errors == [{}] * 3
         out[mirror] = res.kpis
     for kpi in ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg"):
