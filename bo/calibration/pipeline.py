@@ -513,14 +513,14 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
     if prior is not None:
         X0, reps0, reuse_note = prior
         n0 = X0.shape[0]
-        n0_usable = int(_objective_data(reps0, objective, config.strategy, pooled, need=1)[0].sum()) if n0 else 0
+        n0_usable = int(_objective_data(reps0, objective, config.strategy, pooled, need)[0].sum()) if n0 else 0
         n_initial = max(full - n0_usable, math.ceil(full / 2))
     else:
         X0, reps0, reuse_note, n0 = np.zeros((0, d)), np.zeros((0, len(s.seeds), len(kpis))), "", 0
         n_initial = full
     key = _key("surrogate", names, bounds.tolist(), list(s.seeds), a.seed, n_initial, a.q, config.strategy,
                list(kpis), list(objective.measured), list(objective.weights),
-               *([X0.tolist(), np.where(np.isfinite(reps0), reps0, None).tolist()] if prior is not None else []))
+               *([X0.tolist(), reps0.tolist()] if prior is not None else []))
     rows = lambda X: [dict(zip(names, map(float, x))) for x in X]  # noqa: E731
     width = max(len(s.seeds), reps0.shape[1])
 

@@ -219,7 +219,7 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
               + (f" (noise of single runs: {s.surrogate.noise})" if len(s.surrogate.seeds) == 1 else "") + ", strategy "
               f"`{s.surrogate.config.strategy}`; {sur.points_run} points run ({sur.dropped_points} without usable "
               f"KPIs); stopped because: {sur.stopped_because}."
-              + (f" {sur.reuse_note[0].upper()}{sur.reuse_note[1:]}." if sur.reuse_note else ""), "",
+              + (f" Reused: {sur.reuse_note}." if sur.reuse_note else ""), "",
               "| parameter | low | high |", "| --- | ---: | ---: |"]
     lines += [f"| {n} | {sur.bounds[0, j]:.4g} | {sur.bounds[1, j]:.4g} |" for j, n in enumerate(sur.parameters)]
     strategies = list(sur.strategy_r2)
