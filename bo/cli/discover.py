@@ -60,7 +60,8 @@ def discovery_settings_from(plain: Mapping[str, Any]):
             points_per_parameter=cfg.get("points_per_parameter"), min_points=cfg.get("min_points"),
             alpha=float(cfg.get("alpha")), penalty=float(cfg.get("penalty")), margin=float(cfg.get("margin")),
             always_score=bool(cfg.get("always_score")), ga=ga, kernel=str(cfg.get("kernel")), seed=base,
-            ga_starts=cfg.get("ga_starts", 3), proposed_kpis=_proposed(cfg.get("proposed_kpis"), where))
+            fit_starts=cfg.get("fit_starts", 3), fit_search=str(cfg.get("fit_search", "multistart")),
+            search_samples=cfg.get("search_samples", 1024), proposed_kpis=_proposed(cfg.get("proposed_kpis"), where))
         return settings.validate(where)
     except ConfigError:
         raise

@@ -84,6 +84,7 @@ from bo.surrogate.acquisition import latin_hypercube
 from torchdem.model import DrawDownModel
 from bo.campaign.executor import Executor, run_pending
 from bo.surrogate.ga import GASettings, minimise_surrogate
+from bo.surrogate.search import multistart_minimum
 from torchdem.mechanisms import Mechanism, ModelContext, model_context, registry
 from bo.surrogate.objective import ObjectiveSpec
 from bo.discovery.replicate_noise import ReplicateNoise
@@ -105,8 +106,9 @@ PARAMETERS = "parameters"
 #: by it (``bo.discovery.power``), so outcomes of older rules are neither mixed with newer ones nor
 #: silently reused. 1: the fits weighed each cell by the lab's uncertainty alone when the design
 #: ran each point once, and there was no fit check; 2: the DEM noise of the held-out mean in every
-#: fit's chi^2, and :func:`fit_check`.
-VERDICT_RULES = 2
+#: fit's chi^2, and :func:`fit_check`; 3: each fit searched by a Sobol sample and L-BFGS-B polish
+#: (``fit_search="multistart"``) instead of three GA runs.
+VERDICT_RULES = 3
 
 
 def discovery_stages(names: Sequence[str] | None = None) -> tuple[str, ...]:
@@ -131,8 +133,10 @@ class DiscoverySettings:
         alpha: significance of the discrepancy test. penalty: held-out chi^2 per added
             parameter. margin: held-out chi^2 a cause must gain over the parameters hypothesis.
         always_score: fit the hypotheses even without a significant discrepancy.
-        ga: GA on the surrogate means; ga_starts: independent GA runs per fit (seeds ``seed + k``),
-            the best kept. kernel: GP kernel. seed: LHS and GA seed.
+        fit_search: how each fit minimises the GP's expected chi^2: ``"multistart"`` (a Sobol
+            sample of ``search_samples`` points, the ``fit_starts`` best distinct ones polished by
+            L-BFGS-B; ``bo.surrogate.search``) or ``"ga"`` (``fit_starts`` independent runs of the GA
+            ``ga``, seeds ``seed + k``); the best kept. kernel: GP kernel. seed: LHS, Sobol and GA seed.
         proposed_kpis: DEM KPIs the lab does not report (the heap height, say) that "what to
             measure next" weighs as additions; each candidate's design runs measure them, its GP
             models them, and the lab is assumed to measure them as repeatably as the DEM does.
@@ -153,7 +157,9 @@ class DiscoverySettings:
     ga: GASettings = GASettings(pop_size=200, n_generations=200, stall_generations=30)
     kernel: str = "matern52"
     seed: int = 0
-    ga_starts: int = 3
+    fit_starts: int = 3
+    fit_search: str = "multistart"
+    search_samples: int = 1024
     proposed_kpis: tuple[str, ...] = ("max_heap_height_m",)
 
     def validate(self, source: str = "discovery") -> "DiscoverySettings":
@@ -172,8 +178,13 @@ class DiscoverySettings:
         for name in ("penalty", "margin"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise out_of_range(name, getattr(self, name), "a finite number >= 0", source)
-        if isinstance(self.ga_starts, bool) or not isinstance(self.ga_starts, int) or self.ga_starts < 1:
-            raise out_of_range("ga_starts", self.ga_starts, "an integer >= 1", source)
+        if isinstance(self.fit_starts, bool) or not isinstance(self.fit_starts, int) or self.fit_starts < 1:
+            raise out_of_range("fit_starts", self.fit_starts, "an integer >= 1", source)
+        if self.fit_search not in ("multistart", "ga"):
+            raise out_of_range("fit_search", self.fit_search, "'multistart' or 'ga'", source)
+        if isinstance(self.search_samples, bool) or not isinstance(self.search_samples, int) \
+                or self.search_samples < 16:
+            raise out_of_range("search_samples", self.search_samples, "an integer >= 16", source)
         for name in ("points_per_parameter", "min_points"):
             if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), int) \
                     or getattr(self, name) < 2:
@@ -527,9 +538,13 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
             mean, var = surrogate.predict_outputs(x)
             return _expected_chi2_terms(mean[:, mask], var[:, mask], dem_var[mask], lab_mean[mask],
                                         lab_var[mask]).sum(-1)
-        # several GA starts: the verdict must not hinge on one search that stalled
-        runs = [minimise_surrogate(chi2, b, settings.ga, seed=settings.seed + k) for k in range(settings.ga_starts)]
-        res = min(runs, key=lambda r: r.fitness)
+        # several starts: the verdict must not hinge on one search that stalled
+        if settings.fit_search == "multistart":
+            res = multistart_minimum(chi2, b, samples=settings.search_samples, starts=settings.fit_starts,
+                                     seed=settings.seed)
+        else:
+            res = min((minimise_surrogate(chi2, b, settings.ga, seed=settings.seed + k)
+                       for k in range(settings.fit_starts)), key=lambda r: r.fitness)
         return dict(zip(names, map(float, res.x)))
 
     predicted, without = {}, {}
