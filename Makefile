@@ -22,7 +22,10 @@ $(STAMP): setup.cfg pyproject.toml
 run: $(STAMP)
 	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-2} $(VENV)/bin/torchdem-calibrate
 
+# The C++ kernels are built (or found in torch's cache) before the tests start, on both cores,
+# instead of inside the first test of each test worker.
 test: $(STAMP)
+	$(PY) -c "from torchdem._ext import cpu_kernels; cpu_kernels()"
 	$(PY) -m pytest -n 2 --dist loadgroup
 
 bench: $(STAMP)
