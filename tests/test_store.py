@@ -186,6 +186,28 @@ def test_claims_do_not_overlap_and_record_finishes_tasks(tmp_path):
     assert store.reset_failed() == 1 and store.counts()["pending"] == 1
 
 
+def test_claim_batches_tasks_of_one_particle_shape_together(tmp_path):
+    """With an affinity (the lobe spacing here), each batch holds tasks of one shape where it can,
+    the oldest task left starting each batch, and the nearest shape filling a batch that its own
+    cannot; without one, task order."""
+    from bo.campaign.executor import make_batches
+    from torchdem.model import mixture_parameters
+
+    store = new_store(tmp_path)
+    spacing = [0.3, 0.15, 0.3, 0.15, 0.225, 0.15, 0.3]  # a design's order, as a DSD interleaves its levels
+    points = [{"mu_s_pp": 0.1 * (k + 1), "lobe_spacing_sinter": s} for k, s in enumerate(spacing)]
+    fill(store, points=points, seeds=(0,))
+    plain = store.claim(2, batch_size=2)
+    assert [t.params["lobe_spacing_sinter"] for t in plain] == [0.3, 0.15]
+    store.release([t.task_id for t in plain])
+    tasks = store.claim(8, batch_size=2, affinity=mixture_parameters)
+    shapes = [[t.params["lobe_spacing_sinter"] for t in b] for b in make_batches(tasks, 2)]
+    assert shapes == [[0.3, 0.3], [0.15, 0.15], [0.225, 0.3], [0.15]]  # 0.225 pairs with the nearer 0.3
+    assert tasks[0].task_id == plain[0].task_id  # the oldest task goes first
+    assert mixture_parameters({"mu_s_pp": 0.5, "lobe_spacing_sinter": 0.2, "density_pellet": 3600}) == (
+        ("density_pellet", 3600.0), ("lobe_spacing_sinter", 0.2))
+
+
 def test_record_refuses_foreign_tasks(tmp_path):
     store = new_store(tmp_path)
     fill(store)

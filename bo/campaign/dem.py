@@ -18,7 +18,7 @@ Contract:
   and seed) and, if that file exists when the batch starts, resumes from it: a campaign killed
   during a long run (a lab-geometry batch takes up to two hours on one core) loses at most
   0.5 s of simulated time of it, as long as the store hands the same tasks to one batch again
-  (it claims pending tasks in order). The file is removed when the run ends.
+  (it claims pending tasks in the same order every time). The file is removed when the run ends.
 - ``functools.partial(evaluate_batch, model)`` is picklable, so it ships to dask workers.
 """
 from __future__ import annotations

@@ -274,12 +274,16 @@ def evaluate_checked(evaluate_batch: EvaluateBatch, tasks: list[EvalTask]) -> li
 class Executor(ABC):
     """Runs batches of ``EvalTask`` through ``evaluate_batch``; see the module docstring."""
 
-    def __init__(self, evaluate_batch: EvaluateBatch, batch_size: int):
+    def __init__(self, evaluate_batch: EvaluateBatch, batch_size: int,
+                 affinity: Callable[[Mapping[str, float]], tuple] | None = None):
         if not callable(evaluate_batch):
             raise out_of_range("evaluate_batch", evaluate_batch,
                                "a callable list[EvalTask] -> list[EvalOutcome]", type(self).__name__)
+        if affinity is not None and not callable(affinity):
+            raise out_of_range("affinity", affinity, "a callable params -> tuple, or None", type(self).__name__)
         self.evaluate_batch = evaluate_batch
         self.batch_size = _check_batch_size(batch_size, type(self).__name__)
+        self.affinity = affinity  # run_pending batches tasks of equal affinity together (CampaignStore.claim)
 
     @property
     @abstractmethod
@@ -341,8 +345,9 @@ class DaskExecutor(Executor):
 
     def __init__(self, evaluate_batch: EvaluateBatch, batch_size: int, *, client=None,
                  address: str | None = None, n_workers: int | None = None,
-                 max_in_flight: int | None = None, cluster_kwargs: Mapping | None = None):
-        super().__init__(evaluate_batch, batch_size)
+                 max_in_flight: int | None = None, cluster_kwargs: Mapping | None = None,
+                 affinity: Callable[[Mapping[str, float]], tuple] | None = None):
+        super().__init__(evaluate_batch, batch_size, affinity)
         from dask.distributed import Client  # optional at import time
 
         if client is not None and address is not None:
@@ -476,7 +481,8 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
     n_done = n_failed = n_batches = 0
     with _LeaseKeeper(store, store.renew_period) as keeper:
         while True:
-            tasks = store.claim(chunk, stage=stage, batch_size=executor.batch_size)
+            tasks = store.claim(chunk, stage=stage, batch_size=executor.batch_size,
+                                affinity=getattr(executor, "affinity", None))
             if not tasks:
                 if not wait or store.counts(stage).get("running", 0) == 0:
                     break

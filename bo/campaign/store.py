@@ -185,6 +185,38 @@ def default_code_version() -> str:
         return "unknown"
 
 
+def _affinity_distance(a: tuple, b: tuple) -> float:
+    """Summed relative difference of two affinity keys' values (inf if their names differ)."""
+    if [n for n, _ in a] != [n for n, _ in b]:
+        return math.inf
+    return sum(abs(x - y) / max(abs(x), abs(y)) for (_, x), (_, y) in zip(a, b) if x != y)
+
+
+def _by_affinity(rows: list, batch_size: int, affinity: Callable[[Mapping[str, float]], tuple]) -> list:
+    """``rows`` (task order; params JSON in column 1) reordered batch by batch: each batch the
+    oldest row left, then rows of equal affinity in task order, then the nearest ones."""
+    buckets: dict[tuple, list] = {}
+    for row in rows:
+        buckets.setdefault(tuple(affinity(json.loads(row[1]))), []).append(row)
+    if len(buckets) <= 1:
+        return rows
+    position = {row[0]: k for k, row in enumerate(rows)}
+    out: list = []
+    while buckets:
+        first = min(buckets, key=lambda key: position[buckets[key][0][0]])
+        batch: list = []
+        for key in sorted(buckets, key=lambda key: (_affinity_distance(first, key), position[buckets[key][0][0]])):
+            take = buckets[key][:batch_size - len(batch)]
+            batch += take
+            buckets[key] = buckets[key][len(take):]
+            if not buckets[key]:
+                del buckets[key]
+            if len(batch) == batch_size:
+                break
+        out += batch
+    return out
+
+
 def _owner() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
@@ -520,14 +552,22 @@ class CampaignStore:
 
     # -- claiming and recording --------------------------------------------------------------
 
-    def claim(self, limit: int, stage: str | None = None, batch_size: int = 1) -> list[EvalTask]:
+    def claim(self, limit: int, stage: str | None = None, batch_size: int = 1,
+              affinity: Callable[[Mapping[str, float]], tuple] | None = None) -> list[EvalTask]:
         """Lease up to ``limit`` claimable tasks to this process, grouped by condition: the
         claimable tasks of the condition of the oldest one first, then those of the condition of
         the oldest remaining one, and so on (task order kept within a condition). A later
         condition contributes whole batches of ``batch_size`` (or all its tasks, if they fit), so
         every claim splits into single-condition batches no smaller than a condition's last one,
         and when one condition has fewer tasks than the executor's workers can take, the other
-        conditions' tasks keep them busy."""
+        conditions' tasks keep them busy.
+
+        ``affinity(params)`` (optional): a tuple of ``(name, value)`` pairs that should agree
+        within a batch (``torchdem.model.mixture_parameters``: tasks of different particle shapes
+        in one ensemble all run at the smallest one's time step). Each batch then starts with the
+        oldest task left and is filled with the tasks of equal affinity, in task order, then of
+        the nearest (summed relative difference of the values); the tasks come back batch by
+        batch, so ``make_batches`` cuts them where the claim did."""
         if isinstance(limit, bool) or not isinstance(limit, Integral) or limit < 1:
             raise out_of_range("limit", limit, "an int >= 1", "CampaignStore.claim")
         if isinstance(batch_size, bool) or not isinstance(batch_size, Integral) or batch_size < 1:
@@ -553,6 +593,8 @@ class CampaignStore:
                 room = int(limit) - len(rows)
                 if room <= 0:
                     break
+                if affinity is not None:
+                    group = _by_affinity(group, int(batch_size), affinity)
                 take = len(group) if len(group) <= room else (room if not rows else room - room % batch_size)
                 rows += group[:take]
             conn.executemany(

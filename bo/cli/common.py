@@ -126,14 +126,18 @@ def executor_from(settings: ExecutorSettings, model, client=None, checkpoints: P
     from bo.campaign.dem import evaluate_batch
     from bo.campaign.executor import DaskExecutor, InProcessExecutor
 
+    from torchdem.model import mixture_parameters
+
     evaluate = functools.partial(evaluate_batch, model,
                                  checkpoint_dir=None if checkpoints is None else str(checkpoints))
     if settings.kind == "inprocess":
-        return InProcessExecutor(evaluate, settings.batch_size)
+        return InProcessExecutor(evaluate, settings.batch_size, affinity=mixture_parameters)
     if client is not None:
-        return DaskExecutor(evaluate, settings.batch_size, client=client, max_in_flight=settings.max_in_flight)
+        return DaskExecutor(evaluate, settings.batch_size, client=client, max_in_flight=settings.max_in_flight,
+                            affinity=mixture_parameters)
     return DaskExecutor(evaluate, settings.batch_size, address=settings.address,
-                        n_workers=settings.n_workers, max_in_flight=settings.max_in_flight)
+                        n_workers=settings.n_workers, max_in_flight=settings.max_in_flight,
+                        affinity=mixture_parameters)
 
 
 @contextlib.contextmanager
