@@ -30,7 +30,8 @@ returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model
    hypercube of ``max(min_points, points_per_parameter x d)`` points, each run on every condition
    with ``fit_seeds``, and one GP per (condition, KPI) (``bo.surrogate.gp``, per-output strategy).
    Leave-one-condition-out: for each condition c, the parameters that minimise the chi^2 of the
-   other conditions (GP means, GA of ``bo.surrogate.ga``) are run with the DEM on c (``settings.seeds``); the
+   other conditions (the GP's expected chi^2, minimised by ``bo.surrogate.search``, or the GA of
+   ``bo.surrogate.ga`` with ``fit_search="ga"``) are run with the DEM on c (``settings.seeds``); the
    held-out chi^2 of c is that of these runs against the measurement (as in step 1). The surrogate
    only fits; it never scores (a poor GP's wide predictive variance would flatter its hypothesis;
    its prediction is reported as ``predicted_chi2``). A hypothesis with no free parameter
