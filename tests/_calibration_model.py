@@ -108,7 +108,7 @@ def small_settings(**changes):
                                                                   maxiter=50)),
         config=SurrogateConfig(strategy="per_kpi", n_mc_samples=64), compare_strategies=True)
     settings = CalibrationSettings(condition="50-50", screening=screening, objective_kpis=None, weights=None,
-                                   surrogate=surrogate, ga=GASettings(pop_size=200, n_generations=150),
+                                   surrogate=surrogate, ga=GASettings(pop_size=100, n_generations=100),
                                    ga_repetitions=2, verification_seeds=(0, 1, 2), validation_seeds=(0, 1))
     return settings if not changes else __import__("dataclasses").replace(settings, **changes)
 
