@@ -48,12 +48,15 @@ def analytic_kpis(params: dict, seed: int, condition: str) -> dict[str, float]:
 
 
 def analytic_batch(tasks: list[EvalTask], *, log_path: str | None = None,
-                   sleep_per_eval: float = 0.0, fail_condition: str | None = None) -> list[EvalOutcome]:
-    """evaluate_batch: KPIs of every task; raises for ``fail_condition`` (a blown-up batch)."""
+                   sleep_per_eval: float = 0.0, fail_condition: str | None = None,
+                   slow_mu: float | None = None, slow_seconds: float = 0.0) -> list[EvalOutcome]:
+    """evaluate_batch: KPIs of every task; raises for ``fail_condition`` (a blown-up batch); a
+    batch holding a task with ``mu_s_pp == slow_mu`` takes ``slow_seconds`` more."""
     start = time.perf_counter()
     if any(t.condition == fail_condition for t in tasks):
         raise RuntimeError(f"ensemble blew up for condition {fail_condition}")
-    time.sleep(sleep_per_eval * len(tasks))
+    time.sleep(sleep_per_eval * len(tasks) + (slow_seconds if any(t.params.get("mu_s_pp") == slow_mu
+                                                                   for t in tasks) else 0.0))
     kpis = [analytic_kpis(t.params, t.seed, t.condition) for t in tasks]
     if log_path is not None:
         lines = "".join(json.dumps({"pid": os.getpid(), "key": task_key(t.params, t.seed, t.condition)})

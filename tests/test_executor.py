@@ -169,6 +169,18 @@ def test_dask_executor_matches_in_process(tmp_path):
         assert (a.X == b.X).all() and (a.kpis == b.kpis).all() and (a.seeds == b.seeds).all()
         assert distributed.counts()["done"] == 16
 
+        # a long batch does not hold the other worker back: run_pending draws a batch whenever a
+        # worker is free, so the three fast tasks claimed after the slow one finish before it
+        # (claiming two tasks at a time, the slow one finished before the third was claimed)
+        streamed = CampaignStore(tmp_path / "stream.sqlite", "cfg", code_version="test")
+        streamed.batch("initial", "a", lambda: [{"mu_s_pp": 0.1 * (k + 1)} for k in range(5)], seeds=[0],
+                       conditions=["x"])
+        slow = DaskExecutor(functools.partial(analytic_batch, slow_mu=0.1, slow_seconds=3.0), 1,
+                            client=executor.client)
+        run_pending(streamed, slow)
+        finished = {round(r.params["mu_s_pp"], 6): r.finished_at for r in streamed.records()}
+        assert finished[0.1] > max(finished[v] for v in (0.3, 0.4, 0.5)), finished
+
         # a given client or scheduler address: failures per batch, the cluster stays up
         failing = DaskExecutor(functools.partial(analytic_batch, fail_condition="70-30"), 4,
                                client=executor.client)

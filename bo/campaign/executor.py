@@ -21,7 +21,8 @@ tasks are grouped by condition in first-seen order and cut into chunks of at mos
   finish* (not necessarily in submission order). If ``evaluate_batch`` raises or returns the
   wrong number of outcomes, every task of that batch gets a failure outcome that says so; the
   executor itself does not raise for a bad evaluation, so one blown-up batch does not cost
-  the others.
+  the others. ``Executor.run_stream(batches)`` takes the batches from an iterable as workers free
+  up (the dask executor keeps ``parallelism`` in flight; in process, one after the other).
 * ``InProcessExecutor(evaluate_batch, batch_size)``: runs the batches one after the other in
   this process. This is where a batched DEM ensemble normally runs (one process owns the
   CPU/GPU threads).
@@ -39,8 +40,8 @@ tasks are grouped by condition in first-seen order and cut into chunks of at mos
   A batch whose worker dies (``KilledWorker``, lost connection) is reported as failed with
   the dask error; ``CampaignStore.reset_failed`` puts such tasks back in the queue.
 * ``run_pending(store, executor, stage=None)``: claims pending tasks from a
-  ``bo.campaign.store.CampaignStore`` (up to ``executor.batch_size * executor.parallelism`` tasks of one
-  condition at a time, under a lease that a background thread renews), runs them and writes
+  ``bo.campaign.store.CampaignStore`` (one batch of one condition at a time, whenever a worker
+  is free, under a lease that a background thread renews), runs them and writes
   each finished batch to the store in one transaction as soon as it finishes, so a kill loses
   at most the batches in flight (their leases go stale and the next run claims them again).
   With ``wait=True`` (default) it returns only when no task of ``stage`` is pending or running
@@ -294,6 +295,13 @@ class Executor(ABC):
     def run(self, tasks: Sequence[EvalTask]) -> Iterator[FinishedBatch]:
         """Yield ``[(task, outcome), ...]`` for each batch as it finishes."""
 
+    def run_stream(self, batches: Iterable[list[EvalTask]]) -> Iterator[FinishedBatch]:
+        """Run batches drawn from ``batches`` one by one as workers free up, yielding each as it
+        finishes; a new batch is drawn only after the consumer has taken a finished one (here:
+        one after the other)."""
+        for batch in batches:
+            yield from self.run(batch)
+
     def close(self) -> None:
         """Release resources this executor created (not those it was given)."""
 
@@ -402,6 +410,42 @@ class DaskExecutor(Executor):
             if unfinished:
                 self.client.cancel(unfinished)
 
+    def run_stream(self, batches: Iterable[list[EvalTask]]) -> Iterator[FinishedBatch]:
+        """Keep ``parallelism`` batches in flight: each time one finishes (and has been taken),
+        the next is drawn from ``batches`` and submitted, so a worker that finishes a short batch
+        does not wait for a long one elsewhere."""
+        from dask.distributed import as_completed
+
+        source = iter(batches)
+        running = as_completed()
+        batch_of: dict[str, list[EvalTask]] = {}
+        futures = []
+
+        def submit_next() -> None:
+            batch = next(source, None)
+            if batch:
+                future = self.client.submit(evaluate_checked, self.evaluate_batch, list(batch), pure=False)
+                batch_of[future.key] = list(batch)
+                futures.append(future)
+                running.add(future)
+
+        for _ in range(self.parallelism):
+            submit_next()
+        try:
+            for future in running:
+                batch = batch_of.pop(future.key)
+                try:
+                    outcomes = future.result()
+                except Exception as exc:  # worker died, connection lost, unpicklable function
+                    msg = traceback.format_exception_only(type(exc), exc)[-1].strip()
+                    outcomes = [EvalOutcome.failure(f"dask could not run the batch: {msg}") for _ in batch]
+                yield list(zip(batch, outcomes))
+                submit_next()
+        finally:
+            unfinished = [f for f in futures if not f.done()]
+            if unfinished:
+                self.client.cancel(unfinished)
+
     def close(self) -> None:
         if self._own_client:
             self.client.close()
@@ -465,9 +509,12 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
                 wait: bool = True, poll_seconds: float = 2.0) -> RunSummary:
     """Run every pending task of ``stage`` (all stages if None) and store each outcome.
 
-    Claims up to ``executor.batch_size * executor.parallelism`` tasks at a time (whole batches of
-    one condition each, several conditions when one has too few; :meth:`CampaignStore.claim`), writes each batch's outcomes in one transaction as soon as the batch finishes, and
-    repeats until nothing is claimable. On an exception (including KeyboardInterrupt) the unfinished claims are
+    Claims one batch at a time (``executor.batch_size`` tasks of one condition,
+    :meth:`CampaignStore.claim`) whenever the executor has a free worker (``run_stream``: the
+    executor keeps ``parallelism`` batches in flight, so a worker that finishes a short batch
+    takes the next at once instead of waiting for a long one elsewhere), writes each batch's
+    outcomes in one transaction as soon as the batch finishes, and repeats until nothing is
+    claimable. On an exception (including KeyboardInterrupt) the unfinished claims are
     released back to pending; after a SIGKILL they go stale and are claimed again by the next
     run. With ``wait=True`` it then waits (polling every ``poll_seconds``) for tasks other
     live processes are running, so on return every task of ``stage`` is done or failed.
@@ -477,20 +524,23 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
                            "run_pending")
     if stage is not None:
         store.check_stage(stage, "run_pending")
-    chunk = executor.batch_size * executor.parallelism
     n_done = n_failed = n_batches = 0
     with _LeaseKeeper(store, store.renew_period) as keeper:
         while True:
-            tasks = store.claim(chunk, stage=stage, batch_size=executor.batch_size,
-                                affinity=getattr(executor, "affinity", None))
-            if not tasks:
-                if not wait or store.counts(stage).get("running", 0) == 0:
-                    break
-                time.sleep(poll_seconds)  # others are still running tasks; theirs may go stale
-                continue
-            keeper.hold(t.task_id for t in tasks)
+            claimed = []
+
+            def feed():  # one batch per claim, drawn as a worker frees up
+                while True:
+                    tasks = store.claim(executor.batch_size, stage=stage, batch_size=executor.batch_size,
+                                        affinity=getattr(executor, "affinity", None))
+                    if not tasks:
+                        return
+                    keeper.hold(t.task_id for t in tasks)
+                    claimed.append(len(tasks))
+                    yield tasks
+
             try:
-                for finished in executor.run(tasks):
+                for finished in executor.run_stream(feed()):
                     store.record(finished)
                     keeper.drop(t.task_id for t, _ in finished)
                     n_batches += 1
@@ -499,6 +549,11 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
             except BaseException:
                 store.release(keeper.held)
                 raise
+            if not claimed:
+                if not wait or store.counts(stage).get("running", 0) == 0:
+                    break
+                time.sleep(poll_seconds)  # others are still running tasks; theirs may go stale
+                continue
             leftover = keeper.held
             if leftover:  # a broken executor skipped tasks: give them back and say so
                 store.release(leftover)
