@@ -387,33 +387,16 @@ class DaskExecutor(Executor):
         return self._max_in_flight
 
     def run(self, tasks: Sequence[EvalTask]) -> Iterator[FinishedBatch]:
-        from dask.distributed import as_completed
-
         batches = make_batches(tasks, self.batch_size)
-        if not batches:
-            return
-        futures = [self.client.submit(evaluate_checked, self.evaluate_batch, batch, pure=False)
-                   for batch in batches]
-        batch_of = {future.key: batch for future, batch in zip(futures, batches)}
-        try:
-            for future in as_completed(futures):
-                batch = batch_of[future.key]
-                try:
-                    outcomes = future.result()
-                except Exception as exc:  # worker died, connection lost, unpicklable function
-                    msg = traceback.format_exception_only(type(exc), exc)[-1].strip()
-                    outcomes = [EvalOutcome.failure(f"dask could not run the batch: {msg}")
-                                for _ in batch]
-                yield list(zip(batch, outcomes))
-        finally:
-            unfinished = [f for f in futures if not f.done()]
-            if unfinished:
-                self.client.cancel(unfinished)
+        return self._stream(batches, max(1, len(batches)))  # every batch submitted at once
 
     def run_stream(self, batches: Iterable[list[EvalTask]]) -> Iterator[FinishedBatch]:
         """Keep ``parallelism`` batches in flight: each time one finishes (and has been taken),
         the next is drawn from ``batches`` and submitted, so a worker that finishes a short batch
         does not wait for a long one elsewhere."""
+        return self._stream(batches, self.parallelism)
+
+    def _stream(self, batches: Iterable[list[EvalTask]], in_flight: int) -> Iterator[FinishedBatch]:
         from dask.distributed import as_completed
 
         source = iter(batches)
@@ -429,7 +412,7 @@ class DaskExecutor(Executor):
                 futures.append(future)
                 running.add(future)
 
-        for _ in range(self.parallelism):
+        for _ in range(in_flight):
             submit_next()
         try:
             for future in running:
@@ -532,7 +515,7 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
             def feed():  # one batch per claim, drawn as a worker frees up
                 while True:
                     tasks = store.claim(executor.batch_size, stage=stage, batch_size=executor.batch_size,
-                                        affinity=getattr(executor, "affinity", None))
+                                        affinity=executor.affinity)
                     if not tasks:
                         return
                     keeper.hold(t.task_id for t in tasks)

@@ -192,9 +192,10 @@ def _affinity_distance(a: tuple, b: tuple) -> float:
     return sum(abs(x - y) / max(abs(x), abs(y)) for (_, x), (_, y) in zip(a, b) if x != y)
 
 
-def _by_affinity(rows: list, batch_size: int, affinity: Callable[[Mapping[str, float]], tuple]) -> list:
-    """``rows`` (task order; params JSON in column 1) reordered batch by batch: each batch the
-    oldest row left, then rows of equal affinity in task order, then the nearest ones."""
+def _by_affinity(rows: list, batch_size: int, affinity: Callable[[Mapping[str, float]], tuple], needed: int) -> list:
+    """The first ``needed`` (or more, to a whole batch) of ``rows`` (task order; params JSON in
+    column 1) reordered batch by batch: each batch the oldest row left, then rows of equal
+    affinity in task order, then the nearest ones."""
     buckets: dict[tuple, list] = {}
     for row in rows:
         buckets.setdefault(tuple(affinity(json.loads(row[1]))), []).append(row)
@@ -202,7 +203,7 @@ def _by_affinity(rows: list, batch_size: int, affinity: Callable[[Mapping[str, f
         return rows
     position = {row[0]: k for k, row in enumerate(rows)}
     out: list = []
-    while buckets:
+    while buckets and len(out) < needed:
         first = min(buckets, key=lambda key: position[buckets[key][0][0]])
         batch: list = []
         for key in sorted(buckets, key=lambda key: (_affinity_distance(first, key), position[buckets[key][0][0]])):
@@ -594,7 +595,7 @@ class CampaignStore:
                 if room <= 0:
                     break
                 if affinity is not None:
-                    group = _by_affinity(group, int(batch_size), affinity)
+                    group = _by_affinity(group, int(batch_size), affinity, room)
                 take = len(group) if len(group) <= room else (room if not rows else room - room % batch_size)
                 rows += group[:take]
             conn.executemany(
