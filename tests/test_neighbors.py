@@ -334,3 +334,72 @@ def test_cpp_wall_search_equals_torch_path(dtype):
     b = find_wall_pairs(pos, rad, active, walls, shift, live, 0.003, use_extension=False)
     assert a[0].numel() > 500 and bool((b[1] == walls.n - 1).any()) and bool((b[1] == walls.n - 2).any())
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+@pytest.mark.parametrize("periodic", [(False, False, False), (False, True, False), (True, True, True)])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cpp_two_grid_search_equals_torch_path(periodic, dtype):
+    """With the small spheres on a finer grid of their own (a bimodal packing: 80 % lobes of 1.5-2.5
+    mm, 20 % pellets of 4-8 mm), the C++ search returns exactly the torch path's list at several
+    split radii, on 1 and 3 threads, with a periodic axis of 2 coarse cells, spheres with
+    non-finite positions and inactive spheres; and with every sphere small or none."""
+    from torchdem import _ext
+    from torchdem.neighbors import with_split, wrap
+
+    if _ext.cpu_kernels() is None:
+        pytest.skip("C++ extension unavailable on this machine")
+    gen = torch.Generator().manual_seed(4)
+    B, N = 3, 2500
+    hi = (0.12, 0.04, 0.2)
+    pos = torch.rand(B * N, 3, generator=gen, dtype=dtype) * torch.tensor(hi, dtype=dtype)
+    lobe = torch.rand(B * N, generator=gen) < 0.8
+    rad = torch.where(lobe, 0.0015 + 0.001 * torch.rand(B * N, generator=gen),
+                      0.004 + 0.004 * torch.rand(B * N, generator=gen)).to(dtype)
+    body = torch.arange(B * N) // 3
+    active = torch.rand(B * N, generator=gen) > 0.1
+    pos[5] = float("nan")
+    pos[N + 9, 1] = float("inf")
+    skin = 0.002
+    grid = cell_grid((0, 0, 0), hi, float(2 * rad.max() + skin), periodic=periodic, dtype=dtype)
+    ref = find_pairs(pos, rad, body, active, N, grid, skin, use_extension=False)
+    assert ref[0].numel() > 5000
+    threads = torch.get_num_threads()
+    try:
+        for split in (0.3, 0.5, 0.7):
+            g2 = with_split(grid, split * float(rad.max()), skin)
+            assert g2.split > 0
+            for n in (1, 3):
+                torch.set_num_threads(n)
+                a = find_pairs(pos, rad, body, active, N, g2, skin)
+                assert torch.equal(a[0], ref[0]) and torch.equal(a[1], ref[1]), (split, n)
+    finally:
+        torch.set_num_threads(threads)
+    ext = _ext.cpu_kernels()
+    wrapped = wrap(pos, grid.lower, grid.period) if grid.is_periodic else pos
+    args = (grid.lower.tolist(), grid.cell_size.tolist(), list(grid.dims), grid.period.tolist(), N, skin)
+    fine = (grid.cell_size.tolist(), list(grid.dims))
+    for split in (0.5 * float(rad.min()), float(rad.max())):  # no sphere small; every sphere small
+        a = ext.cell_pairs(wrapped, rad, body, active, *args, split, *fine)
+        assert torch.equal(a[0], ref[0]) and torch.equal(a[1], ref[1]), split
+
+
+def test_search_grid_splits_only_where_small_spheres_dominate():
+    """search_grid splits at the fraction of the largest radius when at least half of the spheres
+    are that small, keeps one grid otherwise (or for fraction 0), and build_system names a bad
+    fraction."""
+    from conftest import two_material_table
+    from torchdem.errors import ConfigError
+    from torchdem.neighbors import search_grid
+    from torchdem.system import build_system
+
+    grid = cell_grid((0, 0, 0), (0.2, 0.2, 0.2), 0.018)
+    bimodal = torch.tensor([0.002] * 6 + [0.008] * 4, dtype=torch.float64)
+    split = search_grid(grid, bimodal, 0.002, 0.6)
+    assert split.split == pytest.approx(0.0048) and split.fine_dims == (17, 17, 17)
+    assert search_grid(grid, torch.tensor([0.002] * 4 + [0.008] * 6, dtype=torch.float64), 0.002).split == 0
+    assert search_grid(grid, bimodal, 0.002, 0.0).split == 0
+    assert search_grid(grid, torch.full((5,), 0.008, dtype=torch.float64), 0.002).split == 0
+    mats, table = two_material_table(1, dict(mu_s=0.5, mu_r=0.1, restitution=0.5))
+    with pytest.raises(ConfigError, match=r"search_split = 1.5.*\[0, 1\)"):
+        build_system(torch.zeros(1, 1, 3, dtype=F64), torch.zeros(1, 1, dtype=torch.long), mats, table,
+                     radius=torch.full((1, 1), 0.01, dtype=F64), search_split=1.5)

@@ -24,7 +24,7 @@ import torch
 from torchdem.clumps import SPHERE, ClumpTemplate, PrincipalTemplate, principal_template
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.materials import InteractionTable, Material, MaterialTables, material_tables, rayleigh_time_step
-from torchdem.neighbors import CellGrid, cell_grid
+from torchdem.neighbors import CellGrid, cell_grid, search_grid
 from torchdem.state import Bodies, PairContacts, State, WallContacts
 from torchdem.walls import Walls, WallSpec, make_walls
 
@@ -184,6 +184,7 @@ def build_system(
     domain: tuple[Sequence[float], Sequence[float]] | None = None,
     periodic: Sequence[bool] = (False, False, False),
     rolling_stiffness: str = "tangential",
+    search_split: float = 0.6,
     source: str = "build_system",
 ) -> tuple[System, State]:
     """Build a validated system and its initial state from explicit tensors.
@@ -210,6 +211,9 @@ def build_system(
         periodic: per axis, whether the domain is periodic (needs ``domain``; the period is
             the domain extent along that axis, which must be at least 2 largest diameters).
         rolling_stiffness: ``"tangential"`` or ``"ai2011"``.
+        search_split: spheres up to this fraction of the largest radius are searched on a finer
+            grid of their own when they are at least half of the spheres
+            (:func:`torchdem.neighbors.search_grid`; 0: one grid). The pairs found are the same.
     """
     if position.ndim != 3 or position.shape[-1] != 3:
         raise ConfigError(f"{source}: position has shape {tuple(position.shape)}; expected [B, N, 3]")
@@ -367,7 +371,10 @@ def build_system(
                 raise out_of_range(f"domain extent along periodic axis {'xyz'[ax]}", float(hi[ax] - lo[ax]),
                                    f"> {need:.4g} m (twice the largest contact distance {2 * r_max:.4g} m or "
                                    f"body reach {reach:.4g} m)", source)
+    if not 0 <= search_split < 1:
+        raise out_of_range("search_split", search_split, "[0, 1) of the largest sphere radius (0: one grid)", source)
     grid = cell_grid(lo, hi, 2 * r_max + skin, periodic=periodic, dtype=dtype, device=device)
+    grid = search_grid(grid, sphere_radius[sphere_valid & torch.gather(active, 1, sphere_body)], skin, search_split)
 
     if orientation is None:
         orientation = torch.zeros((B, N, 4), dtype=dtype, device=device)

@@ -11,20 +11,30 @@
 // by their coordinate on the sort axis within each cell, so every column is one run of slots
 // sorted by that coordinate (the cell of a coordinate is monotone in it).
 //
-// Search, one scan parallel over chunks of whole columns, no atomics. The sphere in slot p of
-// column C looks at the slots q > p of C and at every slot of the neighbouring columns C' > C
-// (a half stencil: each unordered pair is looked at once, from one side), and only at those
-// whose sort-axis coordinate lies within r_p + r_max + skin of its own (in the 3 cells next
-// to p's, the window's edges walked from the previous query's; on a periodic sort axis the
-// window wraps). Cells are at least one
-// contact distance wide (find_pairs), so no pair lies outside the neighbouring columns'
-// 3 cells. The pairs found, as (min, max) sphere index, are then grouped by i (count, prefix
-// sum, scatter) and each sphere's partners sorted, so the list does not depend on the
-// number of threads.
+// Search, parallel over chunks of whole columns, no atomics. The sphere in slot p of column C
+// looks at the slots q > p of C and at every slot of the neighbouring columns C' > C (a half
+// stencil: each unordered pair is looked at once, from one side), and only at those whose
+// sort-axis coordinate lies within r_p + r_max + skin of its own (in the 3 cells next to p's,
+// the window's edges walked from the previous query's; on a periodic sort axis the window
+// wraps). Cells are at least one contact distance wide (find_pairs), so no pair lies outside
+// the neighbouring columns' 3 cells. The pairs found, as (min, max) sphere index, are then
+// grouped by i (count, prefix sum, scatter) and each sphere's partners sorted, so the list
+// does not depend on the number of threads.
+//
+// Two grids (split > 0). A cell sized by the largest sphere holds many small spheres far from
+// any contact of theirs. The spheres of radius up to `split` are then searched among
+// themselves on a finer grid (cells of 2 split + skin, the 3 cells of each neighbouring
+// column scanned whole: with cells that narrow the window walks cost more than they save),
+// the larger ones among themselves on the grid (as above), and each larger sphere against the
+// small ones on the grid (all 9 neighbouring columns, windows of r_p + the largest small
+// radius + skin). Each pair is found once, by exactly one of the three searches, and the
+// grouping makes the list the same as one grid's, pair for pair.
 //
 // Measured on a draw-down slice rebuild (5 members, 35.6k spheres, 175k pairs, one thread): 80
 // candidates and 3.5 windows per sphere, 14.6-15.6 ms a call, against 21.8-22.5 ms for the scan
 // it replaced (the 27 cells around every sphere, its partners j > i found by a bisection per cell).
+// On a lab-geometry member with flat sinter (53,780 spheres of 2.0-8.0 mm, 209k pairs, one thread,
+// scripts/bench_search.py): 45 ms with one grid, 34 ms split at 0.6 of the largest radius.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -120,6 +130,12 @@ inline int sort_axis_runs(const Grid& g, int a, int64_t c, Run* out) {
 // Candidate slots tested per vectorised pass.
 constexpr int64_t kScan = 64;
 
+// One sphere asking for its partners: position, radius, body.
+struct Query {
+  double x, y, z, r;
+  int64_t body;
+};
+
 // What the scan reads of the sorted spheres (slots).
 struct Sorted {
   const double *x, *y, *z;   // [n] positions by slot, one array per axis (the scan vectorises)
@@ -129,16 +145,16 @@ struct Sorted {
   double period[3], inv_period[3];  // 0 on non-periodic axes
   double skin;
 
-  // hit[k] = slot p0 + k is within reach of the sphere in slot p, k < n <= kScan: a
-  // branch-free loop the compiler vectorises (hit is 64-bit like the operands: with 8-bit flags
-  // GCC vectorised 64 slots at a time, more than a window holds, and ran the scalar remainder).
-  // Positions are wrapped into one period, so the minimum image is one shift,
-  // period * rint(d / period) (0 on a non-periodic axis).
-  TORCHDEM_SCAN_LOOP void scan(int64_t p, int64_t p0, int64_t n, int64_t* __restrict__ hit) const {
+  // hit[k] = slot p0 + k is within reach of the query, k < n <= kScan: a branch-free loop the
+  // compiler vectorises (hit is 64-bit like the operands: with 8-bit flags GCC vectorised 64
+  // slots at a time, more than a window holds, and ran the scalar remainder). Positions are
+  // wrapped into one period, so the minimum image is one shift, period * rint(d / period) (0 on
+  // a non-periodic axis).
+  TORCHDEM_SCAN_LOOP void scan(const Query& p, int64_t p0, int64_t n, int64_t* __restrict__ hit) const {
     const double px = period[0], py = period[1], pz = period[2];
     const double ix = inv_period[0], iy = inv_period[1], iz = inv_period[2];
-    const double xp = x[p], yp = y[p], zp = z[p], r = radius[p];
-    const int64_t b = body[p];
+    const double xp = p.x, yp = p.y, zp = p.z, r = p.r;
+    const int64_t b = p.body;
     const double *__restrict__ ax = x + p0, *__restrict__ ay = y + p0, *__restrict__ az = z + p0,
                  *__restrict__ ar = radius + p0;
     const int64_t* __restrict__ ab = body + p0;
@@ -152,9 +168,9 @@ struct Sorted {
     }
   }
 
-  // Calls emit(q) for every slot q in [q0, q1) in contact reach of slot p.
+  // Calls emit(q) for every slot q in [q0, q1) in contact reach of the query.
   template <typename Emit>
-  void scan_range(int64_t p, int64_t q0, int64_t q1, Emit&& emit) const {
+  void scan_range(const Query& p, int64_t q0, int64_t q1, Emit&& emit) const {
     alignas(64) int64_t hit[kScan];
     for (int64_t s = q0; s < q1; s += kScan) {
       const int64_t m = std::min(kScan, q1 - s);
@@ -180,14 +196,187 @@ inline void choose_axes(const Grid& g, int* axes) {
   axes[2] = s;
 }
 
+// A subset of the spheres counting-sorted into the columns of one grid: by member, column and
+// cell, then by the sort-axis coordinate within each cell, so every column is one run of slots
+// sorted by that coordinate (the cell of a coordinate is monotone in it).
+struct Buckets {
+  Grid g;
+  int axes[3];
+  int64_t members = 0, n_sort = 1, n_columns = 1;
+  std::vector<int64_t> start;  // [members * n_cells + 1]: first slot of each member-cell
+  std::vector<int64_t> order;  // [n] sphere of each slot
+  std::vector<int64_t> cell;   // [n] cell of each slot along the sort axis
+  std::vector<double> x, y, z, r;
+  std::vector<int64_t> body;
+  double r_max = 0.0;
+
+  int64_t size() const { return static_cast<int64_t>(order.size()); }
+  int64_t column_first(int64_t column) const { return start[column * n_sort]; }
+
+  Sorted sorted(double skin) const {
+    Sorted s{x.data(), y.data(), z.data(), nullptr, r.data(), body.data(), {}, {}, skin};
+    s.key = axes[2] == 0 ? s.x : (axes[2] == 1 ? s.y : s.z);
+    for (int a = 0; a < 3; ++a) {
+      s.period[a] = g.periodic[a] ? g.period[a] : 0.0;
+      s.inv_period[a] = g.periodic[a] ? 1.0 / g.period[a] : 0.0;
+    }
+    return s;
+  }
+};
+
+// Buckets of the spheres i with take[i] != 0 (active, finite position, of the wanted size
+// class) on the grid (lower, size, dims, period); a cell outside the grid is clamped into it.
+template <typename scalar_t>
+Buckets bucket(const scalar_t* x, const scalar_t* r, const int64_t* bd, const std::vector<uint8_t>& take, int64_t S,
+               int64_t n_per_member, int64_t members, const std::vector<double>& lower, const double* size,
+               const int64_t* dims, const std::vector<double>& period) {
+  Buckets out;
+  Grid& g = out.g;
+  for (int a = 0; a < 3; ++a) {
+    g.dims[a] = dims[a];
+    g.period[a] = period[a];
+    g.periodic[a] = period[a] > 0;
+  }
+  g.n_cells = g.dims[0] * g.dims[1] * g.dims[2];
+  choose_axes(g, out.axes);
+  const int* axes = out.axes;
+  out.members = members;
+  out.n_sort = g.dims[axes[2]];
+  out.n_columns = g.dims[axes[0]] * g.dims[axes[1]];
+  const int64_t H = members * g.n_cells;
+  TORCH_CHECK(H < (int64_t(1) << 40), "cell_pairs: ", H, " member-cells is too many for the start table");
+  std::vector<int64_t> hash(S, H);
+  out.start.assign(H + 1, 0);
+  for (int64_t i = 0; i < S; ++i) {
+    if (!take[i]) continue;
+    const scalar_t* xi = x + 3 * i;
+    int64_t c[3];
+    for (int a = 0; a < 3; ++a) {
+      const scalar_t f = std::floor((xi[a] - static_cast<scalar_t>(lower[a])) / static_cast<scalar_t>(size[a]));
+      c[a] = f < 0 ? 0 : (f > static_cast<scalar_t>(g.dims[a] - 1) ? g.dims[a] - 1 : static_cast<int64_t>(f));
+    }
+    hash[i] = ((i / n_per_member) * out.n_columns + c[axes[0]] * g.dims[axes[1]] + c[axes[1]]) * out.n_sort + c[axes[2]];
+    ++out.start[hash[i] + 1];
+  }
+  for (int64_t h = 0; h < H; ++h) out.start[h + 1] += out.start[h];
+  const int64_t n = out.start[H];
+  out.order.resize(n);
+  {
+    std::vector<int64_t> fill(out.start.begin(), out.start.end() - 1);
+    for (int64_t i = 0; i < S; ++i)
+      if (hash[i] < H) out.order[fill[hash[i]]++] = i;
+  }
+  // within each cell by the sort-axis coordinate (cells hold a few tens of spheres)
+  const int s_ax = axes[2];
+  auto& order = out.order;
+  const auto& start = out.start;
+  at::parallel_for(0, H, 4096, [&](int64_t h0, int64_t h1) {
+    for (int64_t h = h0; h < h1; ++h)
+      if (start[h + 1] - start[h] > 1)
+        std::sort(order.begin() + start[h], order.begin() + start[h + 1],
+                  [&](int64_t a, int64_t b) { return x[3 * a + s_ax] < x[3 * b + s_ax]; });
+  });
+  out.x.resize(n), out.y.resize(n), out.z.resize(n), out.r.resize(n), out.body.resize(n), out.cell.resize(n);
+  for (int64_t p = 0; p < n; ++p) {
+    const int64_t j = order[p];
+    out.x[p] = static_cast<double>(x[3 * j]);
+    out.y[p] = static_cast<double>(x[3 * j + 1]);
+    out.z[p] = static_cast<double>(x[3 * j + 2]);
+    out.r[p] = static_cast<double>(r[j]);
+    out.body[p] = bd[j];
+    out.cell[p] = hash[j] % out.n_sort;
+  }
+  out.r_max = n ? *std::max_element(out.r.begin(), out.r.end()) : 0.0;
+  return out;
+}
+
+// The pairs of a sphere of `q` and a sphere of `t` (two bucketings on one grid) in contact
+// reach, appended to `found` as (min, max) sphere index, one flat vector per chunk of columns.
+// kHalf (t is q): each unordered pair once, from the slots p < q of a column and the
+// neighbouring columns C' > C (a half stencil); otherwise every sphere of q looks at all
+// neighbouring columns of t (a full stencil). A query looks only at the slots whose sort-axis
+// coordinate lies within r_p + r_max(t) + skin of its own (in the 3 cells next to p's, the
+// window's edges walked from the previous query's; on a periodic sort axis the window wraps).
+// Cells are at least one contact distance wide (find_pairs), so no pair lies outside the
+// neighbouring columns' 3 cells.
+template <bool kHalf, bool kWindow = true>
+void search(const Buckets& q, const Buckets& t, double skin, std::vector<std::vector<int64_t>>& found) {
+  const Grid& g = t.g;
+  const int* axes = t.axes;
+  const int64_t n_sort = t.n_sort, n_columns = t.n_columns;
+  const Sorted sq = q.sorted(skin), st = t.sorted(skin);
+  // Chunks of whole member-columns of about kChunk query spheres, so the threads share the work evenly.
+  constexpr int64_t kChunk = 1024;
+  const int64_t G = q.members * n_columns;
+  std::vector<int64_t> chunk_first{0};
+  for (int64_t c = 0; c < G; ++c)
+    if (q.column_first(c + 1) - q.column_first(chunk_first.back()) >= kChunk || c + 1 == G) chunk_first.push_back(c + 1);
+  const int64_t n_chunks = static_cast<int64_t>(chunk_first.size()) - 1;
+  const size_t base = found.size();
+  found.resize(base + std::max<int64_t>(n_chunks, 0));
+  at::parallel_for(0, n_chunks, 1, [&](int64_t k0, int64_t k1) {
+    for (int64_t k = k0; k < k1; ++k) {
+      auto& out = found[base + k];
+      out.reserve(2 * 6 * (q.column_first(chunk_first[k + 1]) - q.column_first(chunk_first[k])));
+      for (int64_t column = chunk_first[k]; column < chunk_first[k + 1]; ++column) {
+        const int64_t p0 = q.column_first(column), p1 = q.column_first(column + 1);
+        if (p0 == p1) continue;
+        // the neighbouring member-columns (half stencil: from this one on, this one first)
+        const int64_t member = column / n_columns, local = column % n_columns;
+        int64_t u[3], v[3], next[9];
+        const int nu = axis_neighbours(g, axes[0], local / g.dims[axes[1]], u);
+        const int nv = axis_neighbours(g, axes[1], local % g.dims[axes[1]], v);
+        int n_next = 0;
+        if (kHalf) next[n_next++] = column;
+        for (int a = 0; a < nu; ++a)
+          for (int b = 0; b < nv; ++b) {
+            const int64_t c = member * n_columns + u[a] * g.dims[axes[1]] + v[b];
+            if (!kHalf || c > column) next[n_next++] = c;
+          }
+        int64_t lo_edge[9][2] = {}, hi_edge[9][2] = {};  // last window per column and run
+        for (int64_t p = p0; p < p1; ++p) {
+          const int64_t i = q.order[p];
+          const Query query{q.x[p], q.y[p], q.z[p], q.r[p], q.body[p]};
+          const double key = sq.key[p], reach = (q.r[p] + t.r_max + skin) * (1.0 + 1e-9);
+          Run runs[2];
+          const int n_runs = sort_axis_runs(g, axes[2], q.cell[p], runs);
+          for (int c = 0; c < n_next; ++c)
+            for (int k2 = 0; k2 < n_runs; ++k2) {
+              const Run& run = runs[k2];
+              int64_t q0 = t.start[next[c] * n_sort + run.first], q1 = t.start[next[c] * n_sort + run.last + 1];
+              if (kWindow && run.windowed) {
+                q0 = lo_edge[c][k2] = walk<false>(st.key, q0, q1, key + run.shift - reach, lo_edge[c][k2]);
+                q1 = hi_edge[c][k2] = walk<true>(st.key, q0, q1, key + run.shift + reach, hi_edge[c][k2]);
+              }
+              if (kHalf && c == 0) q0 = std::max(q0, p + 1);
+              st.scan_range(query, q0, q1, [&](int64_t slot) {
+                const int64_t j = t.order[slot];
+                out.push_back(std::min(i, j));
+                out.push_back(std::max(i, j));
+              });
+            }
+        }
+      }
+    }
+  });
+}
+
+// Every pair (i < j) of active spheres of different bodies closer than r_i + r_j + skin: see the
+// file's contract. With split > 0 the spheres of radius up to `split` (the small ones) are
+// searched among themselves on the fine grid (cells of 2 split + skin: fine_cell_size,
+// fine_dims), the larger ones among themselves and against the small ones on the grid; the
+// list is the same.
 std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const at::Tensor& radius,
                                               const at::Tensor& body, const at::Tensor& active,
                                               std::vector<double> lower, std::vector<double> cell_size,
                                               std::vector<int64_t> dims, std::vector<double> period,
-                                              int64_t n_per_member, double skin) {
+                                              int64_t n_per_member, double skin, double split,
+                                              std::vector<double> fine_cell_size, std::vector<int64_t> fine_dims) {
   TORCH_CHECK(position.device().is_cpu(), "cell_pairs: CPU tensors only");
   TORCH_CHECK(lower.size() == 3 && cell_size.size() == 3 && dims.size() == 3 && period.size() == 3,
               "cell_pairs: lower, cell_size, dims and period need 3 entries");
+  TORCH_CHECK(split <= 0 || (fine_cell_size.size() == 3 && fine_dims.size() == 3),
+              "cell_pairs: a split radius needs fine_cell_size and fine_dims of 3 entries");
   TORCH_CHECK(n_per_member > 0, "cell_pairs: n_per_member must be positive, got ", n_per_member);
   TORCH_CHECK(position.dim() == 2 && position.size(1) == 3, "cell_pairs: position has shape ", position.sizes(),
               "; expected [S, 3]");
@@ -201,129 +390,29 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
   auto bod = body.contiguous().to(at::kLong);
   auto act = active.contiguous().to(at::kBool);
   const int64_t members = S ? (S + n_per_member - 1) / n_per_member : 0;
-  Grid g;
-  double size[3];
-  for (int a = 0; a < 3; ++a) {
-    g.dims[a] = dims[a];
-    g.period[a] = period[a];
-    g.periodic[a] = period[a] > 0;
-    size[a] = cell_size[a];
-  }
-  g.n_cells = g.dims[0] * g.dims[1] * g.dims[2];
-  int axes[3];
-  choose_axes(g, axes);
-  const int64_t n_sort = g.dims[axes[2]], n_columns = g.dims[axes[0]] * g.dims[axes[1]];
-  const int64_t H = members * g.n_cells;
-  TORCH_CHECK(H < (int64_t(1) << 40), "cell_pairs: ", H, " member-cells is too many for the start table");
   const bool* active_i = act.data_ptr<bool>();
   const int64_t* bd = bod.data_ptr<int64_t>();
-  // Bucket of every active sphere with a finite position: (member * n_columns + column) * n_sort +
-  // cell along the sort axis, its cell clamped into the grid (as in the torch path); H for the
-  // others, which have no pairs (every distance test with a non-finite coordinate fails).
-  std::vector<int64_t> hash(S), start(H + 1, 0);
-  std::vector<int64_t> order;
-  std::vector<double> sx, sy, sz, srad;
-  std::vector<int64_t> sbody, scell;
-  AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "cell_pairs_sort", [&] {
+  std::vector<std::vector<int64_t>> found;  // (min, max) sphere index pairs, flat, per chunk
+  AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "cell_pairs", [&] {
     const scalar_t* x = pos.data_ptr<scalar_t>();
     const scalar_t* r = rad.data_ptr<scalar_t>();
+    // Spheres with a non-finite position have no pairs (every distance test with one fails).
+    std::vector<uint8_t> small(S, 0), large(S, 0);
     for (int64_t i = 0; i < S; ++i) {
       const scalar_t* xi = x + 3 * i;
-      if (!active_i[i] || !(std::isfinite(xi[0]) && std::isfinite(xi[1]) && std::isfinite(xi[2]))) {
-        hash[i] = H;
-        continue;
-      }
-      int64_t c[3];
-      for (int a = 0; a < 3; ++a) {
-        const scalar_t f = std::floor((xi[a] - static_cast<scalar_t>(lower[a])) / static_cast<scalar_t>(size[a]));
-        c[a] = f < 0 ? 0 : (f > static_cast<scalar_t>(g.dims[a] - 1) ? g.dims[a] - 1 : static_cast<int64_t>(f));
-      }
-      hash[i] = ((i / n_per_member) * n_columns + c[axes[0]] * g.dims[axes[1]] + c[axes[1]]) * n_sort + c[axes[2]];
-      ++start[hash[i] + 1];
+      if (!active_i[i] || !(std::isfinite(xi[0]) && std::isfinite(xi[1]) && std::isfinite(xi[2]))) continue;
+      (static_cast<double>(r[i]) <= split ? small[i] : large[i]) = 1;
     }
-    for (int64_t h = 0; h < H; ++h) start[h + 1] += start[h];
-    const int64_t n = start[H];
-    order.resize(n);
-    std::vector<int64_t> fill(start.begin(), start.end() - 1);
-    for (int64_t i = 0; i < S; ++i)
-      if (hash[i] < H) order[fill[hash[i]]++] = i;
-    // within each cell by the sort-axis coordinate (cells hold a few tens of spheres)
-    const int s_ax = axes[2];
-    at::parallel_for(0, H, 4096, [&](int64_t h0, int64_t h1) {
-      for (int64_t h = h0; h < h1; ++h)
-        if (start[h + 1] - start[h] > 1)
-          std::sort(order.begin() + start[h], order.begin() + start[h + 1],
-                    [&](int64_t a, int64_t b) { return x[3 * a + s_ax] < x[3 * b + s_ax]; });
-    });
-    sx.resize(n), sy.resize(n), sz.resize(n), srad.resize(n), sbody.resize(n), scell.resize(n);
-    for (int64_t p = 0; p < n; ++p) {
-      const int64_t j = order[p];
-      sx[p] = static_cast<double>(x[3 * j]);
-      sy[p] = static_cast<double>(x[3 * j + 1]);
-      sz[p] = static_cast<double>(x[3 * j + 2]);
-      srad[p] = static_cast<double>(r[j]);
-      sbody[p] = bd[j];
-      scell[p] = hash[j] % n_sort;
-    }
-  });
-  const int64_t n_sorted = static_cast<int64_t>(order.size());
-  const double r_max = n_sorted ? *std::max_element(srad.begin(), srad.end()) : 0.0;
-  Sorted s{sx.data(), sy.data(), sz.data(), nullptr, srad.data(), sbody.data(), {}, {}, skin};
-  s.key = axes[2] == 0 ? s.x : (axes[2] == 1 ? s.y : s.z);
-  for (int a = 0; a < 3; ++a) {
-    s.period[a] = g.periodic[a] ? g.period[a] : 0.0;
-    s.inv_period[a] = g.periodic[a] ? 1.0 / g.period[a] : 0.0;
-  }
-  // Chunks of whole member-columns of about kChunk spheres, so the threads share the work evenly.
-  constexpr int64_t kChunk = 1024;
-  const int64_t G = members * n_columns;
-  std::vector<int64_t> chunk_first{0};
-  for (int64_t c = 0; c < G; ++c)
-    if (start[(c + 1) * n_sort] - start[chunk_first.back() * n_sort] >= kChunk || c + 1 == G) chunk_first.push_back(c + 1);
-  const int64_t n_chunks = static_cast<int64_t>(chunk_first.size()) - 1;
-  std::vector<std::vector<int64_t>> found(std::max<int64_t>(n_chunks, 0));  // (min, max) sphere index pairs, flat
-  at::parallel_for(0, n_chunks, 1, [&](int64_t k0, int64_t k1) {
-    for (int64_t k = k0; k < k1; ++k) {
-      auto& out = found[k];
-      out.reserve(2 * 6 * (start[chunk_first[k + 1] * n_sort] - start[chunk_first[k] * n_sort]));
-      for (int64_t column = chunk_first[k]; column < chunk_first[k + 1]; ++column) {
-        const int64_t p0 = start[column * n_sort], p1 = start[(column + 1) * n_sort];
-        if (p0 == p1) continue;
-        // the neighbouring member-columns from this one on (half stencil), this one first
-        const int64_t member = column / n_columns, local = column % n_columns;
-        int64_t u[3], v[3], next[9];
-        const int nu = axis_neighbours(g, axes[0], local / g.dims[axes[1]], u);
-        const int nv = axis_neighbours(g, axes[1], local % g.dims[axes[1]], v);
-        int n_next = 0;
-        next[n_next++] = column;
-        for (int a = 0; a < nu; ++a)
-          for (int b = 0; b < nv; ++b) {
-            const int64_t c = member * n_columns + u[a] * g.dims[axes[1]] + v[b];
-            if (c > column) next[n_next++] = c;
-          }
-        int64_t lo_edge[9][2] = {}, hi_edge[9][2] = {};  // last window per column and run
-        for (int64_t p = p0; p < p1; ++p) {
-          const int64_t i = order[p];
-          const double key = s.key[p], reach = (srad[p] + r_max + skin) * (1.0 + 1e-9);
-          Run runs[2];
-          const int n_runs = sort_axis_runs(g, axes[2], scell[p], runs);
-          for (int c = 0; c < n_next; ++c)
-            for (int k2 = 0; k2 < n_runs; ++k2) {
-              const Run& run = runs[k2];
-              int64_t q0 = start[next[c] * n_sort + run.first], q1 = start[next[c] * n_sort + run.last + 1];
-              if (run.windowed) {
-                q0 = lo_edge[c][k2] = walk<false>(s.key, q0, q1, key + run.shift - reach, lo_edge[c][k2]);
-                q1 = hi_edge[c][k2] = walk<true>(s.key, q0, q1, key + run.shift + reach, hi_edge[c][k2]);
-              }
-              if (c == 0) q0 = std::max(q0, p + 1);
-              s.scan_range(p, q0, q1, [&](int64_t q) {
-                const int64_t j = order[q];
-                out.push_back(std::min(i, j));
-                out.push_back(std::max(i, j));
-              });
-            }
-        }
-      }
+    Buckets coarse = bucket(x, r, bd, large, S, n_per_member, members, lower, cell_size.data(), dims.data(), period);
+    search<true>(coarse, coarse, skin, found);
+    if (split > 0) {
+      Buckets fine = bucket(x, r, bd, small, S, n_per_member, members, lower, fine_cell_size.data(), fine_dims.data(),
+                            period);
+      search<true, false>(fine, fine, skin, found);
+      fine = Buckets();
+      Buckets small_coarse = bucket(x, r, bd, small, S, n_per_member, members, lower, cell_size.data(), dims.data(),
+                                    period);
+      search<false>(coarse, small_coarse, skin, found);
     }
   });
   // Group by i: count, prefix sum, scatter, then sort each sphere's partners.
@@ -551,7 +640,8 @@ std::vector<at::Tensor> pair_constants(const at::Tensor& i, const at::Tensor& j,
 
 TORCH_LIBRARY_FRAGMENT(torchdem, m) {
   m.def("cell_pairs(Tensor position, Tensor radius, Tensor body, Tensor active, float[] lower, float[] cell_size, "
-        "int[] dims, float[] period, int n_per_member, float skin) -> (Tensor, Tensor)");
+        "int[] dims, float[] period, int n_per_member, float skin, float split=0., float[] fine_cell_size=[], "
+        "int[] fine_dims=[]) -> (Tensor, Tensor)");
   m.impl("cell_pairs", c10::DispatchKey::CPU, TORCH_FN(cell_pairs));
   m.def("wall_pairs(Tensor position, Tensor radius, Tensor active, Tensor centre, Tensor axis_u, Tensor axis_v, "
         "Tensor half_u, Tensor half_v, Tensor wall_active, float skin) -> (Tensor, Tensor)");
