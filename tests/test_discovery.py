@@ -23,10 +23,12 @@ import math
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from scipy import stats
 
@@ -505,9 +507,14 @@ def test_a_batch_killed_mid_run_resumes_from_its_checkpoint(tmp_path):
     with pytest.raises(Killed):
         test.run_members([(0, 0, 0), (1, 1, 1)], checkpoint=path, checkpoint_every=0.5, progress=kill)
     assert path.exists()
+    before = float(torch.load(path, weights_only=True)["wall_s"])
+    started = time.perf_counter()
     resumed = evaluate_batch(model, tasks, checkpoint_dir=str(tmp_path))
+    elapsed = time.perf_counter() - started
     assert not path.exists()
     assert [o.kpis for o in resumed] == [o.kpis for o in plain]
+    # the stored cost is the whole run's: the time before the checkpoint plus the resumed part
+    assert before > 0 and all(o.wall_time >= before + 0.8 * elapsed for o in resumed)
 
 
 def test_clump_shape_prior_fits_the_periodic_slice():

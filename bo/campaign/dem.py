@@ -19,6 +19,7 @@ Contract:
   during a long run (a lab-geometry batch takes up to two hours on one core) loses at most
   0.5 s of simulated time of it, as long as the store hands the same tasks to one batch again
   (it claims pending tasks in the same order every time). The file is removed when the run ends.
+  A resumed batch reports the wall time of the whole run, the part before the checkpoint included.
 - ``functools.partial(evaluate_batch, model)`` is picklable, so it ships to dask workers.
 """
 from __future__ import annotations
@@ -77,7 +78,8 @@ def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: 
             return [EvalOutcome.failure(own[r], wall) if r in own else next(rest) for r in range(len(tasks))]
         wall = time.perf_counter() - started
         return [EvalOutcome.failure(f"{type(exc).__name__}: {exc}", wall) for _ in tasks]
-    wall = time.perf_counter() - started
+    # a resumed batch's cost includes the time spent before its checkpoint (result.wall_time_s)
+    wall = max(time.perf_counter() - started, result.wall_time_s)
     out = []
     for m, k in enumerate(result.kpis):
         if m in result.failed:
