@@ -74,3 +74,43 @@ def test_smallest_detectable_density_change_on_the_known_model():
     smallest = {a.name: a.smallest for a in ranked}
     assert smallest["as is"] == pytest.approx(expected, rel=1e-4)
     assert smallest["lab_repeats"] < smallest["as is"]
+
+
+def test_detectability_from_store_script_against_a_direct_computation(tmp_path):
+    """scripts/detectability_from_store.py on a store of two parameter sets (3 runs each, known
+    KPI values, one unmeasured KPI in one run) prints the shift, the pooled replicate sd and the
+    power that detection_power gives for them with Table 2's 50-50 uncertainties."""
+    import json
+    import sqlite3
+    import subprocess
+
+    from torchdem.measured import load_measured
+
+    kpis = ["angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg"]
+    null = np.array([[29.0, 40.0, 10.0, 32.0], [29.5, 41.0, 10.2, 32.2], [30.0, 42.0, 10.4, 32.4]])
+    effect = null + np.array([0.0, -3.0, 0.4, 0.6])
+    store = tmp_path / "two_sets.sqlite"
+    con = sqlite3.connect(store)
+    con.execute("CREATE TABLE evaluations (params TEXT, kpis TEXT, status TEXT, condition TEXT)")
+    cond = "50-50|mirror=True|slice_depth=0.1"
+    for value, rows in ((0.9, null), (0.3, effect)):
+        for r in rows:
+            con.execute("INSERT INTO evaluations VALUES (?, ?, 'done', ?)",
+                        (json.dumps({"mu_s_pg": value}), json.dumps(dict(zip(kpis, r.tolist()))), cond))
+    con.execute("INSERT INTO evaluations VALUES (?, ?, 'done', ?)",  # the heap edge not measured: left out
+                (json.dumps({"mu_s_pg": 0.3}), json.dumps({**dict(zip(kpis, [math.nan] * 4)), "angle_of_repose_deg": None}),
+                 cond))
+    con.execute("INSERT INTO evaluations VALUES (?, ?, 'failed', ?)", (json.dumps({"mu_s_pg": 0.3}), "{}", cond))
+    con.commit()
+    script = Path(__file__).resolve().parents[1] / "scripts" / "detectability_from_store.py"
+    out = subprocess.run([sys.executable, str(script), "--store", str(store), "--condition", cond, "--parameter",
+                          "mu_s_pg", "--null", "0.9", "--effect", "0.3", "--dem-replicates", "3"],
+                         capture_output=True, text=True, check=True).stdout
+    c = load_measured("hadi2025_pellet_sinter.json").condition("50-50")
+    u = np.array([c.standard_uncertainty(k)[0] for k in
+                  ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_kg_s", "mass_lower_box_kg")])
+    sd = null.std(0, ddof=1)  # both sets have the same scatter
+    shift = np.array([0.0, -3.0, 0.4, 0.6])
+    power = detection_power(shift, np.sqrt(sd ** 2 / 3 + u ** 2))
+    assert f"power {power:.3f}" in out
+    assert "shift   -3.000" in out and f"DEM replicate sd {sd[1]:6.3f}" in out
