@@ -97,3 +97,21 @@ def test_geometry_study_config_is_checked():
         study_settings_from(_plain("parameter_sets.low_wall.mu_s_pg=-0.1"))
     with pytest.raises(ConfigError, match=r"geometries.lab.slice_depth"):
         study_settings_from(_plain("geometries.lab.slice_depth=-1"))
+
+
+def test_lab_effects_profile_changes_one_mechanism_per_set():
+    """study_profile=lab_effects: the lab geometry first, float32 and lobe packing as profile=lab,
+    and every effect set differs from table8 only in its own mechanism's parameters, by the amount
+    stated (cohesion at 0.01 E* = 13,333 J/m^3, densities at 90 %, lobe spacing 0.3)."""
+    plain = _plain("study_profile=lab_effects")
+    s = study_settings_from(plain)
+    assert list(s.geometries) == ["lab", "slice"] and s.geometries["lab"] == {"slice_depth": 0.1, "mirror": True}
+    assert plain["sim"]["dtype"] == "float32" and plain["run"]["fill_packing"] == "lobes"
+    base = s.parameter_sets["table8"]
+    changed = {name: {k for k in base if params[k] != base[k]} for name, params in s.parameter_sets.items()}
+    assert changed == {"table8": set(), "cohesion": {"coh_pp", "coh_ss"},
+                       "density": {"density_pellet", "density_sinter"}, "clump_shape": {"lobe_spacing_sinter"}}
+    assert s.parameter_sets["cohesion"]["coh_pp"] == 13333.0
+    assert s.parameter_sets["density"]["density_pellet"] == pytest.approx(0.9 * base["density_pellet"], rel=1e-4)
+    assert s.parameter_sets["density"]["density_sinter"] == pytest.approx(0.9 * base["density_sinter"], rel=1e-4)
+    assert all(set(p) == set(base) for p in s.parameter_sets.values())
