@@ -115,3 +115,35 @@ def test_rained_fill_has_no_overlaps_and_ordered_layers():
     for k in range(2):  # every particle of layer k lies below every particle of layer k + 2
         assert p[layer == k, 2].max() < p[layer == k + 2, 2].min()
     assert np.all(np.diff(fill.layer_tops) > 0)
+
+
+def test_a_fill_that_would_overflow_is_rained_denser_and_one_that_fits_is_unchanged():
+    """rain_to_fit: a fill that fits at the loose fraction is rain_positions' fill, bit for bit; one
+    whose loose stack would rise above max_top is placed at the first denser fraction (0.025
+    steps) that fits, as rain_positions places it there, without overlaps; above the densest
+    fraction's stack it fails, naming the fractions tried."""
+    from torchdem.fill import FillOverflowError, rain_to_fit
+
+    rng = np.random.default_rng(2)
+    n = 1200
+    radius = rng.uniform(0.003, 0.008, n)
+    layer = np.repeat(np.arange(2), n // 2)
+    volume = 4 / 3 * np.pi * radius ** 3
+    g = DrawDownGeometry(upper_width=0.2, slice_depth=0.04, upper_height=1.0)
+    tops = {f: rain_positions(radius, layer, volume, g, seed=3, loose_fraction=f, max_top=10.0).top
+            for f in (0.3, 0.325, 0.35)}
+    assert tops[0.3] > tops[0.325] > tops[0.35]
+    fill, used = rain_to_fit(radius, layer, volume, g, 3, 0.3, max_top=10.0)
+    assert used == 0.3 and np.array_equal(fill.position, rain_positions(radius, layer, volume, g, 3, 0.3,
+                                                                        max_top=10.0).position)
+    fill, used = rain_to_fit(radius, layer, volume, g, 3, 0.3, max_top=(tops[0.3] + tops[0.325]) / 2)
+    assert used == 0.325 and fill.top == tops[0.325]
+    limit = (tops[0.325] + tops[0.35]) / 2  # only the densest fraction fits
+    fill, used = rain_to_fit(radius, layer, volume, g, 3, 0.3, max_top=limit)
+    assert used == 0.35 and fill.top == tops[0.35] <= limit
+    p = fill.position
+    d = p[:, None, :] - p[None, :, :]
+    d[..., 1] -= 0.04 * np.round(d[..., 1] / 0.04)
+    assert (np.linalg.norm(d, axis=-1) + np.eye(n) >= radius[:, None] + radius[None, :] - 1e-12).all()
+    with pytest.raises(FillOverflowError, match=r"above the allowed z.*loose fractions 0.3 to 0.35 tried"):
+        rain_to_fit(radius, layer, volume, g, 3, 0.3, max_top=tops[0.35] - 0.001)

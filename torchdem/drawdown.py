@@ -42,7 +42,7 @@ from kpi.segregation import measure_segregation
 from torchdem.contact_params import PAPER_REFERENCE, interaction_pairs
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.clumps import ClumpTemplate, principal_template
-from torchdem.fill import rain_positions
+from torchdem.fill import rain_to_fit
 from torchdem.geometry import MIRROR_MATERIAL, DrawDownGeometry
 from torchdem.integrate import sphere_positions
 from torchdem.io import VTKWriter
@@ -80,7 +80,9 @@ class RunSettings:
         geometry_material: Material of the walls. rolling_damping: eta_r for every pair.
         dtype: torch dtype name. compile: torch.compile the kernels. guards: blow-up guards.
         metres_per_pixel: render resolution. rsd_component: which component's RSD to report
-            ("sinter" or "pellet"). loose_fraction: packing fraction of the rained fill.
+            ("sinter" or "pellet"). loose_fraction: packing fraction of the rained fill (a member
+            whose loose stack would overflow the fill column is rained denser, up to 0.35:
+            :func:`torchdem.fill.rain_to_fit`).
         skin_fraction: Verlet skin as a fraction of the largest sphere radius.
         flow_window: (start, end) s after the gate opens of the mass-flow fit (the lab's
             0.5-2.0 s; a smaller box that empties sooner needs an earlier window).
@@ -305,8 +307,9 @@ class DrawDownTest:
             bound = np.array([tmpl[k].bounding_radius() for k in layers.material]) * layers.diameter
             volume = layers.mass / np.array([mix_b.materials[k].density for k in layers.material])
             lobes = _lobes(tmpl, layers.material, layers.diameter) if s.fill_packing == "lobes" else None
-            fills.append((layers, rain_positions(bound, layers.layer, volume, fill_geometry, seed, s.loose_fraction,
-                                                 max_top=g.upper_bottom_z + 3 * g.upper_height, lobes=lobes)))
+            fill, _ = rain_to_fit(bound, layers.layer, volume, fill_geometry, seed, s.loose_fraction,
+                                  max_top=g.upper_bottom_z + 3 * g.upper_height, lobes=lobes)
+            fills.append((layers, fill))
         fill_top = max(f[1].top for f in fills)
         B = len(seeds)
         N = max(f[0].material.shape[0] for f in fills)
