@@ -23,11 +23,10 @@ import sqlite3
 import numpy as np
 
 from bo.discovery.detectable import detection_power, smallest_detectable
+from bo.screening.pipeline import measured_name
 from torchdem.measured import load_measured
 
-# DEM KPI -> the measured KPI (a reduced box reports its masses scaled to the whole box)
-KPIS = {"angle_of_repose_deg": "angle_of_repose_deg", "shear_angle_deg": "shear_angle_deg",
-        "mass_flow_rate_full_kg_s": "mass_flow_rate_kg_s", "mass_lower_box_full_kg": "mass_lower_box_kg"}
+KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
 
 
 def main() -> None:
@@ -54,7 +53,7 @@ def main() -> None:
         raise SystemExit(f"{args.store}: condition {args.condition!r} holds {len(null)} runs at {args.parameter} = "
                          f"{args.null} and {len(effect)} at {args.effect}; need at least 2 of each")
     condition = load_measured(args.measured).condition(base)
-    u = np.array([condition.standard_uncertainty(m)[0] for m in KPIS.values()])
+    u = np.array([condition.standard_uncertainty(measured_name(k))[0] for k in KPIS])
     # per KPI over the runs that measured it (NaN: the lab method could not, e.g. no heap edge)
     n0, n1 = np.isfinite(null).sum(0), np.isfinite(effect).sum(0)
     shift = np.nanmean(effect, 0) - np.nanmean(null, 0)

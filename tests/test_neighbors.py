@@ -267,6 +267,18 @@ def test_periodic_period_needs_twice_the_contact_distance_not_the_skin():
         simulation(pos, torch.full((1, 2), R, dtype=F64), mats, table, domain=((0, 0, 0), (0.1, 0.019, 0.1)), **kw)
 
 
+SCATTER_BOX = (0.12, 0.04, 0.2)
+
+
+def _scattered(seed, N, dtype, radius):
+    """3 members of N spheres uniformly in SCATTER_BOX, bodies of 3 spheres, 90 % active; radii
+    drawn by ``radius(generator, count)`` after the positions."""
+    gen = torch.Generator().manual_seed(seed)
+    pos = torch.rand(3 * N, 3, generator=gen, dtype=dtype) * torch.tensor(SCATTER_BOX, dtype=dtype)
+    rad = radius(gen, 3 * N)
+    return pos, rad, torch.arange(3 * N) // 3, torch.rand(3 * N, generator=gen) > 0.1
+
+
 @pytest.mark.parametrize("periodic", [(False, False, False), (False, True, False), (True, True, False),
                                       (False, False, True), (True, True, True)])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
@@ -279,13 +291,8 @@ def test_cpp_cell_search_equals_torch_path(periodic, dtype):
 
     if _ext.cpu_kernels() is None:
         pytest.skip("C++ extension unavailable on this machine (the torch path is tested above)")
-    gen = torch.Generator().manual_seed(3)
-    B, N = 3, 1500
-    hi = (0.12, 0.04, 0.2)
-    pos = torch.rand(B * N, 3, generator=gen, dtype=dtype) * torch.tensor(hi, dtype=dtype)
-    rad = 0.002 + 0.006 * torch.rand(B * N, generator=gen, dtype=dtype)
-    body = torch.arange(B * N) // 3
-    active = torch.rand(B * N, generator=gen) > 0.1
+    N, hi = 1500, SCATTER_BOX
+    pos, rad, body, active = _scattered(3, N, dtype, lambda g, n: 0.002 + 0.006 * torch.rand(n, generator=g, dtype=dtype))
     pos[7] = float("nan")
     pos[N + 11, 2] = float("inf")
     grid = cell_grid((0, 0, 0), hi, float(2 * rad.max() + 0.002), periodic=periodic, dtype=dtype)
@@ -348,15 +355,13 @@ def test_cpp_two_grid_search_equals_torch_path(periodic, dtype):
 
     if _ext.cpu_kernels() is None:
         pytest.skip("C++ extension unavailable on this machine")
-    gen = torch.Generator().manual_seed(4)
-    B, N = 3, 2500
-    hi = (0.12, 0.04, 0.2)
-    pos = torch.rand(B * N, 3, generator=gen, dtype=dtype) * torch.tensor(hi, dtype=dtype)
-    lobe = torch.rand(B * N, generator=gen) < 0.8
-    rad = torch.where(lobe, 0.0015 + 0.001 * torch.rand(B * N, generator=gen),
-                      0.004 + 0.004 * torch.rand(B * N, generator=gen)).to(dtype)
-    body = torch.arange(B * N) // 3
-    active = torch.rand(B * N, generator=gen) > 0.1
+    def bimodal(g, n):
+        lobe = torch.rand(n, generator=g) < 0.8
+        return torch.where(lobe, 0.0015 + 0.001 * torch.rand(n, generator=g),
+                           0.004 + 0.004 * torch.rand(n, generator=g)).to(dtype)
+
+    N, hi = 2500, SCATTER_BOX
+    pos, rad, body, active = _scattered(4, N, dtype, bimodal)
     pos[5] = float("nan")
     pos[N + 9, 1] = float("inf")
     skin = 0.002

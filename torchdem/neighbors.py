@@ -107,11 +107,9 @@ def search_grid(grid: CellGrid, radius: Tensor, skin: float, fraction: float = 0
     with one grid; at lobe spacing 0.15 (3.5-8.7 mm), 11.1 ms against 12.1 ms (medians of
     interleaved calls, one thread, ``scripts/bench_search.py``).
     """
-    if not fraction > 0 or radius.numel() == 0:
-        return with_split(grid, 0.0, skin)
-    split = fraction * float(radius.max())
+    split = fraction * float(radius.max()) if fraction > 0 and radius.numel() else 0.0
     if 2 * int((radius <= split).sum()) < radius.numel():
-        return with_split(grid, 0.0, skin)
+        split = 0.0
     return with_split(grid, split, skin)
 
 

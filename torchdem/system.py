@@ -304,7 +304,9 @@ def build_system(
     sphere_valid = torch.arange(Ns, device=device)[None, :] < Ns_member[:, None]
 
     # Time step.
-    r_min = float(sphere_radius[sphere_valid & torch.gather(active, 1, sphere_body)].min())
+    live = sphere_valid & torch.gather(active, 1, sphere_body)  # [B, Ns] spheres of active bodies
+    live_radius = sphere_radius[live]
+    r_min = float(live_radius.min())
     particle_mats = sorted(set(int(m) for m in material[active].unique()))
     rayleigh = min(
         rayleigh_time_step(r_min, float(interactions.density[:, m].min()), materials[m].shear_modulus,
@@ -318,7 +320,7 @@ def build_system(
     elif not (0 < dt <= rayleigh):
         raise out_of_range("dt", dt, f"(0, {rayleigh:.4g}] s (the Rayleigh time step of the smallest "
                            f"sphere, r = {r_min:.4g} m)", source)
-    r_max = float(sphere_radius[sphere_valid & torch.gather(active, 1, sphere_body)].max())
+    r_max = float(live_radius.max())
     if skin is None:
         skin = 0.2 * r_max
     if not skin > 0:
@@ -363,7 +365,6 @@ def build_system(
         # the period. The skin need not be: the pair search visits every cell of a periodic
         # axis with fewer than 3 cells and keeps a pair by its minimum-image distance, which
         # moves no more than the spheres do, so the skin criterion still holds.
-        live = sphere_valid & torch.gather(active, 1, sphere_body)
         reach = float((sphere_offset.norm(dim=-1) + sphere_radius)[live].max())
         need = 2 * max(2 * r_max, reach)
         for ax in range(3):
@@ -374,7 +375,7 @@ def build_system(
     if not 0 <= search_split < 1:
         raise out_of_range("search_split", search_split, "[0, 1) of the largest sphere radius (0: one grid)", source)
     grid = cell_grid(lo, hi, 2 * r_max + skin, periodic=periodic, dtype=dtype, device=device)
-    grid = search_grid(grid, sphere_radius[sphere_valid & torch.gather(active, 1, sphere_body)], skin, search_split)
+    grid = search_grid(grid, live_radius, skin, search_split)
 
     if orientation is None:
         orientation = torch.zeros((B, N, 4), dtype=dtype, device=device)

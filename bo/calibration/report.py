@@ -35,7 +35,7 @@ import numpy as np
 from bo.surrogate.acquisition import plot_actual_vs_predicted
 from bo.calibration.pipeline import CalibrationResult, KPIAgreement
 from bo.report.plots import write_relative_error_plot
-from bo.screening.pipeline import json_ready
+from bo.screening.pipeline import json_ready, measured_name
 
 __all__ = ["write_calibration_report", "calibration_payload", "agreement_table", "paper_comparison"]
 
@@ -119,18 +119,13 @@ def strategy_comparison(result: CalibrationResult) -> dict:
 PAPER_DEM_RUNS = 29 * 5 + 110 * 5 + 5 + 5 + 3 * 5
 
 
-def _paper_kpi(kpi: str) -> str:
-    """The paper's name of a DEM KPI (a ``<x>_full_<unit>`` mass of a reduced box is its ``<x>_<unit>``)."""
-    return kpi.replace("_full_", "_")
-
-
 def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
     """This campaign beside the paper's (see the module docstring), as plain data."""
     dem = paper["dem_vs_experiment"]
     table8 = paper["ga_calibration"][paper["ga_calibration"]["selected"]]
 
     def errors(rows: Sequence[KPIAgreement]) -> dict[str, float]:
-        return {_paper_kpi(a.kpi): a.relative_error_pct for a in rows}
+        return {measured_name(a.kpi): a.relative_error_pct for a in rows}
 
     ours_val = {c: errors(rows) for c, rows in result.validation.items()}
     paper_val = {c: v["relative_error_percent"] for c, v in dem["validation"]["conditions"].items()}
@@ -139,7 +134,7 @@ def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
     return {
         "parameters": {n: {"ours": result.final_parameters.get(n), "table8": table8.get(n)}
                        for n in dict.fromkeys(list(result.final_parameters) + list(table8))},
-        "verification": {"ours": errors(verification), "within_ci": {_paper_kpi(a.kpi): a.within_ci
+        "verification": {"ours": errors(verification), "within_ci": {measured_name(a.kpi): a.within_ci
                                                                       for a in verification},
                          "table_a4": dem["calibration"]["relative_error_percent"]},
         "densities": {"ours": {k[len("density_"):]: v for k, v in result.final_parameters.items()

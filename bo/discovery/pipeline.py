@@ -89,7 +89,7 @@ from bo.surrogate.search import multistart_minimum
 from torchdem.mechanisms import Mechanism, ModelContext, model_context, registry
 from bo.surrogate.objective import ObjectiveSpec
 from bo.discovery.replicate_noise import ReplicateNoise
-from bo.screening.pipeline import measured_for
+from bo.screening.pipeline import measured_for, measured_name
 from bo.campaign.store import CampaignStore
 from bo.surrogate.gp import SurrogateConfig, fit_surrogate
 from torchdem.errors import ConfigError, out_of_range
@@ -335,8 +335,7 @@ def _lab(measured: MeasuredData, kpis: Sequence[str]) -> dict[tuple[str, str], t
     for c in measured.names:
         condition = measured.condition(c)
         for kpi, value in measured_for(kpis, condition.kpis).items():
-            name = kpi.replace("_full_", "_", 1) if "_full_" in kpi else kpi
-            u, dof = condition.standard_uncertainty(name)
+            u, dof = condition.standard_uncertainty(measured_name(kpi))
             out[(c, kpi)] = (float(value.mean), float(u), float(dof))
     return out
 

@@ -188,6 +188,12 @@ def run_screening(store: CampaignStore, executor: Executor, table: ParameterTabl
 # Analysis and report
 # --------------------------------------------------------------------------------------------
 
+def measured_name(kpi: str) -> str:
+    """The measured KPI of a DEM KPI: a reduced box's ``<x>_full_<unit>`` (its mass scaled to the
+    whole box) is the lab's ``<x>_<unit>``; other names are their own."""
+    return kpi.replace("_full_", "_", 1)
+
+
 def measured_for(kpi_names: Sequence[str], measured: Mapping) -> dict:
     """Measured entry for each screening KPI that has one (see the module docstring):
     ``<x>_full_<unit>`` <- measured ``<x>_<unit>``; slice-only mass KPIs get none."""
@@ -195,7 +201,7 @@ def measured_for(kpi_names: Sequence[str], measured: Mapping) -> dict:
     for kpi in kpi_names:
         if kpi in SLICE_ONLY_KPIS:
             continue
-        name = kpi.replace("_full_", "_", 1) if "_full_" in kpi else kpi
+        name = measured_name(kpi)
         if name in measured:
             out[kpi] = measured[name]
     return out
