@@ -1,0 +1,182 @@
+"""How far a campaign store has come, and what the rest of it will cost.
+
+Contract
+--------
+``store_progress(path)`` reads a campaign store (``bo.campaign.store``; read-only, the file is
+never written) and returns a ``StoreProgress``: its tasks per status, the worker time its
+finished runs took, and an estimate of the worker time its unfinished ones will take. Runs are
+grouped into cost classes, since a run's cost is set by its geometry and particle shape, not by
+its friction: a class is the geometry part of the condition (``"mirror=True|slice_depth=0.1"``,
+empty for the condition's own geometry) and the task's particle shape (its ``lobe_spacing_*``
+parameters, each rounded to the nearest ``SHAPE_BIN``, so that the continuous values a surrogate or a
+discovery fit proposes share classes). A flatter trilobe has smaller lobes, more clumps per kilogram and a shorter Rayleigh
+step: a lab-geometry run at lobe spacing 0.3 costs about 4x one at 0.15. The densities change the
+step by sqrt(rho) only (about 5 % over the lab surrogate's +-10 %), so they do not split classes.
+
+Cost of a finished run, in worker seconds: its stored ``wall_time`` divided by the number of runs
+finished in the same batch (rows written by one ``record`` call share their owner, finish time
+and wall time), so a batch of two members counts half its wall time per run. Rows that took
+another run's result (``reused:``) cost nothing and are left out.
+
+Estimate of an unfinished run: the median cost of its class's finished runs. A class without
+any takes the median of the nearest class of the same geometry (summed relative difference of the
+mixture values, as ``CampaignStore.claim`` batches them) and is marked ``borrowed``; the cost grows
+steeply with the lobe spacing, so a borrowed figure is a lower or upper bound, not an estimate.
+Unfinished rows of the same run (stage, parameters, seed, condition) count once. Runs in
+``failed`` are not counted as remaining (``reset_failed`` re-queues them).
+
+Stages a campaign has not reached yet have no rows, so they are not in the estimate: a
+calibration's surrogate rounds, verification and validation appear once the stage starts.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sqlite3
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from statistics import median
+
+from torchdem.errors import ConfigError
+
+__all__ = ["SHAPE_BIN", "CostClass", "StoreProgress", "store_progress"]
+
+_REUSED = "reused:"
+_SHAPE_PREFIX = "lobe_spacing_"
+#: Width of a cost class in lobe spacing (a fraction of the sieve size).
+SHAPE_BIN = 0.025
+
+
+def _shape(params: dict) -> tuple[tuple[str, float], ...]:
+    return tuple(sorted((k, round(round(float(v) / SHAPE_BIN) * SHAPE_BIN, 6)) for k, v in params.items()
+                        if k.startswith(_SHAPE_PREFIX)))
+
+
+@dataclass(frozen=True)
+class CostClass:
+    """The runs of one geometry and particle shape.
+
+    Attributes:
+        geometry: the geometry part of the condition ("" for the condition's own geometry).
+        shape: ``(name, value)`` pairs of the ``lobe_spacing_*`` parameters (to the nearest
+            ``SHAPE_BIN``), sorted by name.
+        done: runs finished (their own, not reused).
+        remaining: distinct runs pending or running.
+        failed: runs failed.
+        seconds_per_run: median worker seconds of a finished run of the class (or of the nearest
+            class if ``borrowed``); None if no class of this geometry has a finished run.
+        borrowed: whether ``seconds_per_run`` comes from another class.
+        bound: ``""`` (the class's own median), ``"at least"`` or ``"at most"`` (borrowed from a
+            class of smaller or larger lobe spacings).
+    """
+
+    geometry: str
+    shape: tuple[tuple[str, float], ...]
+    done: int
+    remaining: int
+    failed: int
+    seconds_per_run: float | None
+    borrowed: bool
+    bound: str = ""
+
+    @property
+    def label(self) -> str:
+        shape = ", ".join(f"{k} {v:g}" for k, v in self.shape) or "default shape"
+        return f"{self.geometry} {shape}".strip() if self.geometry else shape
+
+
+@dataclass(frozen=True)
+class StoreProgress:
+    """Progress of one store.
+
+    Attributes:
+        path: the store file.
+        status: stage -> status -> number of rows (reused rows included, as stored).
+        classes: the cost classes, by geometry and then lobe spacings.
+        spent_s: worker seconds of every finished run (failed ones included).
+        remaining_s: estimated worker seconds of the unfinished runs; None if a class with
+            remaining runs has no cost figure at all.
+        remaining_bound: ``""`` (an estimate), ``"at least"``, ``"at most"`` or ``"roughly"``
+            (classes with remaining runs borrowed their figure, see ``CostClass.bound``).
+    """
+
+    path: str
+    status: dict[str, dict[str, int]]
+    classes: tuple[CostClass, ...]
+    spent_s: float
+    remaining_s: float | None
+    remaining_bound: str = ""
+
+    @property
+    def remaining_runs(self) -> int:
+        return sum(c.remaining for c in self.classes)
+
+
+def _distance(a: tuple, b: tuple) -> float:
+    if [n for n, _ in a] != [n for n, _ in b]:
+        return math.inf
+    return sum(abs(x - y) / max(abs(x), abs(y)) for (_, x), (_, y) in zip(a, b) if x != y)
+
+
+def _open_read_only(path: Path) -> sqlite3.Connection:
+    if not path.is_file():
+        raise ConfigError(f"campaign store {str(path)!r} does not exist (store_progress)")
+    try:
+        conn = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
+        conn.execute("SELECT 1 FROM evaluations LIMIT 1")
+    except sqlite3.DatabaseError as exc:
+        raise ConfigError(f"{path}: not a campaign store ({exc}) (store_progress)") from None
+    return conn
+
+
+def store_progress(path: str | Path) -> StoreProgress:
+    """Tasks per status, worker time spent and the estimated worker time left in a store."""
+    path = Path(path)
+    conn = _open_read_only(path)
+    try:
+        rows = conn.execute("SELECT stage, params, seed, condition, status, wall_time, claimed_by, finished_at "
+                            "FROM evaluations ORDER BY task_id").fetchall()
+    finally:
+        conn.close()
+    status: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+    batch_size: dict[tuple, int] = defaultdict(int)
+    for stage, _, _, _, state, wall, owner, finished in rows:
+        status[stage][state] += 1
+        if state in ("done", "failed") and wall is not None and not (owner or "").startswith(_REUSED):
+            batch_size[(owner, finished, wall)] += 1
+    costs: dict[tuple, list[float]] = defaultdict(list)
+    counts: dict[tuple, dict[str, int]] = defaultdict(lambda: {"done": 0, "failed": 0})
+    unfinished: dict[tuple, set] = defaultdict(set)
+    spent = 0.0
+    for stage, params, seed, condition, state, wall, owner, finished in rows:
+        geometry = condition.partition("|")[2]
+        key = (geometry, _shape(json.loads(params)))
+        counts[key]  # every class seen appears in the table
+        if state in ("pending", "running"):
+            unfinished[key].add((stage, params, seed, condition))
+        elif wall is not None and not (owner or "").startswith(_REUSED):
+            cost = wall / batch_size[(owner, finished, wall)]
+            spent += cost
+            counts[key][state] += 1
+            if state == "done":
+                costs[key].append(cost)
+    classes, remaining = [], 0.0
+    for key in sorted(counts, key=lambda k: (k[0], [v for _, v in k[1]])):
+        per_run, bound = (median(costs[key]), "") if costs[key] else (None, "")
+        if per_run is None:
+            near = [k for k, v in costs.items() if v and k[0] == key[0]]
+            if near:
+                nearest = min(near, key=lambda k: (_distance(key[1], k[1]), [v for _, v in k[1]]))
+                per_run = median(costs[nearest])
+                smaller = sum(v for _, v in nearest[1]) < sum(v for _, v in key[1])
+                bound = "at least" if smaller else "at most"
+        n_left = len(unfinished[key])
+        classes.append(CostClass(key[0], key[1], counts[key]["done"], n_left, counts[key]["failed"], per_run,
+                                 bool(bound), bound))
+        if n_left:
+            remaining = None if remaining is None or per_run is None else remaining + n_left * per_run
+    bounds = {c.bound for c in classes if c.remaining and c.bound}
+    total_bound = "" if not bounds else bounds.pop() if len(bounds) == 1 else "roughly"
+    return StoreProgress(str(path), {s: dict(v) for s, v in status.items()}, tuple(classes), spent, remaining,
+                         total_bound)

@@ -1,0 +1,102 @@
+"""Tests of bo.campaign.progress: runs done and left per cost class, worker time spent and left."""
+from __future__ import annotations
+
+import hashlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bo.campaign.executor import EvalOutcome
+from bo.campaign.progress import store_progress
+from bo.campaign.store import CampaignStore
+from torchdem.errors import ConfigError
+
+LAB = "50-50|mirror=True|slice_depth=0.1"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _point(spacing: float, mu: float, density: float = 3449.0) -> dict:
+    return {"lobe_spacing_sinter": spacing, "mu_s_pp": mu, "density_sinter": density}
+
+
+def _store(tmp_path) -> CampaignStore:
+    """Four points at lobe spacing 0.15 (densities differ: one class), two at 0.3, one at 0.27
+    (the 0.275 class), on the lab geometry, seed 0; a second batch repeats the first point."""
+    store = CampaignStore(tmp_path / "s.sqlite", "cfg", code_version="test")
+    store.batch("screening", "design", lambda: [_point(0.15, 0.3), _point(0.15, 0.5, 3100.0), _point(0.15, 0.7),
+                                                _point(0.15, 0.9), _point(0.3, 0.3), _point(0.3, 0.5),
+                                                _point(0.27, 0.4)],
+                seeds=[0], conditions=[LAB])
+    return store
+
+
+def _finish(store, tasks, wall, ok=True):
+    outcome = EvalOutcome.success({"angle_of_repose_deg": 30.0}, wall) if ok else EvalOutcome.failure("x", wall)
+    store.record([(t, outcome) for t in tasks])
+
+
+def test_costs_per_class_batches_shared_runs_and_bounds(tmp_path):
+    store = _store(tmp_path)
+    tasks = {(t.params["lobe_spacing_sinter"], t.params["mu_s_pp"]): t for t in store.claim(7, "screening")}
+    _finish(store, [tasks[(0.15, 0.3)], tasks[(0.15, 0.5)]], 100.0)  # one batch of two: 50 s per run
+    _finish(store, [tasks[(0.15, 0.7)]], 30.0)
+    _finish(store, [tasks[(0.3, 0.3)]], 400.0, ok=False)               # failed: spent, not a cost figure
+    store.release([tasks[(0.15, 0.9)].task_id, tasks[(0.3, 0.5)].task_id, tasks[(0.27, 0.4)].task_id])
+    # the same run asked for again in its stage, and one more pending copy: the first is done
+    # with the stored result at no cost, the second counts once as left
+    store.batch("screening", "again", lambda: [_point(0.15, 0.3), _point(0.15, 0.9)], seeds=[0], conditions=[LAB])
+
+    progress = store_progress(store.path)
+
+    assert progress.status == {"screening": {"done": 4, "pending": 4, "failed": 1}}
+    by_shape = {c.shape: c for c in progress.classes}
+    assert set(by_shape) == {(("lobe_spacing_sinter", 0.15),), (("lobe_spacing_sinter", 0.275),),
+                             (("lobe_spacing_sinter", 0.3),)}
+    low = by_shape[(("lobe_spacing_sinter", 0.15),)]
+    assert (low.geometry, low.done, low.remaining, low.failed) == ("mirror=True|slice_depth=0.1", 3, 1, 0)
+    assert low.seconds_per_run == pytest.approx(50.0)  # median of 50, 50, 30
+    assert (low.borrowed, low.bound) == (False, "")
+    mid = by_shape[(("lobe_spacing_sinter", 0.275),)]
+    high = by_shape[(("lobe_spacing_sinter", 0.3),)]
+    # no finished run at 0.275 or 0.3: both borrow the only class with one, of smaller spacing
+    assert (mid.remaining, mid.seconds_per_run, mid.bound) == (1, pytest.approx(50.0), "at least")
+    assert (high.remaining, high.failed, high.seconds_per_run, high.bound) == (1, 1, pytest.approx(50.0), "at least")
+    assert progress.spent_s == pytest.approx(100.0 + 30.0 + 400.0)
+    assert progress.remaining_runs == 3
+    assert progress.remaining_s == pytest.approx(3 * 50.0)
+    assert progress.remaining_bound == "at least"
+
+    left = store.claim(4, "screening")
+    _finish(store, [t for t in left if t.params["lobe_spacing_sinter"] == 0.3], 900.0)
+    store.release([t.task_id for t in left if t.params["lobe_spacing_sinter"] != 0.3])
+    again = {c.shape: c for c in store_progress(store.path).classes}
+    # 0.275 now borrows from 0.3 (the nearer class), an upper bound
+    assert again[(("lobe_spacing_sinter", 0.275),)].bound == "at most"
+    assert again[(("lobe_spacing_sinter", 0.275),)].seconds_per_run == pytest.approx(900.0)
+    assert again[(("lobe_spacing_sinter", 0.3),)].bound == ""
+
+
+def test_the_store_is_only_read_and_a_bad_path_is_named(tmp_path):
+    store = _store(tmp_path)
+    before = hashlib.sha256(Path(store.path).read_bytes()).hexdigest()
+    store_progress(store.path)
+    assert hashlib.sha256(Path(store.path).read_bytes()).hexdigest() == before
+    with pytest.raises(ConfigError, match="does not exist"):
+        store_progress(tmp_path / "missing.sqlite")
+    (tmp_path / "junk.sqlite").write_text("not a database")
+    with pytest.raises(ConfigError, match="not a campaign store"):
+        store_progress(tmp_path / "junk.sqlite")
+
+
+def test_status_script_reports_a_store(tmp_path):
+    store = _store(tmp_path)
+    tasks = store.claim(1, "screening")
+    _finish(store, tasks, 120.0)
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "campaign_status.py"), str(store.path),
+                          "--workers", "2"], capture_output=True, text=True, check=True).stdout
+    assert "screening: 1 done, 6 pending" in out
+    assert "| mirror=True|slice_depth=0.1 lobe_spacing_sinter 0.15 | 1 | 3 | 0 | 2.0 min |" in out
+    # 3 runs at 0.15 (2 min) + 1 at 0.275 + 2 at 0.3 borrowing it: 12 min of worker time, at least
+    assert "Left in the store: 6 runs, at least 0.2 h of worker time, at least 0.1 h on 2 workers" in out
