@@ -12,6 +12,16 @@ against the same set with mu_s_pg = mu_s_sg = 0.3, 3 seeds each) against Table 2
 
 Only the measured condition's cells enter (one condition of Table 2), so the power is a lower
 bound for a discovery that measures every condition.
+
+Several ``--condition`` values (the same measured condition on several geometries of a geometry
+study) print each one's power and then compare their shifts with the first's, KPI by KPI: the
+ratio (where the first geometry's shift exceeds twice its standard error) and the difference in
+standard errors. This tells whether a cheaper geometry (the walled
+slice) shows the shift the reference geometry shows, i.e. whether it can stand in for it::
+
+    python scripts/detectability_from_store.py --store campaigns/table2/lab_effects.sqlite \
+        --condition "50-50|mirror=True|slice_depth=0.1" "50-50|mirror=False|slice_depth=0.04" \
+        --parameter coh_pp --null 0 --effect 13333
 """
 from __future__ import annotations
 
@@ -29,44 +39,70 @@ from torchdem.measured import load_measured
 KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
 
 
+def runs(store: str, condition: str, parameter: str, null: float, effect: float) -> tuple[np.ndarray, np.ndarray]:
+    """KPIs (rows: runs, columns: ``KPIS``; NaN where a run did not measure one) of the finished
+    runs of ``condition`` at ``parameter = null`` and at ``parameter = effect``."""
+    values: dict[float, list[list[float]]] = {null: [], effect: []}
+    con = sqlite3.connect(store)
+    for params, kpis in con.execute("SELECT params, kpis FROM evaluations WHERE status = 'done' AND condition = ?",
+                                    (condition,)):
+        value = json.loads(params).get(parameter)
+        if value in values:
+            k = json.loads(kpis)
+            values[value].append([math.nan if k.get(name) is None else float(k[name]) for name in KPIS])
+    con.close()
+    a, b = np.array(values[null]).reshape(-1, len(KPIS)), np.array(values[effect]).reshape(-1, len(KPIS))
+    if len(a) < 2 or len(b) < 2:
+        raise SystemExit(f"{store}: condition {condition!r} holds {len(a)} runs at {parameter} = {null} and "
+                         f"{len(b)} at {effect}; need at least 2 of each")
+    return a, b
+
+
+def shift_and_scatter(null: np.ndarray, effect: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per KPI over the runs that measured it: the shift of the means, the pooled replicate sd and
+    the standard error of the shift."""
+    n0, n1 = np.isfinite(null).sum(0), np.isfinite(effect).sum(0)
+    shift = np.nanmean(effect, 0) - np.nanmean(null, 0)
+    sd = np.sqrt((np.nanvar(null, 0, ddof=1) * (n0 - 1) + np.nanvar(effect, 0, ddof=1) * (n1 - 1)) / (n0 + n1 - 2))
+    return shift, sd, sd * np.sqrt(1.0 / n0 + 1.0 / n1)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--store", required=True)
-    parser.add_argument("--condition", required=True, help="the runs' condition, as stored")
+    parser.add_argument("--condition", required=True, nargs="+",
+                        help="the runs' condition, as stored; several: compare their shifts with the first's")
     parser.add_argument("--parameter", required=True, help="the parameter whose value tells the two sets apart")
     parser.add_argument("--null", type=float, required=True, help="its value in the reference set")
     parser.add_argument("--effect", type=float, required=True, help="its value in the changed set")
     parser.add_argument("--measured", default="hadi2025_pellet_sinter.json")
     parser.add_argument("--dem-replicates", type=int, nargs="+", default=[3, 5])
     args = parser.parse_args()
-    base = args.condition.split("|")[0]
-    values: dict[float, list[list[float]]] = {args.null: [], args.effect: []}
-    con = sqlite3.connect(args.store)
-    for params, kpis in con.execute("SELECT params, kpis FROM evaluations WHERE status = 'done' AND condition = ?",
-                                    (args.condition,)):
-        value = json.loads(params).get(args.parameter)
-        if value in values:
-            k = json.loads(kpis)
-            values[value].append([math.nan if k.get(name) is None else float(k[name]) for name in KPIS])
-    null, effect = np.array(values[args.null]), np.array(values[args.effect])
-    if len(null) < 2 or len(effect) < 2:
-        raise SystemExit(f"{args.store}: condition {args.condition!r} holds {len(null)} runs at {args.parameter} = "
-                         f"{args.null} and {len(effect)} at {args.effect}; need at least 2 of each")
-    condition = load_measured(args.measured).condition(base)
-    u = np.array([condition.standard_uncertainty(measured_name(k))[0] for k in KPIS])
-    # per KPI over the runs that measured it (NaN: the lab method could not, e.g. no heap edge)
-    n0, n1 = np.isfinite(null).sum(0), np.isfinite(effect).sum(0)
-    shift = np.nanmean(effect, 0) - np.nanmean(null, 0)
-    sd = np.sqrt((np.nanvar(null, 0, ddof=1) * (n0 - 1) + np.nanvar(effect, 0, ddof=1) * (n1 - 1)) / (n0 + n1 - 2))
-    print(f"{args.parameter} {args.null} -> {args.effect} on {args.condition} ({len(null)} and {len(effect)} runs); "
-          f"lab repeats: {condition.replicates or 'not stated (u = ci95 / 1.96)'}")
-    for name, d, s, uu in zip(KPIS, shift, sd, u):
-        print(f"  {name:26s} shift {d:+8.3f}   DEM replicate sd {s:6.3f}   lab u {uu:6.3f}")
-    for r in args.dem_replicates:
-        sigma = np.sqrt((sd / math.sqrt(r)) ** 2 + u ** 2)
-        t = smallest_detectable(lambda f: f * shift, sigma)
-        print(f"  {r} DEM runs per cell: power {detection_power(shift, sigma):.3f}; smallest detectable fraction of "
-              f"the shift (80 %): {'not within 1' if t is None else f'{t:.2f}'}")
+    shifts = []
+    for condition_name in args.condition:
+        null, effect = runs(args.store, condition_name, args.parameter, args.null, args.effect)
+        condition = load_measured(args.measured).condition(condition_name.split("|")[0])
+        u = np.array([condition.standard_uncertainty(measured_name(k))[0] for k in KPIS])
+        shift, sd, se = shift_and_scatter(null, effect)
+        shifts.append((condition_name, shift, se))
+        print(f"{args.parameter} {args.null} -> {args.effect} on {condition_name} ({len(null)} and {len(effect)} "
+              f"runs); lab repeats: {condition.replicates or 'not stated (u = ci95 / 1.96)'}")
+        for name, d, s, uu in zip(KPIS, shift, sd, u):
+            print(f"  {name:26s} shift {d:+8.3f}   DEM replicate sd {s:6.3f}   lab u {uu:6.3f}")
+        for r in args.dem_replicates:
+            sigma = np.sqrt((sd / math.sqrt(r)) ** 2 + u ** 2)
+            t = smallest_detectable(lambda f: f * shift, sigma)
+            print(f"  {r} DEM runs per cell: power {detection_power(shift, sigma):.3f}; smallest detectable fraction "
+                  f"of the shift (80 %): {'not within 1' if t is None else f'{t:.2f}'}")
+    reference, ref_shift, ref_se = shifts[0]
+    for condition_name, shift, se in shifts[1:]:
+        print(f"shift on {condition_name} against {reference}:")
+        for name, d, e, d0, e0 in zip(KPIS, shift, se, ref_shift, ref_se):
+            # a ratio only where the reference shift stands out of its own noise
+            ratio = f"{d / d0:+6.2f}" if abs(d0) > 2 * e0 else "     -"
+            z = (d - d0) / math.hypot(e, e0)
+            print(f"  {name:26s} {d:+8.3f} (se {e:.3f}) against {d0:+8.3f} (se {e0:.3f}): ratio {ratio}, "
+                  f"difference {z:+5.1f} se")
 
 
 if __name__ == "__main__":

@@ -114,3 +114,38 @@ def test_detectability_from_store_script_against_a_direct_computation(tmp_path):
     power = detection_power(shift, np.sqrt(sd ** 2 / 3 + u ** 2))
     assert f"power {power:.3f}" in out
     assert "shift   -3.000" in out and f"DEM replicate sd {sd[1]:6.3f}" in out
+
+
+def test_detectability_from_store_script_compares_the_shift_of_two_geometries(tmp_path):
+    """With two conditions the script prints, per KPI, the second geometry's shift against the
+    first's: their ratio where the first stands out of its noise, and their difference in
+    standard errors of the two shifts."""
+    import json
+    import sqlite3
+    import subprocess
+
+    kpis = ["angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg"]
+    null = np.array([[29.0, 40.0, 10.0, 32.0], [29.5, 41.0, 10.2, 32.2], [30.0, 42.0, 10.4, 32.4]])
+    shifts = {"50-50|mirror=True|slice_depth=0.1": np.array([0.0, -4.0, 0.5, 0.6]),
+              "50-50|mirror=False|slice_depth=0.04": np.array([0.3, -6.0, 0.5, 1.8])}
+    store = tmp_path / "geometries.sqlite"
+    con = sqlite3.connect(store)
+    con.execute("CREATE TABLE evaluations (params TEXT, kpis TEXT, status TEXT, condition TEXT)")
+    for cond, shift in shifts.items():
+        for value, rows in ((0.0, null), (13333.0, null + shift)):
+            for r in rows:
+                con.execute("INSERT INTO evaluations VALUES (?, ?, 'done', ?)",
+                            (json.dumps({"coh_pp": value}), json.dumps(dict(zip(kpis, r.tolist()))), cond))
+    con.commit()
+    script = Path(__file__).resolve().parents[1] / "scripts" / "detectability_from_store.py"
+    out = subprocess.run([sys.executable, str(script), "--store", str(store), "--condition", *shifts,
+                          "--parameter", "coh_pp", "--null", "0", "--effect", "13333"],
+                         capture_output=True, text=True, check=True).stdout
+    se = null.std(0, ddof=1) * math.sqrt(2 / 3)  # each shift's standard error: equal scatter, 3 + 3 runs
+    lines = {line.split()[0]: line for line in out.split("against 50-50|mirror=True|slice_depth=0.1:")[1].splitlines()
+             if line.strip()}
+    assert "ratio      -," in lines["angle_of_repose_deg"]  # no ratio: the reference shift is 0
+    assert "ratio  +1.50," in lines["shear_angle_deg"]
+    assert f"difference {-2.0 / math.hypot(se[1], se[1]):+5.1f} se" in lines["shear_angle_deg"]
+    assert "ratio  +1.00, difference  +0.0 se" in lines["mass_flow_rate_full_kg_s"]
+    assert f"ratio  +3.00, difference {1.2 / math.hypot(se[3], se[3]):+5.1f} se" in lines["mass_lower_box_full_kg"]
