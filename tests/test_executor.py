@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import functools
+import json
 import math
 import os
+import time
 
 import pytest
 
-from _campaign_worker import analytic_batch, analytic_kpis
+from _campaign_worker import analytic_batch, analytic_kpis, task_key
 from bo.campaign.executor import (DaskExecutor, EvalOutcome, EvalTask, InProcessExecutor, evaluate_checked,
                          make_batches, run_pending)
 from bo.campaign.store import CampaignStore
@@ -189,6 +191,25 @@ def test_dask_executor_matches_in_process(tmp_path):
         assert {o.error for o in outcomes.values() if not o.ok} == {
             "evaluate_batch raised RuntimeError: ensemble blew up for condition 70-30"}
         failing.close()
+        # a worker lost mid-campaign (killed, or restarted after missed heartbeats) costs only the
+        # batch it was running: batches whose outcomes were taken are released, not recomputed
+        log = tmp_path / "evaluations.log"
+        lost = DaskExecutor(functools.partial(analytic_batch, log_path=str(log), slow_mu=0.3, slow_seconds=4.0), 1,
+                            client=executor.client)
+        stream = lost.run_stream([[t] for t in tasks_for(n_points=3, seeds=(0,), conditions=("x",))])
+        first = next(stream)  # mu 0.2; mu 0.3 (slow) and then 0.4 are in flight
+        try:
+            executor.client.run(os._exit, 1)  # every worker process dies; the nannies restart them
+        except Exception:
+            pass
+        rest = [b for b in stream]
+        assert sorted(round(t.params["mu_s_pp"], 6) for b in [first, *rest] for t, _ in b) == [0.2, 0.3, 0.4]
+        assert all(o.ok for b in rest for _, o in b)
+        time.sleep(1.0)
+        evaluated = [json.loads(line)["key"] for line in log.read_text().splitlines()]
+        first_key = task_key(first[0][0].params, first[0][0].seed, first[0][0].condition)
+        assert evaluated.count(first_key) == 1, evaluated
+        executor.client.wait_for_workers(2, timeout=60)
         with DaskExecutor(analytic_batch, 5, address=executor.client.scheduler.address) as remote:
             _, outcomes = collect(remote, tasks)
             assert {i: o.kpis for i, o in outcomes.items()} == {i: o.kpis for i, o in reference.items()}

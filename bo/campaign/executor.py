@@ -402,14 +402,17 @@ class DaskExecutor(Executor):
         source = iter(batches)
         running = as_completed()
         batch_of: dict[str, list[EvalTask]] = {}
-        futures = []
+        # Only the futures not yet taken are held: a finished batch's future is released once its
+        # outcomes are read, since the scheduler recomputes every held result a lost worker had
+        # (a worker restarted after missed heartbeats would rerun hours of finished DEM runs).
+        unfinished: dict[str, object] = {}
 
         def submit_next() -> None:
             batch = next(source, None)
             if batch:
                 future = self.client.submit(evaluate_checked, self.evaluate_batch, list(batch), pure=False)
                 batch_of[future.key] = list(batch)
-                futures.append(future)
+                unfinished[future.key] = future
                 running.add(future)
 
         for _ in range(in_flight):
@@ -422,12 +425,15 @@ class DaskExecutor(Executor):
                 except Exception as exc:  # worker died, connection lost, unpicklable function
                     msg = traceback.format_exception_only(type(exc), exc)[-1].strip()
                     outcomes = [EvalOutcome.failure(f"dask could not run the batch: {msg}") for _ in batch]
+                del unfinished[future.key]
+                future.release()
+                del future
                 yield list(zip(batch, outcomes))
                 submit_next()
         finally:
-            unfinished = [f for f in futures if not f.done()]
-            if unfinished:
-                self.client.cancel(unfinished)
+            left = [f for f in unfinished.values() if not f.done()]
+            if left:
+                self.client.cancel(left)
 
     def close(self) -> None:
         if self._own_client:
