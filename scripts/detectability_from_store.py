@@ -19,9 +19,22 @@ ratio (where the first geometry's shift exceeds twice its standard error) and th
 standard errors. This tells whether a cheaper geometry (the walled
 slice) shows the shift the reference geometry shows, i.e. whether it can stand in for it::
 
-    python scripts/detectability_from_store.py --store campaigns/table2/lab_effects.sqlite \
-        --condition "50-50|mirror=True|slice_depth=0.1" "50-50|mirror=False|slice_depth=0.04" \
+    python scripts/detectability_from_store.py --store campaigns/table2/lab_effects.sqlite \\
+        --condition "50-50|mirror=True|slice_depth=0.1" "50-50|mirror=False|slice_depth=0.04" \\
         --parameter coh_pp --null 0 --effect 13333
+
+``--versus PARAMETER NULL EFFECT [STORE]`` sets another mechanism's shift on the first condition
+beside this one and prints the power of telling the two apart (``distinguishing_power``): the
+probability that these cells reject the other mechanism at its best-fitting magnitude. Low power
+means no discovery can name the right one of the two from these data. Cohesion against a change
+of wall friction, on the lab geometry::
+
+    python scripts/detectability_from_store.py --store campaigns/table2/lab_effects.sqlite \\
+        --condition "50-50|mirror=True|slice_depth=0.1" --parameter coh_pp --null 0 --effect 13333 \\
+        --versus mu_s_pg 0.9 0.3 campaigns/geometry_lab.sqlite
+
+The null set of a mechanism is the set at its null value that differs from its effect set in the
+fewest parameters (a store of several mechanisms holds several sets at each null value).
 """
 from __future__ import annotations
 
@@ -32,7 +45,7 @@ import sqlite3
 
 import numpy as np
 
-from bo.discovery.detectable import detection_power, smallest_detectable
+from bo.discovery.detectable import detection_power, distinguishing_power, smallest_detectable
 from bo.screening.pipeline import measured_name
 from torchdem.measured import load_measured
 
@@ -41,17 +54,33 @@ KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "m
 
 def runs(store: str, condition: str, parameter: str, null: float, effect: float) -> tuple[np.ndarray, np.ndarray]:
     """KPIs (rows: runs, columns: ``KPIS``; NaN where a run did not measure one) of the finished
-    runs of ``condition`` at ``parameter = null`` and at ``parameter = effect``."""
-    values: dict[float, list[list[float]]] = {null: [], effect: []}
+    runs of ``condition`` in the parameter set with ``parameter = effect`` and in the set with
+    ``parameter = null`` that differs from it in the fewest parameters (a store of several
+    mechanisms holds several sets at the null value: the Table 8 set, and each other mechanism's)."""
+    sets: dict[str, list[list[float]]] = {}
     con = sqlite3.connect(store)
     for params, kpis in con.execute("SELECT params, kpis FROM evaluations WHERE status = 'done' AND condition = ?",
                                     (condition,)):
-        value = json.loads(params).get(parameter)
-        if value in values:
-            k = json.loads(kpis)
-            values[value].append([math.nan if k.get(name) is None else float(k[name]) for name in KPIS])
+        k = json.loads(kpis)
+        sets.setdefault(params, []).append([math.nan if k.get(name) is None else float(k[name]) for name in KPIS])
     con.close()
-    a, b = np.array(values[null]).reshape(-1, len(KPIS)), np.array(values[effect]).reshape(-1, len(KPIS))
+    parsed = {key: json.loads(key) for key in sets}
+    effects = [key for key, p in parsed.items() if p.get(parameter) == effect]
+    if len(effects) != 1:
+        raise SystemExit(f"{store}: condition {condition!r} holds {len(effects)} parameter sets with {parameter} = "
+                         f"{effect}; need exactly one")
+    target = parsed[effects[0]]
+
+    def differing(p: dict) -> list[str]:
+        return sorted(k for k in set(p) | set(target) if p.get(k) != target.get(k))
+
+    nulls = sorted((len(differing(p)), key) for key, p in parsed.items() if p.get(parameter) == null)
+    if not nulls or (len(nulls) > 1 and nulls[0][0] == nulls[1][0]):
+        raise SystemExit(f"{store}: condition {condition!r} holds {len(nulls)} parameter sets with {parameter} = {null}"
+                         f"{'' if not nulls else f', {sum(n == nulls[0][0] for n, _ in nulls)} of them closest to the effect set'}; "
+                         "need one closest")
+    a = np.array(sets[nulls[0][1]]).reshape(-1, len(KPIS))
+    b = np.array(sets[effects[0]]).reshape(-1, len(KPIS))
     if len(a) < 2 or len(b) < 2:
         raise SystemExit(f"{store}: condition {condition!r} holds {len(a)} runs at {parameter} = {null} and "
                          f"{len(b)} at {effect}; need at least 2 of each")
@@ -77,14 +106,26 @@ def main() -> None:
     parser.add_argument("--effect", type=float, required=True, help="its value in the changed set")
     parser.add_argument("--measured", default="hadi2025_pellet_sinter.json")
     parser.add_argument("--dem-replicates", type=int, nargs="+", default=[3, 5])
+    parser.add_argument("--versus", nargs="+", action="append", default=[], metavar="ARG",
+                        help="PARAMETER NULL EFFECT [STORE]: another mechanism's shift (its store if not --store) "
+                             "on the first condition; can the data tell the two apart? (repeatable)")
     args = parser.parse_args()
-    shifts = []
+    versus = []
+    for spec in args.versus:
+        if len(spec) not in (3, 4):
+            raise SystemExit(f"--versus {' '.join(spec)}: expected PARAMETER NULL EFFECT [STORE]")
+        try:
+            versus.append((spec[0], float(spec[1]), float(spec[2]), spec[3] if len(spec) == 4 else args.store))
+        except ValueError:
+            raise SystemExit(f"--versus {' '.join(spec)}: NULL and EFFECT must be numbers") from None
+    shifts, first = [], None
     for condition_name in args.condition:
         null, effect = runs(args.store, condition_name, args.parameter, args.null, args.effect)
         condition = load_measured(args.measured).condition(condition_name.split("|")[0])
         u = np.array([condition.standard_uncertainty(measured_name(k))[0] for k in KPIS])
         shift, sd, se = shift_and_scatter(null, effect)
         shifts.append((condition_name, shift, se))
+        first = first or (shift, sd, u)
         print(f"{args.parameter} {args.null} -> {args.effect} on {condition_name} ({len(null)} and {len(effect)} "
               f"runs); lab repeats: {condition.replicates or 'not stated (u = ci95 / 1.96)'}")
         for name, d, s, uu in zip(KPIS, shift, sd, u):
@@ -103,6 +144,17 @@ def main() -> None:
             z = (d - d0) / math.hypot(e, e0)
             print(f"  {name:26s} {d:+8.3f} (se {e:.3f}) against {d0:+8.3f} (se {e0:.3f}): ratio {ratio}, "
                   f"difference {z:+5.1f} se")
+    shift, sd, u = first
+    for parameter, null_value, effect_value, store in versus:
+        other, _, _ = shift_and_scatter(*runs(store, reference, parameter, null_value, effect_value))
+        print(f"against {parameter} {null_value} -> {effect_value} ({store}) on {reference}: shift "
+              + " ".join(f"{d:+.3f}" for d in other))
+        for r in args.dem_replicates:
+            sigma = np.sqrt((sd / math.sqrt(r)) ** 2 + u ** 2)
+            a, b = shift / sigma, other / sigma
+            cosine = float(a @ b / math.sqrt(float(a @ a) * float(b @ b)))
+            print(f"  {r} DEM runs per cell: cosine of the two shifts in units of sigma {cosine:+.3f}; power to reject "
+                  f"it at its best magnitude {distinguishing_power(shift, other, sigma):.3f}")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,9 @@ from scipy import optimize, stats
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _calibration_model as km  # noqa: E402
 
-from bo.discovery.detectable import CellUncertainty, detection_power, smallest_detectable, what_to_measure_next
+from bo.discovery.detectable import (CellUncertainty, detection_power, distinguishing_power, smallest_detectable,
+                                    what_to_measure_next)
+from torchdem.errors import ConfigError
 
 
 def test_one_cell_power_and_smallest_effect_match_the_normal_formula():
@@ -149,3 +151,65 @@ def test_detectability_from_store_script_compares_the_shift_of_two_geometries(tm
     assert f"difference {-2.0 / math.hypot(se[1], se[1]):+5.1f} se" in lines["shear_angle_deg"]
     assert "ratio  +1.00, difference  +0.0 se" in lines["mass_flow_rate_full_kg_s"]
     assert f"ratio  +3.00, difference {1.2 / math.hypot(se[3], se[3]):+5.1f} se" in lines["mass_lower_box_full_kg"]
+
+
+def test_distinguishing_power_against_closed_forms():
+    """Two cells of sigma 1. A mechanism along the other's direction (any sign or size) cannot be
+    told from it: power alpha. Orthogonal shifts: the whole true shift is lack of fit, lambda =
+    |a|^2 on one degree of freedom, whose power is P(|Z + sqrt(lambda)| > z_{0.975}). At 45 degrees
+    half of |a|^2 remains."""
+    sigma = [1.0, 1.0]
+    assert distinguishing_power([3.0, 1.0], [-6.0, -2.0], sigma) == pytest.approx(0.05)
+    z = stats.norm.isf(0.025)
+    for lam in (1.0, 4.0, 9.0):
+        expected = stats.norm.sf(z - math.sqrt(lam)) + stats.norm.cdf(-z - math.sqrt(lam))
+        assert distinguishing_power([math.sqrt(lam), 0.0], [0.0, 5.0], sigma) == pytest.approx(expected, rel=1e-6)
+    half = stats.ncx2.sf(stats.chi2.isf(0.05, 1), 1, 8.0)
+    assert distinguishing_power([4.0, 0.0], [1.0, 1.0], sigma) == pytest.approx(half, rel=1e-6)
+    # sigma weighs the cells: a difference in a precise cell counts more than the same in a noisy one
+    assert distinguishing_power([1.0, 2.0], [1.0, 0.0], [1.0, 0.5]) > distinguishing_power([2.0, 1.0], [0.0, 1.0],
+                                                                                          [1.0, 0.5])
+    with pytest.raises(ConfigError, match="distinguishing_power"):
+        distinguishing_power([1.0], [1.0], [1.0])
+
+
+def test_detectability_from_store_script_sets_another_mechanism_beside_and_picks_the_closest_null(tmp_path):
+    """A store of three sets: the reference, cohesion, and a lower wall friction that also sits at
+    coh_pp = 0. The cohesion shift is taken against the reference (the null set closest to the
+    cohesion set), and a wall-friction shift along the same line (twice as large, opposite sign)
+    cannot be told from it: cosine -1, power alpha. One along another line can."""
+    import json
+    import sqlite3
+    import subprocess
+
+    kpis = ["angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg"]
+    base = np.array([[29.0, 40.0, 10.0, 32.0], [29.5, 41.0, 10.2, 32.2], [30.0, 42.0, 10.4, 32.4]])
+    cohesion = np.array([0.8, 3.0, -0.2, -0.5])
+    cond = "50-50|mirror=True|slice_depth=0.1"
+    script = Path(__file__).resolve().parents[1] / "scripts" / "detectability_from_store.py"
+
+    def run(wall_shift):
+        store = tmp_path / f"mechanisms{wall_shift[0]}.sqlite"
+        con = sqlite3.connect(store)
+        con.execute("CREATE TABLE evaluations (params TEXT, kpis TEXT, status TEXT, condition TEXT)")
+        for params, rows in (({"coh_pp": 0.0, "mu_s_pg": 0.9}, base), ({"coh_pp": 13333.0, "mu_s_pg": 0.9}, base + cohesion),
+                             ({"coh_pp": 0.0, "mu_s_pg": 0.3}, base + wall_shift)):
+            for r in rows:
+                con.execute("INSERT INTO evaluations VALUES (?, ?, 'done', ?)",
+                            (json.dumps(params), json.dumps(dict(zip(kpis, r.tolist()))), cond))
+        con.commit()
+        return subprocess.run([sys.executable, str(script), "--store", str(store), "--condition", cond, "--parameter",
+                               "coh_pp", "--null", "0", "--effect", "13333", "--dem-replicates", "3",
+                               "--versus", "mu_s_pg", "0.9", "0.3"], capture_output=True, text=True, check=True).stdout
+
+    out = run(-2.0 * cohesion)
+    assert "(3 and 3 runs)" in out and "shift   +3.000" in out  # against the reference set, not the wall set
+    assert "cosine of the two shifts in units of sigma -1.000; power to reject it at its best magnitude 0.050" in out
+    out = run(np.array([0.0, -3.0, 0.6, 0.7]))
+    power = float(out.rsplit("best magnitude ", 1)[1].split()[0])
+    from torchdem.measured import load_measured
+    c = load_measured("hadi2025_pellet_sinter.json").condition("50-50")
+    u = np.array([c.standard_uncertainty(k)[0] for k in
+                  ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_kg_s", "mass_lower_box_kg")])
+    sigma = np.sqrt(base.std(0, ddof=1) ** 2 / 3 + u ** 2)
+    assert power == pytest.approx(distinguishing_power(cohesion, [0.0, -3.0, 0.6, 0.7], sigma), abs=6e-4)

@@ -27,6 +27,20 @@ make and ranks them:
 
 The figures are the test's own: an effect detected is not yet an effect attributed (the power
 study, ``bo.discovery.power``, measures that).
+
+Attribution has a bound that needs no twins. If the true mechanism shifts the cells by ``a`` and
+another mechanism shifts them along ``b`` by an amount of its own (``c b``, any real ``c``: a
+mechanism may move either way within its prior), the other mechanism fits the data as well as its
+best ``c`` does, and its lack of fit is non-central chi^2 with ``dof - 1`` degrees of freedom and
+
+    lambda = min_c sum ((a - c b) / sigma)^2 = |a'|^2 - (a'.b')^2 / |b'|^2,   a' = a / sigma, b' = b / sigma.
+
+:func:`distinguishing_power` gives the probability that such a test rejects the other mechanism:
+where it is low, no verdict rule can tell the two apart from these cells, and "cannot tell" is
+the right answer, unless the other mechanism would need a magnitude outside its prior. Two
+idealisations: the shifts are taken as linear in the effect (``b`` is one measured shift of the
+other mechanism), and the prior's limits on ``c`` are not applied, which can only lower the power
+(a mechanism held inside its prior fits no better).
 """
 from __future__ import annotations
 
@@ -39,7 +53,8 @@ from scipy import optimize, stats
 
 from torchdem.errors import out_of_range
 
-__all__ = ["CellUncertainty", "detection_power", "smallest_detectable", "Addition", "what_to_measure_next"]
+__all__ = ["CellUncertainty", "detection_power", "distinguishing_power", "smallest_detectable", "Addition",
+           "what_to_measure_next"]
 
 
 @dataclass(frozen=True)
@@ -70,6 +85,24 @@ def detection_power(delta: Sequence[float], sigma: Sequence[float], alpha: float
     critical = stats.chi2.isf(alpha, dof)
     lam = float(np.sum((d / s) ** 2))
     return float(stats.ncx2.sf(critical, dof, lam)) if lam > 0 else float(alpha)
+
+
+def distinguishing_power(delta_true: Sequence[float], delta_other: Sequence[float], sigma: Sequence[float],
+                         alpha: float = 0.05) -> float:
+    """Probability that cells shifted by ``delta_true`` reject another mechanism whose shifts lie
+    along ``delta_other`` at its best-fitting magnitude (module docstring): a chi^2 test of
+    ``len(sigma) - 1`` degrees of freedom at level ``alpha``."""
+    a, b, s = (np.asarray(v, dtype=float) for v in (delta_true, delta_other, sigma))
+    if not (a.shape == b.shape == s.shape) or a.ndim != 1 or a.size < 2 or not np.all(s > 0) \
+            or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise out_of_range("(delta_true, delta_other, sigma)", (a.shape, b.shape, s.shape),
+                           "three equal-length 1-D arrays of at least 2 finite cells, sigma > 0", "distinguishing_power")
+    a, b = a / s, b / s
+    bb = float(b @ b)
+    lam = float(a @ a) - (float(a @ b) ** 2 / bb if bb > 0 else 0.0)
+    dof = a.size - 1
+    critical = stats.chi2.isf(alpha, dof)
+    return float(stats.ncx2.sf(critical, dof, lam)) if lam > 1e-12 * max(float(a @ a), 1e-300) else float(alpha)
 
 
 def smallest_detectable(shift: Callable[[float], Sequence[float]], sigma: Sequence[float], *, target: float = 0.8,
