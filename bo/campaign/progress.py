@@ -7,11 +7,12 @@ never written) and returns a ``StoreProgress``: its tasks per status, the worker
 finished runs took, and an estimate of the worker time its unfinished ones will take. Runs are
 grouped into cost classes, since a run's cost is set by its geometry and particle shape, not by
 its friction: a class is the geometry part of the condition (``"mirror=True|slice_depth=0.1"``,
-empty for the condition's own geometry) and the task's particle shape (its ``lobe_spacing_*``
-parameters, each rounded to the nearest ``SHAPE_BIN``, so that the continuous values a surrogate or a
-discovery fit proposes share classes). A flatter trilobe has smaller lobes, more clumps per kilogram and a shorter Rayleigh
-step: a lab-geometry run at lobe spacing 0.3 costs about 4x one at 0.15. The densities change the
-step by sqrt(rho) only (about 5 % over the lab surrogate's +-10 %), so they do not split classes.
+empty for the condition's own geometry) and the task's particle shape: its ``lobe_spacing_*``
+parameters, each rounded to the nearest ``SHAPE_BIN``, so that the continuous values a surrogate
+or a discovery fit proposes share classes. A flatter trilobe has smaller lobes, more clumps per
+kilogram and a shorter Rayleigh step: a lab-geometry run at lobe spacing 0.3 costs about 4x one at
+0.15. The densities change the step by sqrt(rho) only (about 5 % over the lab surrogate's
++-10 %), so they do not split classes.
 
 Cost of a finished run, in worker seconds: its stored ``wall_time`` divided by the number of runs
 finished in the same batch (rows written by one ``record`` call share their owner, finish time
@@ -20,8 +21,10 @@ another run's result (``reused:``) cost nothing and are left out.
 
 Estimate of an unfinished run: the median cost of its class's finished runs. A class without
 any takes the median of the nearest class of the same geometry (summed relative difference of the
-mixture values, as ``CampaignStore.claim`` batches them) and is marked ``borrowed``; the cost grows
-steeply with the lobe spacing, so a borrowed figure is a lower or upper bound, not an estimate.
+lobe spacings) and is marked ``borrowed``. The cost grows steeply with the lobe spacing, so a
+figure borrowed from a class of smaller spacings is a lower bound (``bound = "at least"``), one
+from larger spacings an upper bound (``"at most"``), not an estimate; the store's total left is
+then a bound of the same kind (``"roughly"`` if both kinds enter).
 Unfinished rows of the same run (stage, parameters, seed, condition) count once. Runs in
 ``failed`` are not counted as remaining (``reset_failed`` re-queues them).
 
