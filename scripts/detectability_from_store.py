@@ -70,15 +70,12 @@ def runs(store: str, condition: str, parameter: str, null: float, effect: float)
         raise SystemExit(f"{store}: condition {condition!r} holds {len(effects)} parameter sets with {parameter} = "
                          f"{effect}; need exactly one")
     target = parsed[effects[0]]
-
-    def differing(p: dict) -> list[str]:
-        return sorted(k for k in set(p) | set(target) if p.get(k) != target.get(k))
-
-    nulls = sorted((len(differing(p)), key) for key, p in parsed.items() if p.get(parameter) == null)
+    # (number of parameters that differ from the effect set, set) of every set at the null value
+    nulls = sorted((sum(p.get(k) != target.get(k) for k in set(p) | set(target)), key)
+                   for key, p in parsed.items() if p.get(parameter) == null)
     if not nulls or (len(nulls) > 1 and nulls[0][0] == nulls[1][0]):
-        raise SystemExit(f"{store}: condition {condition!r} holds {len(nulls)} parameter sets with {parameter} = {null}"
-                         f"{'' if not nulls else f', {sum(n == nulls[0][0] for n, _ in nulls)} of them closest to the effect set'}; "
-                         "need one closest")
+        raise SystemExit(f"{store}: condition {condition!r} holds {len(nulls)} parameter sets with {parameter} = "
+                         f"{null}; need one that differs from the effect set in fewer parameters than the others")
     a = np.array(sets[nulls[0][1]]).reshape(-1, len(KPIS))
     b = np.array(sets[effects[0]]).reshape(-1, len(KPIS))
     if len(a) < 2 or len(b) < 2:
@@ -118,10 +115,11 @@ def main() -> None:
             versus.append((spec[0], float(spec[1]), float(spec[2]), spec[3] if len(spec) == 4 else args.store))
         except ValueError:
             raise SystemExit(f"--versus {' '.join(spec)}: NULL and EFFECT must be numbers") from None
+    measured = load_measured(args.measured)
     shifts, first = [], None
     for condition_name in args.condition:
         null, effect = runs(args.store, condition_name, args.parameter, args.null, args.effect)
-        condition = load_measured(args.measured).condition(condition_name.split("|")[0])
+        condition = measured.condition(condition_name.split("|")[0])
         u = np.array([condition.standard_uncertainty(measured_name(k))[0] for k in KPIS])
         shift, sd, se = shift_and_scatter(null, effect)
         shifts.append((condition_name, shift, se))

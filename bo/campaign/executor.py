@@ -396,42 +396,38 @@ class DaskExecutor(Executor):
         does not wait for a long one elsewhere."""
         return self._stream(batches, self.parallelism)
 
-    def _stream(self, batches: Iterable[list[EvalTask]], in_flight: int) -> Iterator[FinishedBatch]:
+    def _stream(self, batches: Iterable[list[EvalTask]], max_in_flight: int) -> Iterator[FinishedBatch]:
         from dask.distributed import as_completed
 
         source = iter(batches)
         running = as_completed()
-        batch_of: dict[str, list[EvalTask]] = {}
-        # Only the futures not yet taken are held: a finished batch's future is released once its
+        # Only batches not yet taken are held: a finished batch's future is released once its
         # outcomes are read, since the scheduler recomputes every held result a lost worker had
         # (a worker restarted after missed heartbeats would rerun hours of finished DEM runs).
-        unfinished: dict[str, object] = {}
+        in_flight: dict[str, tuple[object, list[EvalTask]]] = {}
 
         def submit_next() -> None:
             batch = next(source, None)
             if batch:
                 future = self.client.submit(evaluate_checked, self.evaluate_batch, list(batch), pure=False)
-                batch_of[future.key] = list(batch)
-                unfinished[future.key] = future
+                in_flight[future.key] = (future, list(batch))
                 running.add(future)
 
-        for _ in range(in_flight):
+        for _ in range(max_in_flight):
             submit_next()
         try:
             for future in running:
-                batch = batch_of.pop(future.key)
+                _, batch = in_flight.pop(future.key)
                 try:
                     outcomes = future.result()
                 except Exception as exc:  # worker died, connection lost, unpicklable function
                     msg = traceback.format_exception_only(type(exc), exc)[-1].strip()
                     outcomes = [EvalOutcome.failure(f"dask could not run the batch: {msg}") for _ in batch]
-                del unfinished[future.key]
                 future.release()
-                del future
                 yield list(zip(batch, outcomes))
                 submit_next()
         finally:
-            left = [f for f in unfinished.values() if not f.done()]
+            left = [f for f, _ in in_flight.values() if not f.done()]
             if left:
                 self.client.cancel(left)
 

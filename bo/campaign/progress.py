@@ -34,13 +34,13 @@ calibration's surrogate rounds, verification and validation appear once the stag
 from __future__ import annotations
 
 import json
-import math
 import sqlite3
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from statistics import median
 
+from bo.campaign.store import affinity_distance
 from torchdem.errors import ConfigError
 
 __all__ = ["SHAPE_BIN", "CostClass", "StoreProgress", "store_progress"]
@@ -116,12 +116,6 @@ class StoreProgress:
         return sum(c.remaining for c in self.classes)
 
 
-def _distance(a: tuple, b: tuple) -> float:
-    if [n for n, _ in a] != [n for n, _ in b]:
-        return math.inf
-    return sum(abs(x - y) / max(abs(x), abs(y)) for (_, x), (_, y) in zip(a, b) if x != y)
-
-
 def _open_read_only(path: Path) -> sqlite3.Connection:
     if not path.is_file():
         raise ConfigError(f"campaign store {str(path)!r} does not exist (store_progress)")
@@ -149,13 +143,13 @@ def store_progress(path: str | Path) -> StoreProgress:
         if state in ("done", "failed") and wall is not None and not (owner or "").startswith(_REUSED):
             batch_size[(owner, finished, wall)] += 1
     costs: dict[tuple, list[float]] = defaultdict(list)
-    counts: dict[tuple, dict[str, int]] = defaultdict(lambda: {"done": 0, "failed": 0})
+    counts: dict[tuple, dict[str, int]] = {}  # every class seen, with its runs done and failed
     unfinished: dict[tuple, set] = defaultdict(set)
     spent = 0.0
     for stage, params, seed, condition, state, wall, owner, finished in rows:
         geometry = condition.partition("|")[2]
         key = (geometry, _shape(json.loads(params)))
-        counts[key]  # every class seen appears in the table
+        counts.setdefault(key, {"done": 0, "failed": 0})
         if state in ("pending", "running"):
             unfinished[key].add((stage, params, seed, condition))
         elif wall is not None and not (owner or "").startswith(_REUSED):
@@ -170,7 +164,7 @@ def store_progress(path: str | Path) -> StoreProgress:
         if per_run is None:
             near = [k for k, v in costs.items() if v and k[0] == key[0]]
             if near:
-                nearest = min(near, key=lambda k: (_distance(key[1], k[1]), [v for _, v in k[1]]))
+                nearest = min(near, key=lambda k: (affinity_distance(key[1], k[1]), [v for _, v in k[1]]))
                 per_run = median(costs[nearest])
                 smaller = sum(v for _, v in nearest[1]) < sum(v for _, v in key[1])
                 bound = "at least" if smaller else "at most"

@@ -185,7 +185,7 @@ def default_code_version() -> str:
         return "unknown"
 
 
-def _affinity_distance(a: tuple, b: tuple) -> float:
+def affinity_distance(a: tuple, b: tuple) -> float:
     """Summed relative difference of two affinity keys' values (inf if their names differ)."""
     if [n for n, _ in a] != [n for n, _ in b]:
         return math.inf
@@ -206,7 +206,7 @@ def _by_affinity(rows: list, batch_size: int, affinity: Callable[[Mapping[str, f
     while buckets and len(out) < needed:
         first = min(buckets, key=lambda key: position[buckets[key][0][0]])
         batch: list = []
-        for key in sorted(buckets, key=lambda key: (_affinity_distance(first, key), position[buckets[key][0][0]])):
+        for key in sorted(buckets, key=lambda key: (affinity_distance(first, key), position[buckets[key][0][0]])):
             take = buckets[key][:batch_size - len(batch)]
             batch += take
             buckets[key] = buckets[key][len(take):]

@@ -81,10 +81,12 @@ def detection_power(delta: Sequence[float], sigma: Sequence[float], alpha: float
     if d.shape != s.shape or d.ndim != 1 or not d.size or not np.all(s > 0):
         raise out_of_range("(delta, sigma)", (d.shape, s.shape), "two equal-length 1-D arrays, sigma > 0",
                            "detection_power")
-    dof = d.size
-    critical = stats.chi2.isf(alpha, dof)
-    lam = float(np.sum((d / s) ** 2))
-    return float(stats.ncx2.sf(critical, dof, lam)) if lam > 0 else float(alpha)
+    return _chi2_power(float(np.sum((d / s) ** 2)), d.size, alpha)
+
+
+def _chi2_power(lam: float, dof: int, alpha: float) -> float:
+    """P(chi2_nc(dof, lam) > chi2_{dof, 1 - alpha}); alpha where lam is (round-off) zero."""
+    return float(stats.ncx2.sf(stats.chi2.isf(alpha, dof), dof, lam)) if lam > 0 else float(alpha)
 
 
 def distinguishing_power(delta_true: Sequence[float], delta_other: Sequence[float], sigma: Sequence[float],
@@ -98,11 +100,9 @@ def distinguishing_power(delta_true: Sequence[float], delta_other: Sequence[floa
         raise out_of_range("(delta_true, delta_other, sigma)", (a.shape, b.shape, s.shape),
                            "three equal-length 1-D arrays of at least 2 finite cells, sigma > 0", "distinguishing_power")
     a, b = a / s, b / s
-    bb = float(b @ b)
-    lam = float(a @ a) - (float(a @ b) ** 2 / bb if bb > 0 else 0.0)
-    dof = a.size - 1
-    critical = stats.chi2.isf(alpha, dof)
-    return float(stats.ncx2.sf(critical, dof, lam)) if lam > 1e-12 * max(float(a @ a), 1e-300) else float(alpha)
+    aa, bb = float(a @ a), float(b @ b)
+    lam = aa - (float(a @ b) ** 2 / bb if bb > 0 else 0.0)
+    return _chi2_power(lam if lam > 1e-12 * aa else 0.0, a.size - 1, alpha)
 
 
 def smallest_detectable(shift: Callable[[float], Sequence[float]], sigma: Sequence[float], *, target: float = 0.8,
