@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _calibration_model as km  # noqa: E402
 
 from bo.discovery.detectable import (CellUncertainty, detection_power, distinguishing_power, smallest_detectable,
-                                    what_to_measure_next)
+                                    what_separates, what_to_measure_next)
 from torchdem.errors import ConfigError
 
 
@@ -213,3 +213,55 @@ def test_detectability_from_store_script_sets_another_mechanism_beside_and_picks
                   ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_kg_s", "mass_lower_box_kg")])
     sigma = np.sqrt(base.std(0, ddof=1) ** 2 / 3 + u ** 2)
     assert power == pytest.approx(distinguishing_power(cohesion, [0.0, -3.0, 0.6, 0.7], sigma), abs=6e-4)
+
+
+def test_distinguishing_power_against_a_rival_of_several_bounded_directions():
+    """Three cells of sigma 1. A rival free along e1 and e2 absorbs those components of the true
+    shift (3, 4, 2): the lack of fit is the third, lambda = 4 on 3 - 2 = 1 degree of freedom. Held
+    to magnitudes in [0, 1], it can absorb only 1 of the 3 along e1: lambda = 2^2 + 2^2 = 8. A rival
+    with as many free directions as cells leaves no degree of freedom: power alpha."""
+    sigma = [1.0, 1.0, 1.0]
+    power = lambda lam, dof: stats.ncx2.sf(stats.chi2.isf(0.05, dof), dof, lam)  # noqa: E731
+    rival = [[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]]
+    assert distinguishing_power([3.0, 4.0, 2.0], rival, sigma) == pytest.approx(power(4.0, 1), rel=1e-6)
+    bounded = distinguishing_power([3.0, 4.0, 2.0], rival, sigma, bounds=[(0.0, 1.0), (0.0, 2.0)])
+    assert bounded == pytest.approx(power(8.0, 1), rel=1e-5)
+    # a direction the rival cannot take with the sign it needs: the whole component stays
+    assert distinguishing_power([-3.0, 0.0, 0.0], [[1.0, 0.0, 0.0]], sigma, bounds=[(0.0, 1.0)]) \
+        == pytest.approx(power(9.0, 2), rel=1e-5)
+    # a rival that does not move the cells (all-zero direction) keeps every degree of freedom
+    assert distinguishing_power([2.0, 0.0, 0.0], [[0.0, 0.0, 0.0]], sigma) == pytest.approx(power(4.0, 3), rel=1e-6)
+    assert distinguishing_power([3.0, 4.0, 2.0], np.eye(3), sigma) == pytest.approx(0.05)
+    with pytest.raises(ConfigError, match="one \\(low <= high\\) bound per direction"):
+        distinguishing_power([3.0, 4.0, 2.0], rival, sigma, bounds=[(0.0, 1.0)])
+
+
+def test_what_separates_ranks_the_addition_that_tells_two_mechanisms_apart():
+    """Two mechanisms that move the flow rate alike on two conditions; only the mechanism under
+    test moves a KPI the lab does not report (the heap height). As they are, the cells cannot tell
+    the two apart (power alpha); the heap height can: the rival absorbs the flow cells (c = t / 2,
+    inside its range) and leaves the two heap cells, lambda = 2 (h t / s)^2 on 4 - 1 = 3 degrees of
+    freedom. More replicates of the same cells change nothing."""
+    cells = [CellUncertainty(c, "flow", se=0.05, u=0.1, dem_replicates=3, lab_repeats=5) for c in ("A", "B")]
+
+    def shift(t):
+        return {("A", "flow"): -0.5 * t, ("B", "flow"): -0.3 * t, ("A", "heap"): 0.004 * t, ("B", "heap"): 0.004 * t}
+
+    rival = [{("A", "flow"): -1.0, ("B", "flow"): -0.6, ("A", "heap"): 0.0, ("B", "heap"): 0.0}]
+    ranked = what_separates(cells, shift, rival, [(0.0, 1.0)], new_kpis={"heap": (0.001, 0.001)})
+    by = {a.name: a for a in ranked}
+    assert ranked[0].name == "kpi:heap"
+    for name in ("as is", "lab_repeats", "dem_replicates"):
+        assert by[name].power == pytest.approx(0.05) and by[name].smallest is None
+    sigma = [c.sigma for c in cells] + [math.hypot(0.001, 0.001)] * 2
+    direct = lambda t: distinguishing_power([-0.5 * t, -0.3 * t, 0.004 * t, 0.004 * t],  # noqa: E731
+                                            [[-1.0, -0.6, 0.0, 0.0]], sigma, bounds=[(0.0, 1.0)])
+    assert by["kpi:heap"].power == pytest.approx(direct(1.0), rel=1e-6)
+    lam = 2 * (0.004 / math.hypot(0.001, 0.001)) ** 2
+    assert direct(1.0) == pytest.approx(stats.ncx2.sf(stats.chi2.isf(0.05, 3), 3, lam), rel=1e-5)
+    t80 = optimize.brentq(lambda t: direct(t) - 0.8, 1e-3, 1.0)
+    assert by["kpi:heap"].smallest == pytest.approx(t80, rel=1e-4)
+    # a rival that does not predict the new KPI drops that addition rather than guess it
+    partial = what_separates(cells, shift, [{("A", "flow"): -1.0, ("B", "flow"): -0.6}], [(0.0, 1.0)],
+                             new_kpis={"heap": (0.001, 0.001)})
+    assert "kpi:heap" not in {a.name for a in partial}

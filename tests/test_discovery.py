@@ -190,6 +190,58 @@ def test_every_score_uses_the_noise_pooled_over_every_run_of_the_discovery(tmp_p
         assert h.score == pytest.approx(sum(c.z ** 2 for c in h.held_out_cells) + 2.0 * h.added)
 
 
+def test_separability_matches_the_known_models_own_shifts(tmp_path):
+    """Which causes the data can tell apart, against a direct computation on the known model.
+
+    The known model's flow rate scales with the particle density, and mu_s_pp moves the flow rate
+    and the angle of repose. Refitting mu_s_pp (the ``parameters`` rival) absorbs part of a
+    density change's flow shift, so the smallest density change told from it is larger than the
+    smallest one detected at all. The GP-based figure must match the one computed from the known
+    model's own shifts, cells and ranges (within 15 %: GP means against exact laws), and must
+    differ from the detection figure (the rival's free direction counted). Cohesion, absent from the
+    known model, cannot be told from anything."""
+    from bo.discovery.detectable import distinguishing_power, smallest_effect
+    from bo.discovery.report import write_discovery_report
+
+    flow = "mass_flow_rate_full_kg_s"
+    settings = DiscoverySettings(kpis=(flow, "angle_of_repose_deg"), seeds=(0, 1, 2), fit_seeds=(0, 1),
+                                 candidates=("density_per_material", "cohesion"), refit=("mu_s_pp",), always_score=True)
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    calibrated = {**_known_model().fixed, **km.TRUE}
+    result = run_discovery(store, lambda model: InProcessExecutor(functools.partial(km.known_batch), batch_size=12),
+                           _known_model(), calibrated, _lab({}), settings, echo=lambda s: None)
+    cells = [c for c in result.discrepancy.cells if math.isfinite(c.dem_se)]
+    sigma = [math.hypot(c.dem_se, c.measured_u) for c in cells]
+    known = lambda p, c: km.known_kpis(p, 0, c.condition, noise=False)[  # noqa: E731
+        {"mass_flow_rate_kg_s": flow}.get(c.kpi, c.kpi)]
+
+    def density(t):
+        rho = {f"density_{m}": (1 + 0.3 * t) * v for m, v in km.NOMINAL_DENSITY.items()}
+        return [known({**calibrated, **rho}, c) - known(calibrated, c) for c in cells]
+
+    lo, hi = result.hypotheses[0].bounds["mu_s_pp"]
+    column = [known({**calibrated, "mu_s_pp": hi}, c) - known({**calibrated, "mu_s_pp": lo}, c) for c in cells]
+    limits = [((lo - km.TRUE["mu_s_pp"]) / (hi - lo), (hi - km.TRUE["mu_s_pp"]) / (hi - lo))]
+    expected = smallest_effect(lambda t: distinguishing_power(density(t), [column], sigma, bounds=limits))
+    detected = smallest_effect(lambda t: distinguishing_power(density(t), [[0.0] * len(cells)], sigma))
+    assert expected > 1.3 * detected  # the refit absorbs part of the shift
+    by = {h.name: h for h in result.hypotheses}
+    against = by["density_per_material"].separable["high"]
+    assert set(against) == {PARAMETERS, "cohesion"}
+    assert against[PARAMETERS]["smallest_fraction"] == pytest.approx(expected, rel=0.15)
+    assert against[PARAMETERS]["power"] > 0.99  # +30 % density is far beyond the smallest
+    assert by["density_per_material"].detectable["high"]["smallest_fraction"] == pytest.approx(detected, rel=0.15)
+    for rivals in by["cohesion"].separable.values():
+        assert all(v["power"] < 0.2 and v["smallest_fraction"] is None for v in rivals.values())
+    files = write_discovery_report(result, tmp_path / "report")
+    md = files["md"].read_text()
+    assert "### Which causes these data can tell apart" in md
+    assert "| cohesion | high | " in md and "| not within the prior |" in md
+    payload = json.loads(files["json"].read_text())
+    sep = {c["name"]: c["separable"] for c in payload["candidates"]}
+    assert sep["density_per_material"]["high"]["cohesion"]["power"] > 0.99
+
+
 def test_hidden_density_effect_is_named_and_gains_on_held_out_conditions(tmp_path):
     lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
     result = _discover(tmp_path, lab)

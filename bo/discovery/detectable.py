@@ -29,21 +29,31 @@ The figures are the test's own: an effect detected is not yet an effect attribut
 study, ``bo.discovery.power``, measures that).
 
 Attribution has a bound that needs no twins. If the true mechanism shifts the cells by ``a`` and
-another mechanism shifts them along ``b`` by an amount of its own (``c b``, any real ``c``: a
-mechanism may move either way within its prior), the other mechanism fits the data as well as its
-best ``c`` does, and its lack of fit is non-central chi^2 with ``dof - 1`` degrees of freedom and
+another hypothesis can move them along the columns of ``B`` (its free directions: one column per
+parameter, the shift from the low to the high end of its range) by amounts ``c`` of its own, that
+hypothesis fits the data as well as its best ``c`` does, and its lack of fit is non-central chi^2
+with ``dof - rank(B)`` degrees of freedom and
 
-    lambda = min_c sum ((a - c b) / sigma)^2 = |a'|^2 - (a'.b')^2 / |b'|^2,   a' = a / sigma, b' = b / sigma.
+    lambda = min_c sum ((a - B c) / sigma)^2.
 
-:func:`distinguishing_power` gives the probability that such a test rejects the other mechanism:
+:func:`distinguishing_power` gives the probability that such a test rejects the other hypothesis:
 where it is low, no verdict rule can tell the two apart from these cells, and "cannot tell" is
-the right answer, unless the other mechanism would need a magnitude outside its prior. Two
-idealisations: the shifts are taken as linear in the effect (``b`` is one measured shift of the
-other mechanism), and the prior's limits on ``c`` are not applied, which can only lower the power
-(a mechanism held inside its prior fits no better).
+the right answer. Without ``bounds`` the magnitudes ``c`` are any real numbers (a mechanism may
+move either way), ``lambda = |a'|^2 - |P_B a'|^2`` with ``a' = a / sigma`` and ``P_B`` the
+projection on the columns in units of sigma; with ``bounds`` each ``c`` is held inside its
+parameter's range (bounded least squares, ``scipy.optimize.lsq_linear``), so a hypothesis cannot
+explain a shift with a magnitude its prior forbids. The shifts are taken as linear in each
+parameter (a secant over its range), and the degrees of freedom count every free direction, bound
+or not, which can only lower the power.
+
+:func:`what_separates` evaluates that power now and after each of the additions above, and the
+smallest effect of the true mechanism that is told apart with ``target`` probability; the
+discovery report (``bo.discovery.pipeline.separability``) sets every candidate against every
+rival with them.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Callable, Mapping, Sequence
@@ -53,8 +63,8 @@ from scipy import optimize, stats
 
 from torchdem.errors import out_of_range
 
-__all__ = ["CellUncertainty", "detection_power", "distinguishing_power", "smallest_detectable", "Addition",
-           "what_to_measure_next"]
+__all__ = ["CellUncertainty", "detection_power", "distinguishing_power", "smallest_detectable", "smallest_effect",
+           "Addition", "what_to_measure_next", "what_separates"]
 
 
 @dataclass(frozen=True)
@@ -86,39 +96,67 @@ def detection_power(delta: Sequence[float], sigma: Sequence[float], alpha: float
 
 def _chi2_power(lam: float, dof: int, alpha: float) -> float:
     """P(chi2_nc(dof, lam) > chi2_{dof, 1 - alpha}); alpha where lam is (round-off) zero."""
-    return float(stats.ncx2.sf(stats.chi2.isf(alpha, dof), dof, lam)) if lam > 0 else float(alpha)
+    return float(stats.ncx2.sf(_critical(alpha, dof), dof, lam)) if lam > 0 else float(alpha)
 
 
-def distinguishing_power(delta_true: Sequence[float], delta_other: Sequence[float], sigma: Sequence[float],
-                         alpha: float = 0.05) -> float:
-    """Probability that cells shifted by ``delta_true`` reject another mechanism whose shifts lie
-    along ``delta_other`` at its best-fitting magnitude (module docstring): a chi^2 test of
-    ``len(sigma) - 1`` degrees of freedom at level ``alpha``."""
-    a, b, s = (np.asarray(v, dtype=float) for v in (delta_true, delta_other, sigma))
-    if not (a.shape == b.shape == s.shape) or a.ndim != 1 or a.size < 2 or not np.all(s > 0) \
-            or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-        raise out_of_range("(delta_true, delta_other, sigma)", (a.shape, b.shape, s.shape),
-                           "three equal-length 1-D arrays of at least 2 finite cells, sigma > 0", "distinguishing_power")
-    a, b = a / s, b / s
-    aa, bb = float(a @ a), float(b @ b)
-    lam = aa - (float(a @ b) ** 2 / bb if bb > 0 else 0.0)
-    return _chi2_power(lam if lam > 1e-12 * aa else 0.0, a.size - 1, alpha)
+@functools.lru_cache(maxsize=256)
+def _critical(alpha: float, dof: int) -> float:
+    return float(stats.chi2.isf(alpha, dof))
+
+
+def distinguishing_power(delta_true: Sequence[float], delta_other: Sequence[float] | Sequence[Sequence[float]],
+                         sigma: Sequence[float], alpha: float = 0.05,
+                         bounds: Sequence[tuple[float, float]] | None = None) -> float:
+    """Probability that cells shifted by ``delta_true`` reject another hypothesis whose shifts lie
+    in the span of ``delta_other`` (``[cells]``, one direction, or ``[k, cells]``, k directions),
+    at its best-fitting magnitudes, held inside ``bounds`` (one ``(low, high)`` per direction)
+    where given (module docstring): a chi^2 test of ``len(sigma) - rank`` degrees of freedom at
+    level ``alpha``; ``alpha`` itself where no degree of freedom is left."""
+    a, s = np.asarray(delta_true, dtype=float), np.asarray(sigma, dtype=float)
+    b = np.atleast_2d(np.asarray(delta_other, dtype=float))
+    if not (a.shape == s.shape and b.shape[1:] == a.shape) or a.ndim != 1 or a.size < 2 or not np.all(s > 0) \
+            or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) \
+            or (bounds is not None and (len(bounds) != b.shape[0] or any(lo > hi for lo, hi in bounds))):
+        raise out_of_range("(delta_true, delta_other, sigma, bounds)", (a.shape, b.shape, s.shape, bounds),
+                           "delta_true and sigma 1-D of at least 2 finite cells, sigma > 0, delta_other [cells] or "
+                           "[k, cells], one (low <= high) bound per direction", "distinguishing_power")
+    a, B = a / s, (b / s).T  # [n], [n, k]
+    aa = float(a @ a)
+    rank = int(np.linalg.matrix_rank(B)) if np.any(B) else 0
+    dof = a.size - rank
+    if dof < 1:
+        return float(alpha)
+    if rank == 0:
+        lam = aa
+    else:
+        c, *_ = np.linalg.lstsq(B, a, rcond=None)
+        lam = float(np.sum((a - B @ c) ** 2))
+        if bounds is not None:
+            lo, hi = np.array(bounds, dtype=float).T
+            if np.any(c < lo) or np.any(c > hi):  # inside the bounds the free optimum is the bounded one
+                hi = np.where(hi > lo, hi, lo + 1e-12 * np.maximum(1.0, np.abs(lo)))  # lsq_linear wants low < high
+                lam = 2.0 * float(optimize.lsq_linear(B, a, bounds=(lo, hi), method="bvls").cost)
+    return _chi2_power(lam if lam > 1e-12 * aa else 0.0, dof, alpha)
+
+
+def smallest_effect(power: Callable[[float], float], *, target: float = 0.8, grid: int = 41) -> float | None:
+    """Smallest effect size ``t`` in [0, 1] where ``power(t)`` reaches ``target`` (None: not
+    reached): ``power`` is scanned on ``grid`` points and the first crossing refined by Brent's
+    method."""
+    ts = np.linspace(0.0, 1.0, grid)
+    k = next((k for k, t in enumerate(ts) if power(float(t)) >= target), None)
+    if k is None:
+        return None
+    if k == 0:
+        return 0.0
+    return float(optimize.brentq(lambda t: power(t) - target, ts[k - 1], ts[k], xtol=1e-6))
 
 
 def smallest_detectable(shift: Callable[[float], Sequence[float]], sigma: Sequence[float], *, target: float = 0.8,
                         alpha: float = 0.05, grid: int = 41) -> float | None:
-    """Smallest effect size ``t`` in [0, 1] whose power reaches ``target`` (None: not reached).
-    The power is scanned on ``grid`` points and the first crossing refined by Brent's method."""
-    ts = np.linspace(0.0, 1.0, grid)
-    power = np.array([detection_power(shift(t), sigma, alpha) for t in ts])
-    above = np.flatnonzero(power >= target)
-    if not above.size:
-        return None
-    k = int(above[0])
-    if k == 0:
-        return 0.0
-    f = lambda t: detection_power(shift(t), sigma, alpha) - target  # noqa: E731
-    return float(optimize.brentq(f, ts[k - 1], ts[k], xtol=1e-6))
+    """Smallest effect size ``t`` in [0, 1] whose detection power reaches ``target`` (None: not
+    reached; :func:`smallest_effect`)."""
+    return smallest_effect(lambda t: detection_power(shift(t), sigma, alpha), target=target, grid=grid)
 
 
 @dataclass(frozen=True)
@@ -132,6 +170,34 @@ class Addition:
     smallest: float | None
 
 
+def _additions(cells: Sequence[CellUncertainty], factor: int, new_kpis: Mapping[str, tuple[float, float]] | None
+               ) -> list[tuple[str, str, list[tuple[str, str]], list[float]]]:
+    """The data as they are and each addition: (name, description, cell keys, cell sigmas)."""
+    if not cells:
+        raise out_of_range("cells", cells, "at least one measured cell", "bo.discovery.detectable")
+    keys = [(c.condition, c.kpi) for c in cells]
+    out = [("as is", "the data as they are", keys, [c.sigma for c in cells])]
+    if all(c.lab_repeats for c in cells):
+        out.append(("lab_repeats", f"every test repeated {factor} x as often in the lab", keys,
+                    [math.sqrt(c.se ** 2 + c.u ** 2 / factor) for c in cells]))
+    out.append(("dem_replicates", f"{factor} x the DEM replicates per condition", keys,
+                [math.sqrt(c.se ** 2 / factor + c.u ** 2) for c in cells]))
+    conditions = list(dict.fromkeys(c.condition for c in cells))
+    for kpi, (se, u) in (new_kpis or {}).items():
+        out.append((f"kpi:{kpi}", f"{kpi} measured on every condition (se {se:g}, u {u:g})",
+                    keys + [(c, kpi) for c in conditions],
+                    [c.sigma for c in cells] + [math.sqrt(se ** 2 + u ** 2)] * len(conditions)))
+    return out
+
+
+def _at(values: Mapping[tuple[str, str], float], keys: Sequence[tuple[str, str]]) -> list[float]:
+    return [values[k] for k in keys]
+
+
+def _ranked(out: list[Addition]) -> list[Addition]:
+    return sorted(out, key=lambda a: (-(a.power), a.smallest if a.smallest is not None else math.inf))
+
+
 def what_to_measure_next(cells: Sequence[CellUncertainty], shift: Callable[[float], Mapping[tuple[str, str], float]],
                          *, reference: float = 1.0, factor: int = 2,
                          new_kpis: Mapping[str, tuple[float, float]] | None = None,
@@ -141,24 +207,30 @@ def what_to_measure_next(cells: Sequence[CellUncertainty], shift: Callable[[floa
     -> (DEM standard error, lab standard uncertainty), added on every condition); best first, "as is" kept
     in the list for comparison. ``shift(t)`` maps (condition, KPI) -> shift, for every cell of
     ``cells`` and every new KPI."""
-    if not cells:
-        raise out_of_range("cells", cells, "at least one measured cell", "what_to_measure_next")
+    out = []
+    for name, description, keys, sigma in _additions(cells, factor, new_kpis):
+        f = lambda t, keys=keys: _at(shift(t), keys)  # noqa: E731
+        out.append(Addition(name, description, detection_power(f(reference), sigma, alpha),
+                            smallest_detectable(f, sigma, target=target, alpha=alpha)))
+    return _ranked(out)
 
-    def evaluate(name: str, description: str, keys: list[tuple[str, str]], sigma: list[float]) -> Addition:
-        f = lambda t: [shift(t)[k] for k in keys]  # noqa: E731
-        return Addition(name, description, detection_power(f(reference), sigma, alpha),
-                        smallest_detectable(f, sigma, target=target, alpha=alpha))
 
-    keys = [(c.condition, c.kpi) for c in cells]
-    out = [evaluate("as is", "the data as they are", keys, [c.sigma for c in cells])]
-    if all(c.lab_repeats for c in cells):
-        sigma = [math.sqrt(c.se ** 2 + c.u ** 2 / factor) for c in cells]
-        out.append(evaluate("lab_repeats", f"every test repeated {factor} x as often in the lab", keys, sigma))
-    sigma = [math.sqrt(c.se ** 2 / factor + c.u ** 2) for c in cells]
-    out.append(evaluate("dem_replicates", f"{factor} x the DEM replicates per condition", keys, sigma))
-    conditions = list(dict.fromkeys(c.condition for c in cells))
-    for kpi, (se, u) in (new_kpis or {}).items():
-        extra = [(c, kpi) for c in conditions]
-        out.append(evaluate(f"kpi:{kpi}", f"{kpi} measured on every condition (se {se:g}, u {u:g})", keys + extra,
-                            [c.sigma for c in cells] + [math.sqrt(se ** 2 + u ** 2)] * len(conditions)))
-    return sorted(out, key=lambda a: (-(a.power), a.smallest if a.smallest is not None else math.inf))
+def what_separates(cells: Sequence[CellUncertainty], shift: Callable[[float], Mapping[tuple[str, str], float]],
+                   rival: Sequence[Mapping[tuple[str, str], float]],
+                   bounds: Sequence[tuple[float, float]] | None = None, *, reference: float = 1.0, factor: int = 2,
+                   new_kpis: Mapping[str, tuple[float, float]] | None = None,
+                   target: float = 0.8, alpha: float = 0.05) -> list[Addition]:
+    """Power to tell a mechanism shifting the cells by ``shift(t)`` from a rival hypothesis with
+    free directions ``rival`` (one mapping (condition, KPI) -> shift per direction, magnitudes in
+    ``bounds``; :func:`distinguishing_power`) at effect ``reference``, and the smallest effect told
+    apart with ``target`` probability, now and after each addition of :func:`what_to_measure_next`;
+    best first. An added KPI that a rival direction does not predict is left out."""
+    out = []
+    for name, description, keys, sigma in _additions(cells, factor, new_kpis):
+        if not all(k in col for col in rival for k in keys):
+            continue
+        B = [[col[k] for k in keys] for col in rival] or [[0.0] * len(keys)]
+        f = lambda t, keys=keys, sigma=sigma, B=B: distinguishing_power(  # noqa: E731
+            _at(shift(t), keys), B, sigma, alpha, bounds if rival else None)
+        out.append(Addition(name, description, f(reference), smallest_effect(f, target=target)))
+    return _ranked(out)

@@ -250,6 +250,10 @@ class HypothesisScore:
             80 % probability with these data (``fraction`` of the way, ``values``), its power at the
             prior's end and what would raise it (:func:`detectability`); empty for a mechanism
             without no-effect values.
+        separable: direction -> rival hypothesis -> the power with which these cells would tell
+            this mechanism, at its prior's end, from the rival at the rival's best fit, the
+            smallest effect told apart with 80 % probability and what would raise the power
+            (:func:`separability`); empty as ``detectable``.
         held_out_failures: condition -> why its held-out runs gave no value for some measured KPI
             (the fitted parameters could not be simulated there, e.g. a fill that does not fit the
             box); that condition's held-out chi^2, hence the score, is then infinite: a hypothesis
@@ -276,6 +280,7 @@ class HypothesisScore:
     held_out_failures: Mapping[str, str] = dataclasses.field(default_factory=dict)
     gain_noise_sd: float = math.nan
     detectable: Mapping[str, Mapping] = dataclasses.field(default_factory=dict)
+    separable: Mapping[str, Mapping] = dataclasses.field(default_factory=dict)
     fit_misfit_chi2: float = math.nan
     fit_surrogate_chi2: float = math.nan
     fit_cells: int = 0
@@ -469,7 +474,7 @@ class _Fitted:
     hypothesis: HypothesisScore
     held_reps: Mapping[str, np.ndarray]
     groups: tuple[np.ndarray, ...]
-    predict: Callable[[Mapping[str, float]], dict[tuple[str, str], float]] | None = None
+    predict: Callable[[Sequence[Mapping[str, float]]], list[dict[tuple[str, str], float]]] | None = None
     proposed_sd: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
@@ -587,13 +592,16 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     proposed, proposed_sd = _proposed_models(name, proposed_reps, read[len(kpis):], X, b, usable, conditions,
                                              settings)
 
-    def predict(x: Mapping[str, float]) -> dict[tuple[str, str], float]:
-        at = np.array([[float(x[n]) for n in names]])
+    def predict(xs: Sequence[Mapping[str, float]]) -> list[dict[tuple[str, str], float]]:
+        if not xs:
+            return []
+        at = np.array([[float(x[n]) for n in names] for x in xs])
         mean, _ = surrogate.predict_outputs(at)
-        out = dict(zip(keys, map(float, mean[0])))
+        out = [dict(zip(keys, map(float, row))) for row in mean]
         if proposed is not None:
             extra, _ = proposed[0].predict_outputs(at)
-            out.update(zip(proposed[1], map(float, extra[0])))
+            for o, row in zip(out, extra):
+                o.update(zip(proposed[1], map(float, row)))
         return out
 
     return _Fitted(hypothesis, held, (reps, *(r[None] for r in held.values())), predict, proposed_sd)
@@ -712,6 +720,10 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
             scored[h.name] = dataclasses.replace(h, detectable=detectability(
                 f, mechanisms[h.name], context, calibrated, discrepancy, measured, settings.alpha,
                 dem_replicates=len(settings.seeds)))
+        separable = separability(fitted, mechanisms, context, calibrated, discrepancy, measured, settings.alpha,
+                                 dem_replicates=len(settings.seeds))
+        for n, v in separable.items():
+            scored[n] = dataclasses.replace(scored[n], separable=v)
         scored.update({h.name: h for h in skipped})
         hypotheses = [scored[PARAMETERS]] + [scored[n] for n in names]
         for h in hypotheses:
@@ -792,42 +804,119 @@ def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
     condition with the DEM's standard error over ``dem_replicates`` runs and a lab standard
     uncertainty of the same sd over the lab's repeats (their number where the data state it,
     else ``dem_replicates``)."""
-    from bo.discovery.detectable import CellUncertainty, what_to_measure_next
+    from bo.discovery.detectable import what_to_measure_next
 
     null = mechanism.null(context)
     if null is None or f.predict is None:
         return {}
     prior = mechanism.parameters(context)
-    cells = [CellUncertainty(c.condition, c.kpi, c.dem_se, c.measured_u, c.n, measured.condition(c.condition).replicates)
-             for c in discrepancy.cells if math.isfinite(c.dem_se) and c.dem_se + c.measured_u > 0]
+    cells, new_kpis = _power_cells(f, discrepancy, measured, dem_replicates)
     if not cells:
         return {}
-    repeats = [measured.condition(c).replicates for c in measured.names]
-    n_lab = min(repeats) if all(repeats) else dem_replicates
-    new_kpis = {k: (sd / math.sqrt(dem_replicates), sd / math.sqrt(n_lab)) for k, sd in f.proposed_sd.items()
-                if math.isfinite(sd) and sd > 0}
-    base = {**calibrated, **null}
-    reference = f.predict(base)
     out = {}
+    for direction, end, shift in _effects(f.predict, {**calibrated, **null}, null, prior):
+        ranked = what_to_measure_next(cells, shift, reference=1.0, alpha=alpha, new_kpis=new_kpis)
+        now = next(a for a in ranked if a.name == "as is")
+        out[direction] = {"smallest_fraction": now.smallest,
+                          "values": None if now.smallest is None else
+                          {p: null[p] + now.smallest * (end[p] - null[p]) for p in prior},
+                          "power_at_prior_end": now.power,
+                          "additions": [dataclasses.asdict(a) for a in ranked if a.name != "as is"]}
+    return out
+
+
+def _effects(predict: Callable[[Sequence[Mapping[str, float]]], list[dict]], base: Mapping[str, float],
+             null: Mapping[str, float], prior: Mapping[str, tuple[float, float]], grid: int = 41):
+    """For each direction (``"high"``, ``"low"``) whose end of the prior differs from the
+    no-effect values: (direction, end values, ``shift(t)``), the cells' shift predicted at
+    ``null + t (end - null)`` against ``base`` (which holds ``null``). The scan grid of
+    ``bo.discovery.detectable.smallest_effect`` is predicted in one batch; between its points
+    the shift is interpolated linearly (the GP mean is smooth on a grid of ``1 / (grid - 1)``)."""
+    reference = predict([base])[0]
     for direction, side in (("high", 1), ("low", 0)):
         end = {p: prior[p][side] for p in prior}
         if all(abs(end[p] - null[p]) <= 1e-12 * max(1.0, abs(null[p])) for p in prior):
             continue
-        at = lambda t: {p: null[p] + t * (end[p] - null[p]) for p in prior}  # noqa: E731
-        cache: dict[float, dict] = {}
+        at = lambda t, end=end: {**base, **{p: null[p] + t * (end[p] - null[p]) for p in prior}}  # noqa: E731
+        ts = np.linspace(0.0, 1.0, grid)
+        table = {k: np.array([now[k] - reference[k] for now in predict([at(float(t)) for t in ts])])
+                 for k in reference}
 
-        def shift(t: float) -> dict[tuple[str, str], float]:
-            if t not in cache:
-                now = f.predict({**base, **at(t)})
-                cache[t] = {k: now[k] - reference[k] for k in reference}
-            return cache[t]
+        def shift(t: float, table: dict = table) -> dict[tuple[str, str], float]:
+            return {k: float(np.interp(t, ts, v)) for k, v in table.items()}
 
-        ranked = what_to_measure_next(cells, shift, reference=1.0, alpha=alpha, new_kpis=new_kpis)
-        now = next(a for a in ranked if a.name == "as is")
-        out[direction] = {"smallest_fraction": now.smallest,
-                          "values": None if now.smallest is None else at(now.smallest),
-                          "power_at_prior_end": now.power,
-                          "additions": [dataclasses.asdict(a) for a in ranked if a.name != "as is"]}
+        yield direction, end, shift
+
+
+def _power_cells(f: _Fitted, discrepancy: Discrepancy, measured: MeasuredData, dem_replicates: int
+                 ) -> tuple[list, dict[str, tuple[float, float]]]:
+    """The discrepancy cells with their uncertainties, and the KPIs ``f`` proposes with their
+    (DEM standard error, lab standard uncertainty) as :func:`detectability` states them."""
+    from bo.discovery.detectable import CellUncertainty
+
+    cells = [CellUncertainty(c.condition, c.kpi, c.dem_se, c.measured_u, c.n, measured.condition(c.condition).replicates)
+             for c in discrepancy.cells if math.isfinite(c.dem_se) and c.dem_se + c.measured_u > 0]
+    repeats = [measured.condition(c).replicates for c in measured.names]
+    n_lab = min(repeats) if all(repeats) else dem_replicates
+    new_kpis = {k: (sd / math.sqrt(dem_replicates), sd / math.sqrt(n_lab)) for k, sd in f.proposed_sd.items()
+                if math.isfinite(sd) and sd > 0}
+    return cells, new_kpis
+
+
+def _directions(predict: Callable[[Sequence[Mapping[str, float]]], list[dict]], at: Mapping[str, float],
+                bounds: Mapping[str, tuple[float, float]]) -> tuple[list[dict], list[tuple[float, float]]]:
+    """A hypothesis's free directions at ``at``: per parameter the shift from the low to the high
+    end of its range (the others held), and the magnitudes that keep it inside the range."""
+    free = [(p, lo, hi) for p, (lo, hi) in bounds.items() if hi > lo]
+    ends = predict([{**at, p: v} for p, lo, hi in free for v in (hi, lo)])
+    columns = [{k: up[k] - down[k] for k in up} for up, down in zip(ends[::2], ends[1::2])]
+    return columns, [((lo - at[p]) / (hi - lo), (hi - at[p]) / (hi - lo)) for p, lo, hi in free]
+
+
+def separability(fitted: Sequence[_Fitted], mechanisms: Mapping[str, Mechanism], context: ModelContext,
+                 calibrated: Mapping[str, float], discrepancy: Discrepancy, measured: MeasuredData, alpha: float,
+                 dem_replicates: int = 3) -> dict[str, dict[str, dict]]:
+    """Could these data tell each candidate from the others? For each candidate ``A`` with
+    no-effect values and each direction towards an end of its prior, ``A``'s GP models give the
+    shift of the cells (and of the KPIs it proposes) as its effect grows; each rival, the
+    calibrated parameters refitted (``parameters``) or another candidate ``B`` with them, may move
+    the cells along its free directions inside its ranges: the refit parameters' as ``A``'s GP
+    models them, ``B``'s own as ``B``'s GP models them from its no-effect values.
+    ``bo.discovery.detectable.what_separates`` gives the power of rejecting the rival at its best
+    fit when ``A`` is at its prior's end, the smallest effect of ``A`` told apart with 80 %
+    probability, and the additions ranked. Returns name -> direction -> rival -> {"power",
+    "smallest_fraction", "additions"}."""
+    from bo.discovery.detectable import what_separates
+
+    by_name = {f.hypothesis.name: f for f in fitted}
+    refit = by_name.get(PARAMETERS)
+    refit_bounds = dict(refit.hypothesis.bounds) if refit is not None else {}
+    usable = {n: f for n, f in by_name.items() if n != PARAMETERS and f.predict is not None
+              and mechanisms[n].null(context) is not None}
+    out: dict[str, dict[str, dict]] = {}
+    for name, f in usable.items():
+        null, prior = mechanisms[name].null(context), mechanisms[name].parameters(context)
+        cells, new_kpis = _power_cells(f, discrepancy, measured, dem_replicates)
+        if not cells:
+            continue
+        base = {**calibrated, **null}
+        refit_columns, refit_limits = _directions(f.predict, base, refit_bounds)
+        rivals = {PARAMETERS: (refit_columns, refit_limits)}
+        for other, g in usable.items():
+            if other != name:
+                columns, limits = _directions(g.predict, {**calibrated, **mechanisms[other].null(context)},
+                                              dict(mechanisms[other].parameters(context)))
+                rivals[other] = (refit_columns + columns, refit_limits + limits)
+        mine = {}
+        for direction, _, shift in _effects(f.predict, base, null, prior):
+            mine[direction] = {}
+            for other, (columns, limits) in rivals.items():
+                ranked = what_separates(cells, shift, columns, limits, alpha=alpha, new_kpis=new_kpis)
+                now = next(a for a in ranked if a.name == "as is")
+                mine[direction][other] = {"power": now.power, "smallest_fraction": now.smallest,
+                                          "additions": [dataclasses.asdict(a) for a in ranked if a.name != "as is"]}
+        if mine:
+            out[name] = mine
     return out
 
 

@@ -63,7 +63,8 @@ def discovery_payload(result: DiscoveryResult) -> dict:
                         "design_points": h.points, "skipped": h.skipped,
                         "held_out_failures": dict(h.held_out_failures),
                         "held_out_cells": [c.to_dict() for c in h.held_out_cells],
-                        "detectable": dict(h.detectable)} for h in result.hypotheses],
+                        "detectable": dict(h.detectable), "separable": dict(h.separable)}
+                       for h in result.hypotheses],
         "errors": [g.to_dict() for g in result.gain],
         "extension": {"name": result.cause, "values": dict(result.extension)},
         "dem_evaluations": dict(result.evaluations),
@@ -193,6 +194,25 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                               for a in proposed) or "-"
             lines.append(f"| {h.name} | {direction} | {effect} | {v['power_at_prior_end']:.2f} | "
                          + (f"{top['description']} ({top['power']:.2f})" if top else "-") + f" | {extra} |")
+    apart = [(h, direction, rivals) for h in result.hypotheses for direction, rivals in h.separable.items() if rivals]
+    if apart:
+        lines += ["", "### Which causes these data can tell apart", "",
+                  "Each candidate at its prior's end against each rival that could be named instead (the calibrated "
+                  "parameters refitted, or another candidate with them, at its best fit inside its ranges): the "
+                  "power with which these cells reject the rival, from the candidates' GP models. The row names "
+                  "the hardest rival; where its power is low, no verdict can tell the two apart from these data, and "
+                  "the addition shown is the one that separates them best. All rivals are in discovery.json.",
+                  "", "| candidate | direction | hardest rival | power against it | smallest effect told from every "
+                  "rival | best addition against it (power) |", "| --- | --- | --- | ---: | --- | --- |"]
+        for h, direction, rivals in apart:
+            hardest = min(rivals, key=lambda r: rivals[r]["power"])
+            v = rivals[hardest]
+            smallest = [r["smallest_fraction"] for r in rivals.values()]
+            effect = ("not within the prior" if any(x is None for x in smallest) else
+                      f"{100 * max(smallest):.0f} % of the way")
+            top = v["additions"][0] if v["additions"] else None
+            lines.append(f"| {h.name} | {direction} | {hardest} | {v['power']:.2f} | {effect} | "
+                         + (f"{top['description']} ({top['power']:.2f})" if top else "-") + " |")
     if result.gain:
         lines += ["", "## 3. Extension", "", "Values fitted on every condition: "
                   + ", ".join(f"{k} = {v:.4g}" for k, v in result.extension.items()) + "."]
