@@ -715,13 +715,16 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
              + ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in noise.to_dict().items())
              + f"; discrepancy chi^2 {discrepancy.chi2:.1f}, p = {discrepancy.p_value:.3g}")
         scored = {f.hypothesis.name: _score(f, kpis, lab, noise, settings.penalty) for f in fitted}
+        # each candidate's shifts along its prior, predicted once for both reports below
+        effects = {f.hypothesis.name: effect_shifts(f, mechanisms[f.hypothesis.name], context, calibrated)
+                   for f in fitted[1:]}
         for f in fitted[1:]:
             h = scored[f.hypothesis.name]
             scored[h.name] = dataclasses.replace(h, detectable=detectability(
                 f, mechanisms[h.name], context, calibrated, discrepancy, measured, settings.alpha,
-                dem_replicates=len(settings.seeds)))
+                dem_replicates=len(settings.seeds), effects=effects[h.name]))
         separable = separability(fitted, mechanisms, context, calibrated, discrepancy, measured, settings.alpha,
-                                 dem_replicates=len(settings.seeds))
+                                 dem_replicates=len(settings.seeds), effects=effects)
         for n, v in separable.items():
             scored[n] = dataclasses.replace(scored[n], separable=v)
         scored.update({h.name: h for h in skipped})
@@ -794,8 +797,8 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
 
 
 def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calibrated: Mapping[str, float],
-                  discrepancy: Discrepancy, measured: MeasuredData, alpha: float, dem_replicates: int = 3
-                  ) -> dict[str, dict]:
+                  discrepancy: Discrepancy, measured: MeasuredData, alpha: float, dem_replicates: int = 3,
+                  effects: Sequence[tuple] | None = None) -> dict[str, dict]:
     """For each direction from the mechanism's no-effect values to an end of its prior: the
     smallest effect the discrepancy test would detect with 80 % probability with these data,
     using the hypothesis's GP models for the shifts and the discrepancy cells' uncertainties
@@ -803,7 +806,7 @@ def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
     proposed KPI (``f.proposed_sd``: KPI -> DEM replicate sd) enters as measured on every
     condition with the DEM's standard error over ``dem_replicates`` runs and a lab standard
     uncertainty of the same sd over the lab's repeats (their number where the data state it,
-    else ``dem_replicates``)."""
+    else ``dem_replicates``). ``effects``: :func:`effect_shifts` of ``f``, if already predicted."""
     from bo.discovery.detectable import what_to_measure_next
 
     null = mechanism.null(context)
@@ -814,7 +817,7 @@ def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
     if not cells:
         return {}
     out = {}
-    for direction, end, shift in _effects(f.predict, {**calibrated, **null}, null, prior):
+    for direction, end, shift in (effect_shifts(f, mechanism, context, calibrated) if effects is None else effects):
         ranked = what_to_measure_next(cells, shift, reference=1.0, alpha=alpha, new_kpis=new_kpis)
         now = next(a for a in ranked if a.name == "as is")
         out[direction] = {"smallest_fraction": now.smallest,
@@ -825,27 +828,35 @@ def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
     return out
 
 
-def _effects(predict: Callable[[Sequence[Mapping[str, float]]], list[dict]], base: Mapping[str, float],
-             null: Mapping[str, float], prior: Mapping[str, tuple[float, float]], grid: int = 41):
-    """For each direction (``"high"``, ``"low"``) whose end of the prior differs from the
-    no-effect values: (direction, end values, ``shift(t)``), the cells' shift predicted at
-    ``null + t (end - null)`` against ``base`` (which holds ``null``). The scan grid of
-    ``bo.discovery.detectable.smallest_effect`` is predicted in one batch; between its points
-    the shift is interpolated linearly (the GP mean is smooth on a grid of ``1 / (grid - 1)``)."""
-    reference = predict([base])[0]
+def effect_shifts(f: _Fitted, mechanism: Mechanism, context: ModelContext, calibrated: Mapping[str, float],
+                  grid: int = 41) -> list[tuple[str, dict[str, float], Callable[[float], dict]]]:
+    """For each direction (``"high"``, ``"low"``) whose end of the mechanism's prior differs from
+    its no-effect values: (direction, end values, ``shift(t)``), the cells' shift that ``f``'s GP
+    models predict at ``null + t (end - null)`` against the calibrated parameters with ``null``.
+    The scan grid of ``bo.discovery.detectable.smallest_effect`` is predicted in one batch and
+    the shift interpolated linearly between its points (the GP mean is smooth on a grid of
+    ``1 / (grid - 1)``). Empty for a mechanism without no-effect values or a hypothesis without
+    GP models."""
+    null = mechanism.null(context)
+    if null is None or f.predict is None:
+        return []
+    prior = mechanism.parameters(context)
+    base = {**calibrated, **null}
+    reference = f.predict([base])[0]
+    ts = np.linspace(0.0, 1.0, grid)
+    out = []
     for direction, side in (("high", 1), ("low", 0)):
         end = {p: prior[p][side] for p in prior}
         if all(abs(end[p] - null[p]) <= 1e-12 * max(1.0, abs(null[p])) for p in prior):
             continue
-        at = lambda t, end=end: {**base, **{p: null[p] + t * (end[p] - null[p]) for p in prior}}  # noqa: E731
-        ts = np.linspace(0.0, 1.0, grid)
-        table = {k: np.array([now[k] - reference[k] for now in predict([at(float(t)) for t in ts])])
-                 for k in reference}
+        points = [{**base, **{p: null[p] + t * (end[p] - null[p]) for p in prior}} for t in ts]
+        table = {k: np.array([now[k] - reference[k] for now in f.predict(points)]) for k in reference}
 
         def shift(t: float, table: dict = table) -> dict[tuple[str, str], float]:
             return {k: float(np.interp(t, ts, v)) for k, v in table.items()}
 
-        yield direction, end, shift
+        out.append((direction, end, shift))
+    return out
 
 
 def _power_cells(f: _Fitted, discrepancy: Discrepancy, measured: MeasuredData, dem_replicates: int
@@ -875,7 +886,8 @@ def _directions(predict: Callable[[Sequence[Mapping[str, float]]], list[dict]], 
 
 def separability(fitted: Sequence[_Fitted], mechanisms: Mapping[str, Mechanism], context: ModelContext,
                  calibrated: Mapping[str, float], discrepancy: Discrepancy, measured: MeasuredData, alpha: float,
-                 dem_replicates: int = 3) -> dict[str, dict[str, dict]]:
+                 dem_replicates: int = 3, effects: Mapping[str, Sequence[tuple]] | None = None
+                 ) -> dict[str, dict[str, dict]]:
     """Could these data tell each candidate from the others? For each candidate ``A`` with
     no-effect values and each direction towards an end of its prior, ``A``'s GP models give the
     shift of the cells (and of the KPIs it proposes) as its effect grows; each rival, the
@@ -884,8 +896,9 @@ def separability(fitted: Sequence[_Fitted], mechanisms: Mapping[str, Mechanism],
     models them, ``B``'s own as ``B``'s GP models them from its no-effect values.
     ``bo.discovery.detectable.what_separates`` gives the power of rejecting the rival at its best
     fit when ``A`` is at its prior's end, the smallest effect of ``A`` told apart with 80 %
-    probability, and the additions ranked. Returns name -> direction -> rival -> {"power",
-    "smallest_fraction", "additions"}."""
+    probability, and the additions ranked. ``effects``: name -> :func:`effect_shifts`, if
+    already predicted. Returns name -> direction -> rival -> {"power", "smallest_fraction",
+    "additions"}."""
     from bo.discovery.detectable import what_separates
 
     by_name = {f.hypothesis.name: f for f in fitted}
@@ -893,22 +906,22 @@ def separability(fitted: Sequence[_Fitted], mechanisms: Mapping[str, Mechanism],
     refit_bounds = dict(refit.hypothesis.bounds) if refit is not None else {}
     usable = {n: f for n, f in by_name.items() if n != PARAMETERS and f.predict is not None
               and mechanisms[n].null(context) is not None}
+    own = {n: _directions(g.predict, {**calibrated, **mechanisms[n].null(context)},
+                          dict(mechanisms[n].parameters(context))) for n, g in usable.items()}
     out: dict[str, dict[str, dict]] = {}
     for name, f in usable.items():
-        null, prior = mechanisms[name].null(context), mechanisms[name].parameters(context)
         cells, new_kpis = _power_cells(f, discrepancy, measured, dem_replicates)
         if not cells:
             continue
-        base = {**calibrated, **null}
-        refit_columns, refit_limits = _directions(f.predict, base, refit_bounds)
+        refit_columns, refit_limits = _directions(f.predict, {**calibrated, **mechanisms[name].null(context)},
+                                                  refit_bounds)
         rivals = {PARAMETERS: (refit_columns, refit_limits)}
-        for other, g in usable.items():
-            if other != name:
-                columns, limits = _directions(g.predict, {**calibrated, **mechanisms[other].null(context)},
-                                              dict(mechanisms[other].parameters(context)))
-                rivals[other] = (refit_columns + columns, refit_limits + limits)
+        rivals.update({other: (refit_columns + own[other][0], refit_limits + own[other][1])
+                       for other in usable if other != name})
         mine = {}
-        for direction, _, shift in _effects(f.predict, base, null, prior):
+        shifts = effects[name] if effects is not None and name in effects else \
+            effect_shifts(f, mechanisms[name], context, calibrated)
+        for direction, _, shift in shifts:
             mine[direction] = {}
             for other, (columns, limits) in rivals.items():
                 ranked = what_separates(cells, shift, columns, limits, alpha=alpha, new_kpis=new_kpis)
