@@ -190,6 +190,47 @@ def test_every_score_uses_the_noise_pooled_over_every_run_of_the_discovery(tmp_p
         assert h.score == pytest.approx(sum(c.z ** 2 for c in h.held_out_cells) + 2.0 * h.added)
 
 
+def test_a_proposed_condition_is_run_by_the_designs_and_weighed_as_the_labs_next_test(tmp_path):
+    """``proposed_conditions``: the reverse layering, which the known-answer lab did not measure.
+    Each candidate's design runs on it as a batch of its own (counted in the store), its GP models
+    it, and "what to measure next" weighs it: the smallest detectable density change with it
+    matches the one from the known model's own shifts on the four conditions, the new cells'
+    uncertainties being the pooled DEM noise over 3 runs and the median lab uncertainty per KPI.
+    A proposed condition that the data measure, or that the model lacks, is refused by name."""
+    from bo.discovery.detectable import smallest_detectable
+
+    result = _discover(tmp_path, _lab({}), candidates=("density_per_material",), always_score=True,
+                       proposed_conditions=("50-50-reverse",))
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    design = [r for r in store.records("discovery-density_per_material", status="done")
+              if r.condition == "50-50-reverse"]
+    h = next(h for h in result.hypotheses if h.name == "density_per_material")
+    assert len(design) == h.points * 2  # every design point, both fit seeds; no held-out run there
+    cells = [c for c in result.discrepancy.cells if math.isfinite(c.dem_se)]
+    sigma = [math.hypot(c.dem_se, c.measured_u) for c in cells]
+    new = [math.hypot(result.discrepancy.noise.se(k, 3), float(np.median([c.measured_u for c in cells if c.kpi == k])))
+           for k in KPIS]
+    lab_name = {"mass_flow_rate_kg_s": "mass_flow_rate_full_kg_s", "mass_lower_box_kg": "mass_lower_box_full_kg"}
+
+    def direct(t, extra=()):
+        rho = {f"density_{m}": (1 + 0.3 * t) * v for m, v in km.NOMINAL_DENSITY.items()}
+        keys = [(c.condition, lab_name.get(c.kpi, c.kpi)) for c in cells] + list(extra)
+        return [km.known_kpis({**km.TRUE, **rho}, 0, c, noise=False)[k] - km.known_kpis(km.TRUE, 0, c, noise=False)[k]
+                for c, k in keys]
+
+    reverse = [("50-50-reverse", lab_name.get(k, k)) for k in KPIS]
+    now = smallest_detectable(direct, sigma)
+    expected = smallest_detectable(lambda t: direct(t, reverse), sigma + new)
+    assert expected < 0.95 * now  # a fourth condition that sees the density adds power
+    added = {a["name"]: a for a in h.detectable["high"]["additions"]}
+    assert added["condition:50-50-reverse"]["smallest"] == pytest.approx(expected, rel=0.15)
+    assert h.detectable["high"]["smallest_fraction"] == pytest.approx(now, rel=0.15)
+    for bad in (("50-50",), ("no-such-condition",)):
+        with pytest.raises(ConfigError, match="proposed_conditions.*not so: \\['" + bad[0]):
+            _discover(tmp_path / bad[0], _lab({}), candidates=("density_per_material",), always_score=True,
+                      proposed_conditions=bad)
+
+
 def test_separability_matches_the_known_models_own_shifts(tmp_path):
     """Which causes the data can tell apart, against a direct computation on the known model.
 
@@ -418,6 +459,10 @@ def test_calibration_paper_is_the_papers_table_8_restricted_set_over_the_config(
     ("discovery.conditions=[50-50,50/50]", r"config discovery: conditions = \['50-50', '50/50'\] is not allowed; "
                                            r"expected a non-empty list of distinct conditions of .*'25-75'"),
     ("discovery.conditions=50-50", r"config discovery: conditions = '50-50' is not allowed; expected a list"),
+    ("discovery.proposed_conditions=[75-25]", r"config discovery: proposed_conditions = \['75-25'\] is not allowed; "
+                                              r"expected conditions of the data .* left out of discovery.conditions "
+                                              r".*; not so: \['75-25'\]"),
+    ("discovery.proposed_conditions=75-25", r"config discovery: proposed_conditions = '75-25' is not allowed"),
 ])
 def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message):
     store = tmp_path / "never.sqlite"

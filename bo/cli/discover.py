@@ -61,7 +61,8 @@ def discovery_settings_from(plain: Mapping[str, Any]):
             alpha=float(cfg.get("alpha")), penalty=float(cfg.get("penalty")), margin=float(cfg.get("margin")),
             always_score=bool(cfg.get("always_score")), ga=ga, kernel=str(cfg.get("kernel")), seed=base,
             fit_starts=cfg.get("fit_starts", 3), fit_search=str(cfg.get("fit_search", "multistart")),
-            search_samples=cfg.get("search_samples", 1024), proposed_kpis=_proposed(cfg.get("proposed_kpis"), where))
+            search_samples=cfg.get("search_samples", 1024), proposed_kpis=_proposed(cfg.get("proposed_kpis"), where),
+            proposed_conditions=_names(cfg.get("proposed_conditions"), "proposed_conditions", where))
         return settings.validate(where)
     except ConfigError:
         raise
@@ -74,6 +75,16 @@ def _proposed(kpis, where: str) -> tuple[str, ...]:
     if kpis is None or (isinstance(kpis, (list, tuple)) and not kpis):
         return ()
     return check_kpis(kpis, where, "proposed_kpis")
+
+
+def _names(value, key: str, where: str) -> tuple[str, ...]:
+    """A list of distinct non-empty names (null or [] for none)."""
+    if value is None:
+        return ()
+    if isinstance(value, str) or not isinstance(value, (list, tuple)) \
+            or not all(isinstance(v, str) and v for v in value) or len(set(value)) != len(value):
+        raise out_of_range(key, value, "a list of distinct condition names, or [] for none", f"config {where}")
+    return tuple(value)
 
 
 PAPER_DATA = "hadi2025_pellet_sinter.json"
@@ -127,14 +138,23 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     settings = discovery_settings_from(plain)
     executor_settings = executor_settings_from(plain.get("executor") or {})
     data = plain.get("data") if plain.get("data") is not None else plain.get("measured")
-    measured = load_measured(data)
+    every = load_measured(data)
     subset = (plain.get("discovery") or {}).get("conditions")
+    measured = every
     if subset is not None:
         if isinstance(subset, str) or not isinstance(subset, (list, tuple)):
-            raise out_of_range("conditions", subset, f"a list of conditions of the data {list(measured.names)}, "
+            raise out_of_range("conditions", subset, f"a list of conditions of the data {list(every.names)}, "
                                "or null (all)", "config discovery")
-        measured = measured.subset(subset, "config discovery")
-    model, _ = calibration_model_from({**plain, "measured": data}, measured)
+        measured = every.subset(subset, "config discovery")
+    unmeasured = [c for c in settings.proposed_conditions if c not in every.names or c in measured.names]
+    if unmeasured:
+        raise out_of_range("proposed_conditions", list(settings.proposed_conditions),
+                           f"conditions of the data {list(every.names)} left out of discovery.conditions "
+                           f"({list(measured.names)}); not so: {unmeasured}", "config discovery")
+    # the model knows the proposed conditions' mixtures (fractions and layering from the data file)
+    model_data = every.subset(list(measured.names) + list(settings.proposed_conditions), "config discovery") \
+        if settings.proposed_conditions else measured
+    model, _ = calibration_model_from({**plain, "measured": data}, model_data)
     calibrated, source = calibrated_from(plain, model.fixed)
     path = store_path_from(plain, out)
     # the store is for this data file and, when given, this choice of its conditions

@@ -24,6 +24,9 @@ make and ranks them:
 * ``kpi:<name>``: a KPI the lab does not report yet (the heap height, say), with the DEM's standard
   error and the lab's standard uncertainty of it, whose shift is part of ``shift`` (the design
   runs measure every KPI).
+* ``condition:<name>``: a condition the lab has not measured (another mass ratio, the reverse
+  layering), measured on the same KPIs, with the DEM's standard error and the lab's standard
+  uncertainty per KPI, whose shift is part of ``shift`` (the design runs it too).
 
 The figures are the test's own: an effect detected is not yet an effect attributed (the power
 study, ``bo.discovery.power``, measures that).
@@ -170,7 +173,8 @@ class Addition:
     smallest: float | None
 
 
-def _additions(cells: Sequence[CellUncertainty], factor: int, new_kpis: Mapping[str, tuple[float, float]] | None
+def _additions(cells: Sequence[CellUncertainty], factor: int, new_kpis: Mapping[str, tuple[float, float]] | None,
+               new_conditions: Mapping[str, Mapping[str, tuple[float, float]]] | None = None
                ) -> list[tuple[str, str, list[tuple[str, str]], list[float]]]:
     """The data as they are and each addition: (name, description, cell keys, cell sigmas)."""
     if not cells:
@@ -187,6 +191,11 @@ def _additions(cells: Sequence[CellUncertainty], factor: int, new_kpis: Mapping[
         out.append((f"kpi:{kpi}", f"{kpi} measured on every condition (se {se:g}, u {u:g})",
                     keys + [(c, kpi) for c in conditions],
                     [c.sigma for c in cells] + [math.sqrt(se ** 2 + u ** 2)] * len(conditions)))
+    for condition, per_kpi in (new_conditions or {}).items():
+        if per_kpi:
+            out.append((f"condition:{condition}", f"condition {condition} measured on {', '.join(per_kpi)}",
+                        keys + [(condition, k) for k in per_kpi],
+                        [c.sigma for c in cells] + [math.sqrt(se ** 2 + u ** 2) for se, u in per_kpi.values()]))
     return out
 
 
@@ -201,14 +210,16 @@ def _ranked(out: list[Addition]) -> list[Addition]:
 def what_to_measure_next(cells: Sequence[CellUncertainty], shift: Callable[[float], Mapping[tuple[str, str], float]],
                          *, reference: float = 1.0, factor: int = 2,
                          new_kpis: Mapping[str, tuple[float, float]] | None = None,
+                         new_conditions: Mapping[str, Mapping[str, tuple[float, float]]] | None = None,
                          target: float = 0.8, alpha: float = 0.05) -> list[Addition]:
     """Power at effect ``reference`` and smallest detectable effect now and after each addition
     (``factor`` x the lab repeats, ``factor`` x the DEM replicates, each KPI of ``new_kpis``: name
-    -> (DEM standard error, lab standard uncertainty), added on every condition); best first, "as is" kept
-    in the list for comparison. ``shift(t)`` maps (condition, KPI) -> shift, for every cell of
-    ``cells`` and every new KPI."""
+    -> (DEM standard error, lab standard uncertainty), added on every condition; each condition of
+    ``new_conditions``: name -> KPI -> (DEM standard error, lab standard uncertainty)); best
+    first, "as is" kept in the list for comparison. ``shift(t)`` maps (condition, KPI) -> shift,
+    for every cell of ``cells``, every new KPI and every new condition."""
     out = []
-    for name, description, keys, sigma in _additions(cells, factor, new_kpis):
+    for name, description, keys, sigma in _additions(cells, factor, new_kpis, new_conditions):
         f = lambda t, keys=keys: _at(shift(t), keys)  # noqa: E731
         out.append(Addition(name, description, detection_power(f(reference), sigma, alpha),
                             smallest_detectable(f, sigma, target=target, alpha=alpha)))
@@ -219,14 +230,15 @@ def what_separates(cells: Sequence[CellUncertainty], shift: Callable[[float], Ma
                    rival: Sequence[Mapping[tuple[str, str], float]],
                    bounds: Sequence[tuple[float, float]] | None = None, *, reference: float = 1.0, factor: int = 2,
                    new_kpis: Mapping[str, tuple[float, float]] | None = None,
+                   new_conditions: Mapping[str, Mapping[str, tuple[float, float]]] | None = None,
                    target: float = 0.8, alpha: float = 0.05) -> list[Addition]:
     """Power to tell a mechanism shifting the cells by ``shift(t)`` from a rival hypothesis with
     free directions ``rival`` (one mapping (condition, KPI) -> shift per direction, magnitudes in
     ``bounds``; :func:`distinguishing_power`) at effect ``reference``, and the smallest effect told
     apart with ``target`` probability, now and after each addition of :func:`what_to_measure_next`;
-    best first. An added KPI that a rival direction does not predict is left out."""
+    best first. An added KPI or condition that a rival direction does not predict is left out."""
     out = []
-    for name, description, keys, sigma in _additions(cells, factor, new_kpis):
+    for name, description, keys, sigma in _additions(cells, factor, new_kpis, new_conditions):
         if not all(k in col for col in rival for k in keys):
             continue
         B = [[col[k] for k in keys] for col in rival] or [[0.0] * len(keys)]

@@ -141,6 +141,11 @@ class DiscoverySettings:
         proposed_kpis: DEM KPIs the lab does not report (the heap height, say) that "what to
             measure next" weighs as additions; each candidate's design runs measure them, its GP
             models them, and the lab is assumed to measure them as repeatably as the DEM does.
+        proposed_conditions: conditions of the model the lab has not measured (another mass ratio,
+            the reverse layering) that "what to measure next" weighs as additions, each measured
+            on the compared KPIs; every candidate's design also runs on them (its DEM cost grows
+            by their number over the measured conditions'), its GP models them, and the lab is
+            assumed to measure them with the median standard uncertainty of its measured conditions.
     """
 
     kpis: tuple[str, ...]
@@ -162,10 +167,16 @@ class DiscoverySettings:
     fit_search: str = "multistart"
     search_samples: int = 1024
     proposed_kpis: tuple[str, ...] = ("max_heap_height_m",)
+    proposed_conditions: tuple[str, ...] = ()
 
     def validate(self, source: str = "discovery") -> "DiscoverySettings":
         if isinstance(self.proposed_kpis, str) or len(set(self.proposed_kpis)) != len(self.proposed_kpis):
             raise out_of_range("proposed_kpis", self.proposed_kpis, "a list of distinct DEM KPI names", source)
+        if isinstance(self.proposed_conditions, str) \
+                or len(set(self.proposed_conditions)) != len(self.proposed_conditions) \
+                or not all(isinstance(c, str) and c for c in self.proposed_conditions):
+            raise out_of_range("proposed_conditions", self.proposed_conditions,
+                               "a list of distinct condition names of the model", source)
         if not self.kpis or len(set(self.kpis)) != len(self.kpis):
             raise out_of_range("kpis", self.kpis, "a non-empty list of distinct DEM KPI names", source)
         for name in ("seeds", "fit_seeds"):
@@ -499,10 +510,17 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     points = [{**calibrated, **dict(zip(names, map(float, x)))} for x in X]
     hyp_model = model if mechanism is None else mechanism.apply(model)
     design_key = f"lhs/{_key(names, b.tolist(), n_points, settings.seed)}"
+    # a candidate's design also runs on the proposed conditions (a batch of its own, so that a
+    # store's design batches stay as they are)
+    unmeasured = list(settings.proposed_conditions) if mechanism is not None else []
     with executor_for(hyp_model) as executor:
         read = kpis + [k for k in settings.proposed_kpis if k not in kpis and mechanism is not None]
-        every_kpi = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, read)
-    reps, proposed_reps = every_kpi[..., :len(kpis)], every_kpi[..., len(kpis):]
+        every_run = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, read)
+        if unmeasured:
+            every_run = np.concatenate([every_run, _run(store, executor, f"discovery-{name}",
+                                                        f"{design_key}/conditions/{_key(unmeasured)}", points,
+                                                        settings.fit_seeds, unmeasured, read)], axis=1)
+    reps = every_run[:, :len(conditions), :, :len(kpis)]  # [points, measured conditions, seeds, compared KPIs]
     # outputs: measured (condition, KPI) cells; y = replicate means, y_var = variance of the mean
     cells = [(i, c, j, k) for i, c in enumerate(conditions) for j, k in enumerate(kpis) if (c, k) in lab]
     counts = np.stack([np.isfinite(reps[:, i, :, j]).sum(axis=1) for i, _, j, _ in cells], axis=1)
@@ -589,8 +607,9 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                                  predicted_chi2=predicted, held_out_failures=failures,
                                  fit_misfit_chi2=misfit, fit_surrogate_chi2=surrogate_chi2, fit_cells=len(cells))
     keys = [(c, k) for _, c, _, k in cells]
-    proposed, proposed_sd = _proposed_models(name, proposed_reps, read[len(kpis):], X, b, usable, conditions,
-                                             settings)
+    wanted = [(c, k) for c in conditions for k in read[len(kpis):]] + [(c, k) for c in unmeasured for k in kpis]
+    proposed, proposed_sd = _proposed_models(name, every_run, conditions + unmeasured, read, wanted,
+                                             read[len(kpis):], X, b, usable, settings)
 
     def predict(xs: Sequence[Mapping[str, float]]) -> list[dict[tuple[str, str], float]]:
         if not xs:
@@ -607,32 +626,34 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     return _Fitted(hypothesis, held, (reps, *(r[None] for r in held.values())), predict, proposed_sd)
 
 
-def _proposed_models(name: str, reps: np.ndarray, proposed: Sequence[str], X: np.ndarray, b: np.ndarray,
-                     usable: np.ndarray, conditions: Sequence[str], settings: DiscoverySettings):
-    """GP models of the KPIs the lab does not report (``proposed``, read with the design's runs:
-    ``reps [points, conditions, seeds, len(proposed)]``) on every condition, and each KPI's DEM
-    replicate sd; ``(None, {})`` when there is none or too few points."""
-    if not proposed or len(settings.fit_seeds) < 2:
+def _proposed_models(name: str, reps: np.ndarray, conditions: Sequence[str], read: Sequence[str],
+                     wanted: Sequence[tuple[str, str]], proposed: Sequence[str], X: np.ndarray, b: np.ndarray,
+                     usable: np.ndarray, settings: DiscoverySettings):
+    """GP models of the cells the lab does not measure (``wanted``: the proposed KPIs on every
+    measured condition, every compared KPI on the proposed conditions), from the design's runs
+    ``reps [points, conditions, seeds, len(read)]``, and the DEM replicate sd of each proposed KPI;
+    ``(None, {})`` when there is no such cell or too few points."""
+    if not wanted or len(settings.fit_seeds) < 2:
         return None, {}
+    ci, ki = {c: i for i, c in enumerate(conditions)}, {k: j for j, k in enumerate(read)}
+    columns = np.stack([reps[:, ci[c], :, ki[k]] for c, k in wanted], axis=-1)  # [points, seeds, cells]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i in range(len(conditions))
-                      for j in range(len(proposed))], axis=1)
+        Y = np.nanmean(columns, axis=1)
     ok = usable & np.isfinite(Y).all(axis=1)
     if ok.sum() < max(4, X.shape[1] + 2):
         return None, {}
-    noise = ReplicateNoise.of(proposed, [reps[ok]])
-    sd = {k: math.sqrt(noise.variance(k)) for k in proposed}
-    counts = np.stack([np.isfinite(reps[:, i, :, j]).sum(axis=1) for i in range(len(conditions))
-                       for j in range(len(proposed))], axis=1)
-    V = np.array([[sd[k] ** 2 for _ in conditions for k in proposed]]) / np.maximum(counts, 1)
-    keys = [(c, k) for c in conditions for k in proposed]
+    kpis = list(dict.fromkeys(k for _, k in wanted))
+    noise = ReplicateNoise.of(kpis, [reps[ok][..., [ki[k] for k in kpis]]])
+    sd = {k: math.sqrt(noise.variance(k)) for k in kpis}
+    counts = np.isfinite(columns).sum(axis=1)
+    V = np.array([[sd[k] ** 2 for _, k in wanted]]) / np.maximum(counts, 1)
     mean = Y[ok].mean(axis=0)
-    spec = ObjectiveSpec(tuple(f"{c}|{k}" for c, k in keys), tuple(np.where(mean == 0, 1.0, mean).tolist()),
-                         source=f"hypothesis {name} (proposed KPIs)")
+    spec = ObjectiveSpec(tuple(f"{c}|{k}" for c, k in wanted), tuple(np.where(mean == 0, 1.0, mean).tolist()),
+                         source=f"hypothesis {name} (unmeasured cells)")
     model = fit_surrogate(X[ok], Y[ok], b, SurrogateConfig(kernel=settings.kernel, strategy="per_kpi"),
                           y_var=np.where(np.isfinite(V[ok]), V[ok], 0.0), objective=spec)
-    return (model, keys), sd
+    return (model, list(wanted)), {k: sd[k] for k in proposed if k in sd}
 
 
 def _score(f: _Fitted, kpis: Sequence[str], lab: Mapping[tuple[str, str], tuple[float, float]],
@@ -668,6 +689,11 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
     if len(measured.names) < 2:
         raise ConfigError(f"discovery: {len(measured.names)} condition(s) in the measured data; leave-one-condition-out "
                           "needs at least 2")
+    bad = [c for c in settings.proposed_conditions if c not in model.conditions or c in measured.names]
+    if bad:
+        raise out_of_range("discovery.proposed_conditions", list(settings.proposed_conditions),
+                           f"conditions of the model {sorted(model.conditions)} that the data do not measure "
+                           f"(measured: {list(measured.names)}); not so: {bad}", "discovery")
     context = model_context(model, calibrated)
     mechanisms = registry()
     names = list(settings.candidates) if settings.candidates is not None else sorted(mechanisms)
@@ -722,9 +748,11 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
             h = scored[f.hypothesis.name]
             scored[h.name] = dataclasses.replace(h, detectable=detectability(
                 f, mechanisms[h.name], context, calibrated, discrepancy, measured, settings.alpha,
-                dem_replicates=len(settings.seeds), effects=effects[h.name]))
+                dem_replicates=len(settings.seeds), effects=effects[h.name],
+                proposed_conditions=settings.proposed_conditions))
         separable = separability(fitted, mechanisms, context, calibrated, discrepancy, measured, settings.alpha,
-                                 dem_replicates=len(settings.seeds), effects=effects)
+                                 dem_replicates=len(settings.seeds), effects=effects,
+                                 proposed_conditions=settings.proposed_conditions)
         for n, v in separable.items():
             scored[n] = dataclasses.replace(scored[n], separable=v)
         scored.update({h.name: h for h in skipped})
@@ -798,7 +826,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
 
 def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calibrated: Mapping[str, float],
                   discrepancy: Discrepancy, measured: MeasuredData, alpha: float, dem_replicates: int = 3,
-                  effects: Sequence[tuple] | None = None) -> dict[str, dict]:
+                  effects: Sequence[tuple] | None = None, proposed_conditions: Sequence[str] = ()) -> dict[str, dict]:
     """For each direction from the mechanism's no-effect values to an end of its prior: the
     smallest effect the discrepancy test would detect with 80 % probability with these data,
     using the hypothesis's GP models for the shifts and the discrepancy cells' uncertainties
@@ -813,12 +841,13 @@ def detectability(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
     if null is None or f.predict is None:
         return {}
     prior = mechanism.parameters(context)
-    cells, new_kpis = _power_cells(f, discrepancy, measured, dem_replicates)
+    cells, new_kpis, new_conditions = _power_cells(f, discrepancy, measured, dem_replicates, proposed_conditions)
     if not cells:
         return {}
     out = {}
     for direction, end, shift in (effect_shifts(f, mechanism, context, calibrated) if effects is None else effects):
-        ranked = what_to_measure_next(cells, shift, reference=1.0, alpha=alpha, new_kpis=new_kpis)
+        ranked = what_to_measure_next(cells, shift, reference=1.0, alpha=alpha, new_kpis=new_kpis,
+                                      new_conditions=new_conditions)
         now = next(a for a in ranked if a.name == "as is")
         out[direction] = {"smallest_fraction": now.smallest,
                           "values": None if now.smallest is None else
@@ -859,10 +888,13 @@ def effect_shifts(f: _Fitted, mechanism: Mechanism, context: ModelContext, calib
     return out
 
 
-def _power_cells(f: _Fitted, discrepancy: Discrepancy, measured: MeasuredData, dem_replicates: int
-                 ) -> tuple[list, dict[str, tuple[float, float]]]:
-    """The discrepancy cells with their uncertainties, and the KPIs ``f`` proposes with their
-    (DEM standard error, lab standard uncertainty) as :func:`detectability` states them."""
+def _power_cells(f: _Fitted, discrepancy: Discrepancy, measured: MeasuredData, dem_replicates: int,
+                 proposed_conditions: Sequence[str] = ()) -> tuple[list, dict, dict]:
+    """The discrepancy cells with their uncertainties; the KPIs ``f`` proposes with their (DEM
+    standard error, lab standard uncertainty) as :func:`detectability` states them; and the
+    proposed conditions, each with (DEM standard error over ``dem_replicates`` runs from the
+    pooled noise, the median lab standard uncertainty of the measured conditions) per compared
+    KPI."""
     from bo.discovery.detectable import CellUncertainty
 
     cells = [CellUncertainty(c.condition, c.kpi, c.dem_se, c.measured_u, c.n, measured.condition(c.condition).replicates)
@@ -871,7 +903,11 @@ def _power_cells(f: _Fitted, discrepancy: Discrepancy, measured: MeasuredData, d
     n_lab = min(repeats) if all(repeats) else dem_replicates
     new_kpis = {k: (sd / math.sqrt(dem_replicates), sd / math.sqrt(n_lab)) for k, sd in f.proposed_sd.items()
                 if math.isfinite(sd) and sd > 0}
-    return cells, new_kpis
+    kpis = list(dict.fromkeys(c.kpi for c in cells))
+    per_kpi = {k: (discrepancy.noise.se(k, dem_replicates), float(np.median([c.u for c in cells if c.kpi == k])))
+               for k in kpis}
+    new_conditions = {c: {k: v for k, v in per_kpi.items() if math.isfinite(v[0])} for c in proposed_conditions}
+    return cells, new_kpis, new_conditions
 
 
 def _directions(predict: Callable[[Sequence[Mapping[str, float]]], list[dict]], at: Mapping[str, float],
@@ -886,8 +922,8 @@ def _directions(predict: Callable[[Sequence[Mapping[str, float]]], list[dict]], 
 
 def separability(fitted: Sequence[_Fitted], mechanisms: Mapping[str, Mechanism], context: ModelContext,
                  calibrated: Mapping[str, float], discrepancy: Discrepancy, measured: MeasuredData, alpha: float,
-                 dem_replicates: int = 3, effects: Mapping[str, Sequence[tuple]] | None = None
-                 ) -> dict[str, dict[str, dict]]:
+                 dem_replicates: int = 3, effects: Mapping[str, Sequence[tuple]] | None = None,
+                 proposed_conditions: Sequence[str] = ()) -> dict[str, dict[str, dict]]:
     """Could these data tell each candidate from the others? For each candidate ``A`` with
     no-effect values and each direction towards an end of its prior, ``A``'s GP models give the
     shift of the cells (and of the KPIs it proposes) as its effect grows; each rival, the
@@ -910,7 +946,8 @@ def separability(fitted: Sequence[_Fitted], mechanisms: Mapping[str, Mechanism],
                           dict(mechanisms[n].parameters(context))) for n, g in usable.items()}
     out: dict[str, dict[str, dict]] = {}
     for name, f in usable.items():
-        cells, new_kpis = _power_cells(f, discrepancy, measured, dem_replicates)
+        cells, new_kpis, new_conditions = _power_cells(f, discrepancy, measured, dem_replicates,
+                                                       proposed_conditions)
         if not cells:
             continue
         refit_columns, refit_limits = _directions(f.predict, {**calibrated, **mechanisms[name].null(context)},
@@ -924,7 +961,8 @@ def separability(fitted: Sequence[_Fitted], mechanisms: Mapping[str, Mechanism],
         for direction, _, shift in shifts:
             mine[direction] = {}
             for other, (columns, limits) in rivals.items():
-                ranked = what_separates(cells, shift, columns, limits, alpha=alpha, new_kpis=new_kpis)
+                ranked = what_separates(cells, shift, columns, limits, alpha=alpha, new_kpis=new_kpis,
+                                        new_conditions=new_conditions)
                 now = next(a for a in ranked if a.name == "as is")
                 mine[direction][other] = {"power": now.power, "smallest_fraction": now.smallest,
                                           "additions": [dataclasses.asdict(a) for a in ranked if a.name != "as is"]}

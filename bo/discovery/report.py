@@ -180,16 +180,18 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                   "the discrepancy test detects with 80 % probability (from the candidate's GP models and the "
                   "cells' uncertainties), the addition that raises the test's power at the prior's end most, and "
                   "what each KPI the lab does not report would add (measured on every condition, as repeatably as "
-                  "the DEM measures it).",
+                  "the DEM measures it) and each proposed condition (measured on the compared KPIs with the median "
+                  "uncertainty of the measured ones).",
                   "", "| candidate | direction | smallest detectable effect | power at the prior's end | "
-                  "best addition (power) | unreported KPIs: power, smallest effect |", "| --- | --- | --- | ---: | --- | --- |"]
+                  "best addition (power) | unreported KPIs and conditions: power, smallest effect |",
+                  "| --- | --- | --- | ---: | --- | --- |"]
         for h, direction, v in seen:
             effect = ("not within the prior" if v["smallest_fraction"] is None else
                       f"{100 * v['smallest_fraction']:.0f} % of the way: "
                       + ", ".join(f"{k} {x:.4g}" for k, x in v["values"].items()))
             top = v["additions"][0] if v["additions"] else None
-            proposed = [a for a in v["additions"] if a["name"].startswith("kpi:")]
-            extra = "; ".join(f"{a['name'][4:]}: {a['power']:.2f}, "
+            proposed = [a for a in v["additions"] if a["name"].startswith(("kpi:", "condition:"))]
+            extra = "; ".join(f"{a['name'].split(':', 1)[1]}: {a['power']:.2f}, "
                               + ("not within the prior" if a["smallest"] is None else f"{100 * a['smallest']:.0f} %")
                               for a in proposed) or "-"
             lines.append(f"| {h.name} | {direction} | {effect} | {v['power_at_prior_end']:.2f} | "
