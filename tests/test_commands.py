@@ -4,8 +4,8 @@
   stderr and exit status 2, before any progress bar or DEM work; the message names the config
   key the user typed, the value and the allowed range; ``HYDRA_FULL_ERROR=1`` gives the traceback;
 - every command runs end to end on the mini box with every model extension of
-  ``conf/extension/`` (the command x extension matrix), with a procedure cut to a fraction of a
-  second of simulated time so that each run takes seconds;
+  ``conf/extension/`` (the command x extension matrix, one Hydra multirun per command), with a
+  procedure cut to a fraction of a second of simulated time so that each run takes seconds;
 - each extension changes the model it names (the matrix alone would pass a silently ignored one).
 """
 from __future__ import annotations
