@@ -14,6 +14,7 @@ Contract:
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,7 +145,27 @@ class PrincipalTemplate:
 
 
 def principal_template(template: ClumpTemplate, resolution: int = 96) -> PrincipalTemplate:
-    """Move a template to its centre of mass and rotate it onto its principal axes."""
+    """Move a template to its centre of mass and rotate it onto its principal axes.
+
+    The quadrature of a clump takes a tenth of a second, and every member of every run asks for
+    the same few templates: results are kept per template (name, spheres, resolution) in a
+    process-wide cache and handed out as copies."""
+    key = (template.name, template.offsets.shape, np.asarray(template.offsets, dtype=np.float64).tobytes(),
+           np.asarray(template.radii, dtype=np.float64).tobytes(), int(resolution))
+    kept = _principal_cached(key)
+    return PrincipalTemplate(ClumpTemplate(kept.template.name, kept.template.offsets.copy(),
+                                           kept.template.radii.copy()), kept.volume, kept.principal_inertia.copy())
+
+
+@functools.lru_cache(maxsize=256)
+def _principal_cached(key: tuple) -> PrincipalTemplate:
+    name, shape, offsets, radii, resolution = key
+    template = ClumpTemplate(name, np.frombuffer(offsets, dtype=np.float64).reshape(shape).copy(),
+                             np.frombuffer(radii, dtype=np.float64).copy())
+    return _principal(template, resolution)
+
+
+def _principal(template: ClumpTemplate, resolution: int) -> PrincipalTemplate:
     if template.n_spheres == 1:
         r = float(template.radii[0])
         V = 4.0 / 3.0 * np.pi * r ** 3

@@ -104,32 +104,63 @@ def _overlaps_placed(tree: cKDTree, points: np.ndarray, radii: np.ndarray, spher
     return np.flatnonzero(hit)
 
 
+#: Spheres tested per batch of rounds in :func:`_place_chunk` (bounds its temporaries).
+_BATCH_SPHERES = 1024
+
+
 def _place_chunk(todo, lobe_offset, lobe_radius, lo, hi, P, PR, pos, depth, periodic, rng, rounds):
+    """Rounds of random sequential addition of the bodies ``todo`` (at most ``rounds``): each
+    round draws a candidate centre for every body left, keeps those that overlap nothing placed
+    and no earlier candidate, and records them in ``pos``. Returns (placed spheres, their radii,
+    bodies left).
+
+    Several rounds are drawn and tested at once: until a round places a body the placed spheres
+    do not change, so the rounds before the first that places one are only tested, and the random
+    stream is then rewound to just after that round. The result is the same, bit for bit, as one
+    round at a time; a crowded chunk whose last bodies need a hundred rounds costs a few batches."""
     K = lobe_offset.shape[1]
     # spheres placed before this chunk: one search tree for all rounds; those the chunk places
-    # (at most 64 bodies) are tested directly
+    # (at most 64 bodies): a tree remade whenever a round places more
     if P.shape[0]:
         old_imgs, old_src = _with_images(P, depth, periodic)
         old_tree, old_r, old_max = cKDTree(old_imgs), PR[old_src], PR.max()
     new_P, new_R = [np.zeros((0, 3))], [np.zeros(0)]
-    for _ in range(rounds):
-        if todo.size == 0:
-            break
-        cand = lo[todo] + (hi[todo] - lo[todo]) * rng.random((todo.size, 3))
-        spheres = (cand[:, None, :] + lobe_offset[todo]).reshape(-1, 3)  # [m K, 3], body a's at a K ..
-        r = lobe_radius[todo].reshape(-1)
-        owner = np.repeat(np.arange(todo.size), K)
-        ok = np.ones(todo.size, dtype=bool)
+    fresh_imgs = fresh_r = None  # images of the spheres this chunk placed, remade when it places more
+    left, span = rounds, 1  # span: rounds to try at once, from how long the last placement took
+    while left > 0 and todo.size:
+        m = todo.size
+        batch = max(1, min(left, span, _BATCH_SPHERES // (m * K)))
+        state = rng.bit_generator.state if batch > 1 else None
+        cand = lo[todo] + (hi[todo] - lo[todo]) * rng.random((batch, m, 3))  # [batch, m, 3]
+        spheres = (cand[:, :, None, :] + lobe_offset[todo]).reshape(-1, 3)  # round t body a: rows (t m + a) K ..
+        r = np.tile(lobe_radius[todo].reshape(-1), batch)
+        owner = np.repeat(np.arange(batch * m), K)
+        ok = np.ones(batch * m, dtype=bool)
         if P.shape[0]:
             hit = _overlaps_placed(old_tree, old_imgs, old_r, spheres, r, old_max)
-            ok &= ~np.bincount(owner[hit], minlength=todo.size).astype(bool)
-        fresh = np.concatenate(new_P)
-        if fresh.shape[0]:
-            imgs, src = _with_images(fresh, depth, periodic)
+            ok &= ~np.bincount(owner[hit], minlength=batch * m).astype(bool)
+        if fresh_imgs is None and len(new_P) > 1:
+            fresh_imgs, src = _with_images(np.concatenate(new_P), depth, periodic)
             fresh_r = np.concatenate(new_R)[src]
-            d = np.linalg.norm(imgs[None, :, :] - spheres[:, None, :], axis=2)
-            hit = (d < r[:, None] + fresh_r[None, :]).any(1)
-            ok &= ~np.bincount(owner[hit], minlength=todo.size).astype(bool)
+            fresh_tree = cKDTree(fresh_imgs)
+        if fresh_imgs is not None:
+            test = np.flatnonzero(ok[owner])
+            if test.size:
+                hit = test[_overlaps_placed(fresh_tree, fresh_imgs, fresh_r, spheres[test], r[test],
+                                            float(fresh_r.max()))]
+                ok &= ~np.bincount(owner[hit], minlength=batch * m).astype(bool)
+        ok = ok.reshape(batch, m)
+        placing = np.flatnonzero(ok.any(1))
+        t = int(placing[0]) if placing.size else batch - 1  # the round this batch ends with
+        if state is not None and t < batch - 1:  # rewind the stream to just after round t
+            rng.bit_generator.state = state
+            rng.random((t + 1, m, 3))
+        left -= t + 1
+        span = t + 1 if placing.size else 4 * batch
+        if not placing.size:
+            continue
+        ok, cand = ok[t], cand[t]
+        spheres, r, owner = spheres[t * m * K:(t + 1) * m * K], r[:m * K], owner[:m * K]
         # conflicts among this round's candidates: the earlier (larger) one wins
         good = np.flatnonzero(ok[owner])
         if np.unique(owner[good]).size > 1:
@@ -144,6 +175,7 @@ def _place_chunk(todo, lobe_offset, lobe_radius, lo, hi, P, PR, pos, depth, peri
         taken = ok[owner]
         new_P.append(spheres[taken])
         new_R.append(r[taken])
+        fresh_imgs = None
         todo = todo[~ok]
     return np.concatenate([P, *new_P]), np.concatenate([PR, *new_R]), todo.size
 
