@@ -15,11 +15,13 @@ Contract:
 """
 from __future__ import annotations
 
+import bisect
 import functools
 import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
+import numpy as np
 import torch
 
 from torchdem.errors import ConfigError, out_of_range
@@ -141,9 +143,24 @@ class Walls:
         moving = (self.move_from <= time) & (time < self.move_until)
         return self.velocity * moving[:, None].to(self.velocity.dtype)
 
+    @functools.cached_property
+    def _schedule(self) -> tuple[list[float], dict[int, Tensor]]:
+        """The times at which some wall appears or goes (exact values of the tensors' dtype),
+        sorted, and the active set of each interval between them once asked for."""
+        edges = torch.cat([self.active_from, self.active_until]).detach().cpu().to(torch.float64)
+        return sorted({float(e) for e in edges.tolist()}), {}
+
     def active_at(self, time: float) -> Tensor:
-        """``[W]`` bool: which walls exist at ``time``."""
-        return (self.active_from <= time) & (time < self.active_until)
+        """``[W]`` bool: which walls exist at ``time``. The set only changes at the walls' own
+        times, so it is computed once per interval between them and then handed out (asked for at
+        every step); do not modify it in place."""
+        edges, known = self._schedule
+        if self.active_from.dtype == torch.float32:  # compared as the tensors compare: in float32
+            time = float(np.float32(time))
+        k = bisect.bisect_right(edges, float(time))  # edges[k - 1] <= time < edges[k]
+        if k not in known:
+            known[k] = (self.active_from <= time) & (time < self.active_until)
+        return known[k]
 
 
 def _vec(v, name: str, source: str) -> Tensor:
