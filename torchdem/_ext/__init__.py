@@ -65,9 +65,11 @@ def cpu_kernels() -> SimpleNamespace | None:
 def kernels_for(device: torch.device | str, enabled: bool = True) -> SimpleNamespace | None:
     """The compiled kernels for tensors on ``device``: None off the CPU, when ``enabled`` is
     False (the caller asked for the torch path) or when they cannot be built."""
-    if not enabled or torch.device(device).type != "cpu":
+    if not enabled:
         return None
-    return cpu_kernels()
+    # asked for at every step: a torch.device is read, not built again (7 us a call)
+    kind = device.type if isinstance(device, torch.device) else torch.device(device).type
+    return cpu_kernels() if kind == "cpu" else None
 
 
 def build_error() -> str | None:
