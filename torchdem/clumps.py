@@ -14,7 +14,6 @@ Contract:
 """
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -150,19 +149,16 @@ def principal_template(template: ClumpTemplate, resolution: int = 96) -> Princip
     The quadrature of a clump takes a tenth of a second, and every member of every run asks for
     the same few templates: results are kept per template (name, spheres, resolution) in a
     process-wide cache and handed out as copies."""
-    key = (template.name, template.offsets.shape, np.asarray(template.offsets, dtype=np.float64).tobytes(),
-           np.asarray(template.radii, dtype=np.float64).tobytes(), int(resolution))
-    kept = _principal_cached(key)
+    key = (template.name, template.offsets.tobytes(), template.radii.tobytes(), int(resolution))
+    kept = _PRINCIPAL.get(key)
+    if kept is None:
+        kept = _PRINCIPAL[key] = _principal(template, resolution)
     return PrincipalTemplate(ClumpTemplate(kept.template.name, kept.template.offsets.copy(),
                                            kept.template.radii.copy()), kept.volume, kept.principal_inertia.copy())
 
 
-@functools.lru_cache(maxsize=256)
-def _principal_cached(key: tuple) -> PrincipalTemplate:
-    name, shape, offsets, radii, resolution = key
-    template = ClumpTemplate(name, np.frombuffer(offsets, dtype=np.float64).reshape(shape).copy(),
-                             np.frombuffer(radii, dtype=np.float64).copy())
-    return _principal(template, resolution)
+#: principal_template's results by (name, offsets, radii, resolution): a few hundred bytes each.
+_PRINCIPAL: dict[tuple, PrincipalTemplate] = {}
 
 
 def _principal(template: ClumpTemplate, resolution: int) -> PrincipalTemplate:

@@ -14,7 +14,6 @@ Contract:
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -403,8 +402,7 @@ def build_system(
         walls=wall_t, gravity=torch.as_tensor(gravity, dtype=dtype, device=device),
         dt=float(dt), skin=float(skin), grid=grid, domain_lower=lo, domain_upper=hi,
         rolling_stiffness=rolling_stiffness, spheres_only=spheres_only, material_names=names,
-        wall_events=tuple(sorted({float(t) for t in torch.cat((wall_t.active_from, wall_t.active_until)).tolist()
-                                  if math.isfinite(t)})),
+        wall_events=wall_t.events,
         walls_move=bool(((wall_t.velocity.norm(dim=-1) > 0) & (wall_t.move_until > wall_t.move_from)).any()),
         has_cohesion=bool((torch.nan_to_num(interactions.cohesion) > 0).any()),
     )

@@ -144,23 +144,27 @@ class Walls:
         return self.velocity * moving[:, None].to(self.velocity.dtype)
 
     @functools.cached_property
-    def _schedule(self) -> tuple[list[float], dict[int, Tensor]]:
-        """The times at which some wall appears or goes (exact values of the tensors' dtype),
-        sorted, and the active set of each interval between them once asked for."""
-        edges = torch.cat([self.active_from, self.active_until]).detach().cpu().to(torch.float64)
-        return sorted({float(e) for e in edges.tolist()}), {}
+    def events(self) -> tuple[float, ...]:
+        """Finite times at which some wall appears or goes, sorted (s; the exact values of the
+        tensors' dtype)."""
+        times = torch.cat([self.active_from, self.active_until]).tolist()
+        return tuple(sorted({float(t) for t in times if math.isfinite(t)}))
+
+    @functools.cached_property
+    def _active_sets(self) -> dict[int, Tensor]:
+        return {}
 
     def active_at(self, time: float) -> Tensor:
-        """``[W]`` bool: which walls exist at ``time``. The set only changes at the walls' own
-        times, so it is computed once per interval between them and then handed out (asked for at
-        every step); do not modify it in place."""
-        edges, known = self._schedule
+        """``[W]`` bool: which walls exist at ``time``. The set only changes at :attr:`events`,
+        so it is computed once per interval between them and then handed out (asked for at every
+        step); do not modify it in place."""
         if self.active_from.dtype == torch.float32:  # compared as the tensors compare: in float32
             time = float(np.float32(time))
-        k = bisect.bisect_right(edges, float(time))  # edges[k - 1] <= time < edges[k]
-        if k not in known:
-            known[k] = (self.active_from <= time) & (time < self.active_until)
-        return known[k]
+        k = bisect.bisect_right(self.events, time)  # events[k - 1] <= time < events[k]
+        sets = self._active_sets
+        if k not in sets:
+            sets[k] = (self.active_from <= time) & (time < self.active_until)
+        return sets[k]
 
 
 def _vec(v, name: str, source: str) -> Tensor:
