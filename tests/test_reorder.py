@@ -28,8 +28,9 @@ from torchdem.walls import WallSpec, box_walls
 N = 64
 
 
-def _system(seed_base=0):
-    """Two members of 64 bodies (every third a trilobe clump) in a box with a piston moving down."""
+def _system(seed_base=0, device="cpu", dtype=F64):
+    """Two members of 64 bodies (every third a trilobe clump) in a box with a piston moving down
+    (built on ``device`` in ``dtype``; tests/test_cuda.py runs it on a GPU)."""
     B = 2
     mats = [glass(), steel()]
     pp = dict(mu_s=[0.3, 0.6], mu_r=[0.02, 0.1], restitution=[0.4, 0.8], rolling_damping=0.3)
@@ -47,7 +48,8 @@ def _system(seed_base=0):
     template_index = (torch.arange(N) % 3 == 0).long().expand(B, N)
     piston = WallSpec("piston", (0.025, 0.025, 0.07), (0, 0, 1), (1, 0, 0), 0.03, 0.03, "steel",
                       velocity=(0.0, 0.0, -0.5), move_from=0.0, move_until=1.0)
-    system, state = build_system(torch.stack(pos), torch.zeros(B, N, dtype=torch.long), mats, table,
+    system, state = build_system(torch.stack(pos).to(device=device, dtype=dtype), torch.zeros(B, N, dtype=torch.long),
+                                 mats, table,
                                  templates=[SPHERE, trilobe_template(0.15)], template_index=template_index,
                                  scale=torch.stack(scale), velocity=torch.stack(vel),
                                  walls=[*box_walls("box", (0, 0, 0), (0.05, 0.05, 0.3), "steel"), piston],

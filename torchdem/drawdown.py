@@ -405,7 +405,7 @@ class DrawDownTest:
         wall_before = 0.0
         sim = None
         if ckpt is not None and ckpt.exists():
-            saved = torch.load(ckpt, weights_only=True)
+            saved = torch.load(ckpt, weights_only=True, map_location="cpu")  # the state: Simulation.load
             if [tuple(m) for m in saved["members"]] != members:
                 raise ConfigError(f"{ckpt}: checkpoint belongs to members {saved['members']}, not {members}; "
                                   "remove it or use another checkpoint path")

@@ -227,8 +227,9 @@ class Simulation:
     def load(cls, path: str | Path, system: System, guards: GuardSettings = GuardSettings(),
              compile: bool = False, backend: str = "auto", reorder_every: int = 0) -> "Simulation":
         """Restore a run saved by :meth:`save`; ``system`` must be the one it was built with (in
-        the order it was built: a reordered state's order is applied to it here)."""
-        data = torch.load(Path(path), weights_only=True)
+        the order it was built: a reordered state's order is applied to it here). The state is
+        loaded onto the system's device, so a run saved on a GPU resumes on a CPU and back."""
+        data = torch.load(Path(path), weights_only=True, map_location=system.mass.device)
         state = state_from_dict(data["state"])
         if state.bodies.position.shape[:2] != system.mass.shape:
             raise ConfigError(f"{path}: saved state has bodies {tuple(state.bodies.position.shape[:2])} but "

@@ -270,7 +270,7 @@ def build_system(
         rad_t[k, :n] = torch.as_tensor(p.template.radii, dtype=dtype)
         vol_t[k] = p.volume
         inert_t[k] = torch.as_tensor(p.principal_inertia, dtype=dtype)
-    density = torch.gather(interactions.density.to(dtype), 1, material)           # [B, N]
+    density = torch.gather(interactions.density.to(device=device, dtype=dtype), 1, material)  # [B, N]
     if bool((density[active] <= 0).any()):
         bad = int(material[active][density[active] <= 0][0])
         raise out_of_range(f"density[{names[bad]}]", 0.0, "a particle density > 0 kg/m^3", source)
@@ -398,7 +398,7 @@ def build_system(
     system = System(
         sphere_body=sphere_body, sphere_offset=sphere_offset, sphere_radius=sphere_radius,
         sphere_material=sphere_material, mass=mass, inertia=inertia, body_material=material,
-        tables=_cast_tables(material_tables(materials, interactions), dtype),
+        tables=_cast_tables(material_tables(materials, interactions), dtype, device),
         walls=wall_t, gravity=torch.as_tensor(gravity, dtype=dtype, device=device),
         dt=float(dt), skin=float(skin), grid=grid, domain_lower=lo, domain_upper=hi,
         rolling_stiffness=rolling_stiffness, spheres_only=spheres_only, material_names=names,
@@ -410,8 +410,10 @@ def build_system(
     return system, state
 
 
-def _cast_tables(t: MaterialTables, dtype) -> MaterialTables:
-    return MaterialTables(*(getattr(t, f).to(dtype) for f in
+def _cast_tables(t: MaterialTables, dtype, device) -> MaterialTables:
+    """The tables in the run's dtype, on the run's device (an interaction table built on the CPU
+    serves a GPU run)."""
+    return MaterialTables(*(getattr(t, f).to(device=device, dtype=dtype) for f in
                             ("young_eff", "shear_eff", "beta", "mu_s", "mu_r", "rolling_damping", "density",
                              "cohesion")))
 
