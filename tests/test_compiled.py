@@ -47,3 +47,25 @@ def test_compiled_kernels_match_eager():
     assert eager.state.pairs.n > 0 and eager.state.walls.n > 0
     assert torch.allclose(compiled.state.bodies.position, eager.state.bodies.position, rtol=0, atol=1e-9)
     assert torch.allclose(compiled.state.bodies.orientation, eager.state.bodies.orientation, rtol=0, atol=1e-7)
+
+
+def test_a_kernel_torch_cannot_compile_runs_eager(monkeypatch):
+    """A compiler failure (torch 2.11's Inductor could not compile the drift on CUDA) warns once
+    per kernel and the run goes on eager, bit for bit as an eager run."""
+    def failing_backend(graph, example_inputs):
+        raise RuntimeError("this backend compiles nothing")
+
+    plain_compile = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda f, **kw: plain_compile(f, backend=failing_backend, **kw))
+    eager = _sim(False)
+    eager.kernels.backend = "torch"
+    eager.advance(150)
+    fallback = _sim(True)
+    fallback.kernels.backend = "torch"
+    with pytest.warns(RuntimeWarning, match="runs eager from now on") as record:
+        fallback.advance(150)
+    failed = {str(w.message).split(" on ")[1].split(" ")[0] for w in record if "runs eager" in str(w.message)}
+    assert {"drift_kernel", "pair_kernel", "kick_kernel"} <= failed
+    assert "this backend compiles nothing" in fallback.kernels.torch_drift.compile_error
+    assert eager.state.pairs.n > 0
+    assert torch.equal(fallback.state.bodies.position, eager.state.bodies.position)

@@ -17,6 +17,8 @@ contact laws in :mod:`torchdem.contact`, which are pure functions.
 """
 from __future__ import annotations
 
+import warnings
+
 import torch
 
 from torchdem import _ext, contact, neighbors
@@ -414,6 +416,30 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
 KERNEL_BACKENDS = ("auto", "cpp", "torch")
 
 
+def _compiled_or_eager(kernel):
+    """``torch.compile(kernel, dynamic=True)``, falling back to ``kernel`` itself for good when
+    compiling it fails (``torch._dynamo.exc.BackendCompilerFailed``, raised before anything runs).
+    ``.compile_error`` holds the reason (None while compiled)."""
+    from torch._dynamo.exc import BackendCompilerFailed
+
+    compiled = torch.compile(kernel, dynamic=True)
+
+    def call(*args):
+        if call.compile_error is None:
+            try:
+                return compiled(*args)
+            except BackendCompilerFailed as err:
+                lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+                call.compile_error = f"{type(err).__name__}: {' '.join(lines[:2])}"  # the backend and its error
+                warnings.warn(f"torchdem: torch.compile failed on {kernel.__name__} ({call.compile_error}); "
+                              f"it runs eager from now on", RuntimeWarning, stacklevel=2)
+        return kernel(*args)
+
+    call.compile_error = None
+    call.__name__ = kernel.__name__
+    return call
+
+
 class Kernels:
     """The contact and integration kernels: the one place that picks an implementation.
 
@@ -430,7 +456,9 @@ class Kernels:
     law into a few loops (one pass over the contacts instead of ~100 tensor operations); the
     first call of each kernel compiles (tens of seconds on a CPU), later calls and other
     contact counts reuse it. The drift and the kick follow the contact kernels (C++ with them,
-    else torch, compiled if asked).
+    else torch, compiled if asked). A kernel that torch cannot compile on this device and torch
+    version (Inductor's ``CantSplit`` on the drift, torch 2.11 on CUDA, for one) runs eager from
+    then on, with one warning naming it: the kernels are pure functions, so nothing is lost.
     """
 
     def __init__(self, compile: bool = False, backend: str = "auto"):
@@ -438,7 +466,7 @@ class Kernels:
             raise ValueError(f"kernel backend = {backend!r}; expected one of {KERNEL_BACKENDS}")
         self.compiled = compile
         self.backend = backend
-        wrap = (lambda f: torch.compile(f, dynamic=True)) if compile else (lambda f: f)  # noqa: E731
+        wrap = _compiled_or_eager if compile else (lambda f: f)  # noqa: E731
         self.torch_pair = wrap(pair_kernel)
         self.torch_wall = wrap(wall_kernel)
         self.torch_drift = wrap(drift_kernel)
