@@ -17,6 +17,9 @@ particle-steps per second, and the CPU other processes used meanwhile (figures t
 Issue target on the 2-core reference machine: one run within 2 minutes, a batch of 10 within
 10 minutes.
 
+On a GPU: ``sim.device=cuda`` (or ``sim=gpu``, the paper's unreduced model) runs each case as
+one ensemble on the GPU (use ``--workers 1``); the fill is placed on the CPU.
+
 Usage: ``python scripts/bench_drawdown.py [--batch 10] [--workers 2] [--json] [--skip-single | --skip-batch]
 [-- sim.compile=true ...]``
 """
@@ -35,16 +38,18 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from torchdem import config
-from torchdem.cli import CONF_DIR
+from torchdem.cli import CONF_DIR, device_from
 from torchdem.cpu_monitor import CpuMonitor
 from torchdem.drawdown import DrawDownTest
 
 
-def make_test(overrides: list[str]) -> DrawDownTest:
+def make_test(overrides: list[str]) -> tuple[DrawDownTest, torch.device]:
+    """The configured draw down test and the device it runs on (``sim.device``)."""
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         c = OmegaConf.to_container(compose(config_name="simulate", overrides=overrides), resolve=True)
-    return DrawDownTest(config.mixture_from(c["mixture"]), config.geometry_from(c["geometry"]),
+    test = DrawDownTest(config.mixture_from(c["mixture"]), config.geometry_from(c["geometry"]),
                         config.contact_from(c["contact"]), config.run_settings_from(c["sim"], c["run"]))
+    return test, device_from(c["sim"]["device"], "sim.device")
 
 
 def _figures(result, members: int) -> dict:
@@ -58,16 +63,17 @@ def _figures(result, members: int) -> dict:
             "mass_balance_member0": result.conservation[0]}
 
 
-def time_run(test: DrawDownTest, members: int) -> dict:
+def time_run(test: DrawDownTest, members: int, device: torch.device) -> dict:
     with CpuMonitor() as cpu:
-        result = test.run(replicates=members)
-    return {**_figures(result, members), "other_cores": cpu.other_cores}
+        result = test.run(replicates=members, device=device)
+    return {**_figures(result, members), "device": str(device), "other_cores": cpu.other_cores}
 
 
 def _worker_run(overrides: list[str], seeds: list[int], threads: int) -> dict:
     """One worker of ``--workers``: its replicates (``seeds``) as one ensemble on ``threads`` threads."""
     torch.set_num_threads(threads)
-    return _figures(make_test(overrides).run(replicates=len(seeds), seeds=seeds), len(seeds))
+    test, device = make_test(overrides)
+    return _figures(test.run(replicates=len(seeds), seeds=seeds, device=device), len(seeds))
 
 
 def time_workers(overrides: list[str], members: int, workers: int) -> dict:
@@ -107,16 +113,17 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.workers < 1 or args.workers > args.batch:
         parser.error(f"--workers {args.workers}: expected 1 .. --batch ({args.batch})")
-    test = make_test(args.overrides)
+    test, device = make_test(args.overrides)
     log = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
-    log(f"torch {torch.__version__}, threads {torch.get_num_threads()}, mixture {test.mixture.name}, "
+    gpu = f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
+    log(f"torch {torch.__version__}, device {device}{gpu}, threads {torch.get_num_threads()}, mixture {test.mixture.name}, "
         f"slice {test.geometry.slice_depth} m, G {test.settings.shear_modulus}, fines cut {test.settings.fines_cut}")
     figures = {}
     for name, members in (("single", 1), ("batch", args.batch)):
         if (name == "single" and args.skip_single) or (name == "batch" and args.skip_batch):
             continue
         split = name == "batch" and args.workers > 1
-        r = time_workers(args.overrides, members, args.workers) if split else time_run(test, members)
+        r = time_workers(args.overrides, members, args.workers) if split else time_run(test, members, device)
         figures[name] = r
         how = f" in {r['workers']} processes x {r['threads_per_worker']} threads" if split else ""
         log(f"{name:6s} B={members:3d}{how}: {r['spheres_per_member']} spheres/member, {r['steps']} steps of "
