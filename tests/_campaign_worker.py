@@ -23,6 +23,7 @@ import numpy as np
 
 from bo.campaign.executor import EvalOutcome, EvalTask, InProcessExecutor, run_pending
 from bo.campaign.store import CampaignStore
+from torchdem.errors import ConfigError
 
 CAMPAIGN_CONDITIONS = ["50-50", "70-30"]
 CAMPAIGN_SEEDS = [1, 2]
@@ -53,6 +54,8 @@ def analytic_batch(tasks: list[EvalTask], *, log_path: str | None = None,
     """evaluate_batch: KPIs of every task; raises for ``fail_condition`` (a blown-up batch); a
     batch holding a task with ``mu_s_pp == slow_mu`` takes ``slow_seconds`` more."""
     start = time.perf_counter()
+    if len({t.condition for t in tasks}) > 1:  # the contract of torchdem's evaluate_batch: one ensemble
+        raise ConfigError(f"a batch must hold one condition, got {sorted({t.condition for t in tasks})}")
     if any(t.condition == fail_condition for t in tasks):
         raise RuntimeError(f"ensemble blew up for condition {fail_condition}")
     time.sleep(sleep_per_eval * len(tasks) + (slow_seconds if any(t.params.get("mu_s_pp") == slow_mu

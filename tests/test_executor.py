@@ -171,6 +171,14 @@ def test_dask_executor_matches_in_process(tmp_path):
         assert (a.X == b.X).all() and (a.kpis == b.kpis).all() and (a.seeds == b.seeds).all()
         assert distributed.counts()["done"] == 16
 
+        # a claim that tops up one condition's short batch with another condition's tasks is cut
+        # per condition before it reaches a worker (an ensemble holds one condition)
+        mixed = CampaignStore(tmp_path / "mixed.sqlite", "cfg", code_version="test")
+        mixed.batch("initial", "a", lambda: [{"mu_s_pp": 0.3}], seeds=[0, 1], conditions=list(CONDITIONS))
+        wide = DaskExecutor(analytic_batch, 4, client=executor.client)
+        summary = run_pending(mixed, wide)
+        assert (summary.n_done, summary.n_failed, summary.n_batches) == (4, 0, 2), mixed.records(status="failed")
+
         # a long batch does not hold the other worker back: run_pending draws a batch whenever a
         # worker is free, so the three fast tasks claimed after the slow one finish before it
         # (claiming two tasks at a time, the slow one finished before the third was claimed)

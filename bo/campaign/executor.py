@@ -514,7 +514,7 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
         while True:
             claimed = []
 
-            def feed():  # one batch per claim, drawn as a worker frees up
+            def feed():  # one claim at a time, drawn as a worker frees up
                 while True:
                     tasks = store.claim(executor.batch_size, stage=stage, batch_size=executor.batch_size,
                                         affinity=executor.affinity)
@@ -522,7 +522,9 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
                         return
                     keeper.hold(t.task_id for t in tasks)
                     claimed.append(len(tasks))
-                    yield tasks
+                    # a claim tops up a condition's short last batch with another condition's
+                    # tasks; an ensemble holds one condition, so the claim is cut where it changes
+                    yield from make_batches(tasks, executor.batch_size)
 
             try:
                 for finished in executor.run_stream(feed()):
