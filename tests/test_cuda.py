@@ -13,8 +13,8 @@ run ``pytest tests/test_cuda.py`` on a CUDA machine.
   GPU). After 200 more steps on each device the two runs agree within 1e-9 m.
 - ``compile=True`` on the GPU (Triton kernels) follows the eager GPU run within 1e-9 m over
   300 steps. A kernel torch cannot compile runs eager (with a warning); whether every kernel
-  compiled is its own test, an expected failure on torch 2.11 (Inductor's ``CantSplit`` on the
-  drift kernel, measured on an H100).
+  compiled is its own test, an expected failure on torch 2.11 (Inductor's ``CantSplit`` on this
+  system's drift kernel, measured on an H100; a default slice member compiled every kernel).
 - tests/test_drawdown.py's small draw down on the GPU in float32, in one ensemble of two
   replicates: mass conserved (upper + lower + in flight = fill within 1e-3; float32 sums),
   no body lost, every KPI measured.
@@ -110,7 +110,7 @@ def test_compiled_kernels_on_the_gpu_follow_eager():
     assert gap < 1e-9, f"compiled and eager GPU runs differ by {gap:.3g} m after 300 steps"
 
 
-@pytest.mark.xfail(strict=False, reason="torch 2.11.0+cu130 (H100): Inductor cannot compile drift_kernel with "
+@pytest.mark.xfail(strict=False, reason="torch 2.11.0+cu130 (H100): Inductor could not compile this system's drift_kernel with "
                                         "dynamic shapes (CantSplit); that kernel runs eager")
 def test_every_kernel_compiles_on_the_gpu():
     _, compiled = _compiled_and_eager()

@@ -457,7 +457,7 @@ class Kernels:
     first call of each kernel compiles (tens of seconds on a CPU), later calls and other
     contact counts reuse it. The drift and the kick follow the contact kernels (C++ with them,
     else torch, compiled if asked). A kernel that torch cannot compile on this device and torch
-    version (Inductor's ``CantSplit`` on the drift, torch 2.11 on CUDA, for one) runs eager from
+    version (Inductor's ``CantSplit`` on a clump system's drift, torch 2.11 on CUDA, for one) runs eager from
     then on, with one warning naming it: the kernels are pure functions, so nothing is lost.
     """
 
