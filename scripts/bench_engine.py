@@ -17,7 +17,8 @@ Contract:
   ``--warmup`` untimed steps, through the public ``build_system`` / ``Simulation.advance``
   (blow-up guards on, as in a real run). B = 16 runs 16 copies of the packing, each member
   with its own small velocity jitter so the members are independent. B = 1 is member 0.
-  particle-steps/s = B * N * steps / wall time.
+  particle-steps/s = B * N * steps / wall time. ``--device cuda`` runs the torchdem side on a
+  GPU (the torch kernels; ``--compile`` to fuse them); the clock waits for the GPU's queued work.
 - When ``liggghts`` is on PATH, the same state (member 0) is written as a LIGGGHTS data file
   and input (Hertz, tangential history, rolling_friction epsd2, five primitive walls,
   nve/sphere, skin equal to torchdem's) and run with ``mpirun -np 2`` and
@@ -123,6 +124,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchdem.cli import device_from
 from torchdem.cpu_monitor import CpuMonitor
 from torchdem.errors import ConfigError
 from torchdem.materials import Material, interaction_table, rayleigh_time_step
@@ -306,9 +308,10 @@ def bench_material(scenario: BenchScenario) -> Material:
 
 def bench_system(scenario: BenchScenario, position: np.ndarray, radius: np.ndarray, velocity: np.ndarray,
                  angular_velocity: np.ndarray, dtype: torch.dtype, *, dt: float | None = None,
-                 time_step_fraction: float | None = None, box: tuple[float, float] | None = None):
-    """``(System, State)`` of the scenario; position/velocity/angular_velocity are ``[B, N, 3]``.
-    ``box``: inner (x, y) size of the open box, m (default the scenario's; walls as high)."""
+                 time_step_fraction: float | None = None, box: tuple[float, float] | None = None,
+                 device: torch.device | str = "cpu"):
+    """``(System, State)`` of the scenario on ``device``; position/velocity/angular_velocity are
+    ``[B, N, 3]``. ``box``: inner (x, y) size of the open box, m (default the scenario's; walls as high)."""
     B, N, _ = position.shape
     material = bench_material(scenario)
     coefficients = {"mu_s": scenario.mu_s, "mu_r": scenario.mu_r, "restitution": scenario.restitution,
@@ -317,7 +320,7 @@ def bench_system(scenario: BenchScenario, position: np.ndarray, radius: np.ndarr
                               source="bench_engine")
     box_x, box_y = box if box is not None else (scenario.box_x, scenario.box_y)
     walls = box_walls("box", (0.0, 0.0, 0.0), (box_x, box_y, scenario.wall_height), MATERIAL)
-    as_t = lambda a: torch.as_tensor(a, dtype=dtype)  # noqa: E731
+    as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
     return build_system(
         as_t(position), torch.zeros((B, N), dtype=torch.long), [material], table,
         radius=as_t(np.broadcast_to(radius, (B, N)).copy()), velocity=as_t(velocity),
@@ -443,14 +446,18 @@ def contact_counts(system, state) -> ContactCounts:
 
 def time_torchdem(scenario: BenchScenario, packing: Packing, batch: int, dtype: torch.dtype, dt: float,
                   steps: int, warmup: int, jitter: float, repeat: int = 1, compile: bool = False,
-                  backend: str = "cpp", box: tuple[float, float] | None = None) -> EngineTiming:
+                  backend: str = "cpp", box: tuple[float, float] | None = None,
+                  device: torch.device | str = "cpu") -> EngineTiming:
     """Best of ``repeat`` timings, each from the same initial state with a fresh Simulation.
 
-    ``backend``: contact kernels, ``"cpp"`` (C++ extension) or ``"torch"`` (see ``Kernels``).
+    ``backend``: contact kernels on the CPU, ``"cpp"`` (C++ extension) or ``"torch"`` (see
+    ``Kernels``; on a GPU the torch kernels run). ``device``: where the ensemble runs (the clock
+    waits for a GPU's queued work before it stops).
     ``box``: see :func:`bench_system` (packings cut or tiled by ``--scaling``)."""
     velocity, omega = ensemble_velocities(packing, batch, jitter, scenario.seed + 1)
     position = np.broadcast_to(packing.position, velocity.shape).copy()
-    system, state = bench_system(scenario, position, packing.radius, velocity, omega, dtype, dt=dt, box=box)
+    system, state = bench_system(scenario, position, packing.radius, velocity, omega, dtype, dt=dt, box=box,
+                                 device=device)
     name = str(dtype).replace("torch.", "")
     best = None
     for k in range(repeat):
@@ -459,10 +466,12 @@ def time_torchdem(scenario: BenchScenario, packing: Packing, batch: int, dtype: 
         log(f"torchdem {name} B = {batch}, N = {packing.position.shape[0]}: {warmup} warm-up + {steps} timed steps"
             f"{f' (repeat {k + 1}/{repeat})' if repeat > 1 else ''} ...")
         sim.advance(warmup)
+        _wait(device)
         builds0 = sim.state.rebuilds
         with CpuMonitor() as cpu:
             t0 = time.perf_counter()
             sim.advance(steps)
+            _wait(device)
             wall = time.perf_counter() - t0
         if sim.failed:
             raise RuntimeError(f"torchdem {name} B = {batch}: members failed during timing: {sim.failed}")
@@ -473,6 +482,12 @@ def time_torchdem(scenario: BenchScenario, packing: Packing, batch: int, dtype: 
         if best is None or timing.wall_time < best.wall_time:
             best = timing
     return best
+
+
+def _wait(device: torch.device | str) -> None:
+    """Wait for the work queued on a GPU (a no-op on the CPU)."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def _busy_note(t: EngineTiming) -> str:
@@ -737,7 +752,7 @@ def scaling_packings(scenario: BenchScenario, packing: Packing) -> list[ScalingP
 
 
 def run_scaling(scenario: BenchScenario, packing: Packing, dtypes: list[str], dt: float, steps: int, warmup: int,
-                jitter: float, compile: bool, backend: str) -> list[ScalingCase]:
+                jitter: float, compile: bool, backend: str, device: torch.device | str = "cpu") -> list[ScalingCase]:
     """Times the N sweep (B = 1) and the B sweep (the 1x1 packing) for every dtype."""
     sizes = scaling_packings(scenario, packing)
     base = next(s for s in sizes if s.label == "1x1 tiles")
@@ -745,7 +760,7 @@ def run_scaling(scenario: BenchScenario, packing: Packing, dtypes: list[str], dt
     for d in dtypes:
         def timed(sweep, s: ScalingPacking, batch):
             t = time_torchdem(scenario, s.packing, batch, getattr(torch, d), dt, steps, warmup, jitter, 1,
-                              compile, backend, box=s.box)
+                              compile, backend, box=s.box, device=device)
             return ScalingCase(sweep, s.label if sweep == "N" else f"B = {batch}", d, t.n_particles, batch,
                                s.box[0], s.box[1], steps, t.wall_time, t.particle_steps_per_s, math.nan,
                                t.contacts.listed_pairs / (batch * t.n_particles), t.neighbour_builds,
@@ -1010,6 +1025,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="Simulation(compile=True) (torch.compile'd torch kernels; compiles in the warm-up)")
     parser.add_argument("--backend", default="cpp", choices=("cpp", "torch"),
                         help="contact kernels: cpp (C++ extension, built on first use; default) or torch")
+    parser.add_argument("--device", default="cpu", help="torch device of the torchdem runs (cpu, cuda, cuda:1)")
     parser.add_argument("--ranks", type=int, default=2, help="LIGGGHTS MPI ranks (processors R 1 1)")
     parser.add_argument("--no-liggghts", action="store_true", help="skip the LIGGGHTS run")
     parser.add_argument("--liggghts-repeat", type=int, default=None,
@@ -1058,6 +1074,7 @@ def main(argv: list[str] | None = None) -> int:
         raise ConfigError("--compile: this torchdem's Simulation has no compile option")
     if args.threads:
         torch.set_num_threads(args.threads)
+    device = device_from(args.device, "--device")
     scenario = BenchScenario(n_particles=n, **({"settle_speed": 0.1} if args.quick else {})).validate("bench_engine")
     rayleigh = rayleigh_time_step(scenario.radius_small, scenario.density, scenario.shear_modulus,
                                   scenario.poisson_ratio)
@@ -1068,7 +1085,7 @@ def main(argv: list[str] | None = None) -> int:
     packing = load_or_settle(scenario, args.cache_dir, args.resettle)
 
     timings = [time_torchdem(scenario, packing, b, getattr(torch, d), args.dt, steps, warmup, args.velocity_jitter,
-                             args.repeat, args.compile, args.backend)
+                             args.repeat, args.compile, args.backend, device=device)
                for d in dtypes for b in batches]
 
     # LIGGGHTS: member 0, identical state and skin.
@@ -1102,7 +1119,7 @@ def main(argv: list[str] | None = None) -> int:
     scaling = []
     if args.scaling:
         scaling = run_scaling(scenario, packing, dtypes, args.dt, scaling_steps, scaling_warmup,
-                              args.velocity_jitter, args.compile, args.backend)
+                              args.velocity_jitter, args.compile, args.backend, device)
 
     stream, kernels = None, []
     if args.stream:
@@ -1112,7 +1129,8 @@ def main(argv: list[str] | None = None) -> int:
         ensemble = [t for t in timings if t.batch == B_ENSEMBLE]
         if not ensemble:   # --batches without 16: a short B = 16 timing per precision
             ensemble = [time_torchdem(scenario, packing, B_ENSEMBLE, getattr(torch, d), args.dt, steps, warmup,
-                                      args.velocity_jitter, 1, args.compile, args.backend) for d in dtypes]
+                                      args.velocity_jitter, 1, args.compile, args.backend, device=device)
+                        for d in dtypes]
         kernels = [pair_bandwidth(t, stream) for t in ensemble]
 
     def figure(dtype: str, batch: int) -> float | None:
@@ -1138,6 +1156,8 @@ def main(argv: list[str] | None = None) -> int:
             "warmup_steps": warmup,
             "dt": args.dt,
             "torch_threads": torch.get_num_threads(),
+            "device": str(device),
+            "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
             "quick": args.quick,
             "compile": args.compile,
             "backend": args.backend,

@@ -67,3 +67,8 @@ def test_trim_packing_moves_the_wall_to_the_last_sphere():
     p = _packing([[0.01, 0.01, 0.01], [0.02, 0.01, 0.01], [0.09, 0.01, 0.01]], [0.005, 0.007, 0.005])
     cut, box_x = bench.trim_packing(p, 0.1, 0.3)
     assert len(cut.radius) == 2 and box_x == pytest.approx(0.027)
+
+
+def test_a_device_torch_does_not_know_is_named():
+    with pytest.raises(bench.ConfigError, match="--device: device = 'gpu0' is not a torch device"):
+        bench.main(["--device", "gpu0", "--no-liggghts", "--quick"])
