@@ -24,6 +24,7 @@ import torch
 
 from conftest import F64, glass, hertz_contact_duration, simulation, steel
 from test_contact import _e_star
+from test_drawdown import small_drawdown
 from test_reorder import _in_build_order, _system
 from torchdem.materials import interaction_table
 from torchdem.simulation import GuardSettings, Simulation
@@ -122,18 +123,7 @@ def test_every_kernel_compiles_on_the_gpu():
 
 @pytest.mark.slow
 def test_small_drawdown_on_the_gpu_in_float32():
-    from torchdem.drawdown import DrawDownTest, RunSettings
-    from torchdem.geometry import DrawDownGeometry
-    from torchdem.mixture import Mixture, ParticleMaterial, SieveClass
-
-    pellet = ParticleMaterial("pellet", "sphere", (SieveClass(0.012, 0.014, 1.0),), 3602.4, label="pellet")
-    sinter = ParticleMaterial("sinter", "sinter_trilobe", (SieveClass(0.014, 0.018, 1.0),), 3449.0, label="sinter")
-    mix = Mixture("mini", (pellet, sinter), (0.5, 0.5), ("pellet", "sinter", "pellet", "sinter"), 4.0)
-    geometry = DrawDownGeometry(upper_width=0.16, depth=0.2, upper_height=0.3, outlet_width=0.05,
-                                upper_bottom_z=0.2, lower_width=0.4, lower_height=0.15, slice_depth=0.04)
-    settings = RunSettings(fill_time=0.35, discharge_time=2.6, shear_modulus=1e6, time_step_fraction=0.3,
-                           dtype="float32", metres_per_pixel=0.002)
-    res = DrawDownTest(mix, geometry, settings=settings).run(replicates=2, seeds=[3, 4], device=CUDA)
+    res = small_drawdown(dtype="float32").run(replicates=2, seeds=[3, 4], device=CUDA)
     for k, err, c in zip(res.kpis, res.errors, res.conservation):
         assert err == {}, err
         assert c["lost_bodies"] == 0

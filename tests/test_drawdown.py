@@ -14,16 +14,23 @@ from torchdem.geometry import DrawDownGeometry
 from torchdem.mixture import Mixture, ParticleMaterial, SieveClass
 
 
-@pytest.mark.slow
-def test_small_drawdown_conserves_mass_and_gives_plausible_kpis():
+def small_drawdown(dtype: str = "float64", compile: bool = False) -> DrawDownTest:
+    """The scaled-down box and its two near-monodisperse materials (tests/test_cuda.py runs it on a GPU)."""
     pellet = ParticleMaterial("pellet", "sphere", (SieveClass(0.012, 0.014, 1.0),), 3602.4, label="pellet")
     sinter = ParticleMaterial("sinter", "sinter_trilobe", (SieveClass(0.014, 0.018, 1.0),), 3449.0, label="sinter")
     mix = Mixture("mini", (pellet, sinter), (0.5, 0.5), ("pellet", "sinter", "pellet", "sinter"), 4.0)
     geometry = DrawDownGeometry(upper_width=0.16, depth=0.2, upper_height=0.3, outlet_width=0.05,
                                 upper_bottom_z=0.2, lower_width=0.4, lower_height=0.15, slice_depth=0.04)
     settings = RunSettings(fill_time=0.35, discharge_time=2.6, shear_modulus=1e6, time_step_fraction=0.3,
-                           dtype="float64", compile=True, metres_per_pixel=0.002)
-    res = DrawDownTest(mix, geometry, settings=settings).run(replicates=2, seeds=[3, 4])
+                           dtype=dtype, compile=compile, metres_per_pixel=0.002)
+    return DrawDownTest(mix, geometry, settings=settings)
+
+
+@pytest.mark.slow
+def test_small_drawdown_conserves_mass_and_gives_plausible_kpis():
+    test = small_drawdown(compile=True)
+    geometry = test.geometry
+    res = test.run(replicates=2, seeds=[3, 4])
     assert len(res.kpis) == 2
     for k, err, c, (t, m) in zip(res.kpis, res.errors, res.conservation, res.loadcell):
         assert err == {}, err
