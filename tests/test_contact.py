@@ -23,23 +23,25 @@ def _e_star(a, b):
                                    torch.tensor(b.young_modulus), torch.tensor(b.poisson_ratio)).item()
 
 
-def _run_pair(restitution, steps=2500):
+def _run_pair(restitution, steps=2500, device="cpu", dtype=F64):
+    """Two spheres meeting head on, one member per restitution (on ``device`` in ``dtype``;
+    tests/test_cuda.py runs it on a GPU): ``(simulation, measured restitution [B], contact time [B])``."""
     B = len(restitution)
     mats = [glass(), steel()]
     table = interaction_table(mats, {("glass", "glass"): dict(mu_s=0.5, mu_r=0.05, restitution=restitution)},
                               batch=B)
     pos = torch.tensor([[0.0, 0.0, 0.0], [2 * R + 2e-5, 0.0, 0.0]], dtype=F64).expand(B, 2, 3).clone()
     vel = torch.tensor([[V, 0.0, 0.0], [-V, 0.0, 0.0]], dtype=F64).expand(B, 2, 3).clone()
-    sim = simulation(pos, torch.full((B, 2), R, dtype=F64), mats, table, velocity=vel,
-                     gravity=(0, 0, 0), time_step_fraction=0.02)
-    touching = torch.zeros(B, dtype=torch.long)
+    sim = simulation(pos.to(device, dtype), torch.full((B, 2), R, dtype=dtype, device=device), mats, table,
+                     velocity=vel, gravity=(0, 0, 0), time_step_fraction=0.02)
+    touching = torch.zeros(B, dtype=torch.long, device=device)
     for _ in range(steps):
         sim.advance(1)
         x = sim.state.bodies.position
         touching += ((x[:, 1] - x[:, 0]).norm(dim=-1) < 2 * R).long()
-    v = sim.state.bodies.velocity
+    v = sim.state.bodies.velocity.double().cpu()
     e_measured = (v[:, 1, 0] - v[:, 0, 0]) / (2 * V)
-    return sim, e_measured, touching.double() * sim.system.dt
+    return sim, e_measured, touching.double().cpu() * sim.system.dt
 
 
 def test_sphere_sphere_restitution_within_1_percent():
