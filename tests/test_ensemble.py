@@ -71,6 +71,8 @@ def test_blowup_names_member_and_step():
     assert err.value.member == 1
     assert err.value.step == 100
     assert "member 1" in str(err.value) and "step 100" in str(err.value)
+    fastest = int(sim.state.bodies.velocity[1].norm(dim=-1).argmax())
+    assert f"at t = {sim.time:.4g} s the fastest body is {fastest} at (" in str(err.value)
 
 
 def test_isolated_blowup_leaves_other_members_untouched():

@@ -188,8 +188,15 @@ class Simulation:
                 elif flags is energy_member:
                     cause = (f"kinetic + potential energy grew by {100 * float(growth[m]):.1f}% of its "
                              "scale (time step too large for the contact stiffness)")
-                self._blowup(m, cause)
+                self._blowup(m, cause + self._where(m, speed))
         self._remove_lost()
+
+    def _where(self, member: int, speed: Tensor) -> str:
+        """Where to look: the time and the fastest body of ``member`` (its id as built, its centre)."""
+        k = int(speed[member].argmax())
+        x = self.state.bodies.position[member, k].tolist()
+        return (f"; at t = {self.time:.4g} s the fastest body is {int(self.state.body_id[member, k])} at "
+                f"({x[0]:.4g}, {x[1]:.4g}, {x[2]:.4g}) m")
 
     def _blowup(self, member: int, cause: str) -> None:
         if self.guards.on_blowup == "raise":
