@@ -244,7 +244,8 @@ def power_figure(rows: Sequence) -> Figure:
                         marker="s", color="k", capsize=3, label="null: a cause named")
         ax.axhline(0.8, color="0.6", linestyle="--", linewidth=0.8)
         ax.set_ylim(-0.02, 1.02)
-        ax.set_xlabel(f"{name}: effect (fraction of the prior)")
+        ax.set_title(name, fontsize="small")
+        ax.set_xlabel("effect (fraction of the prior)")
         ax.set_ylabel("share of labs")
         ax.legend(fontsize="x-small")
     return fig
