@@ -192,6 +192,9 @@ def test_profiles_compose_to_the_documented_designs():
     # the store hash covers the model, not the number of replicates or the executor
     assert config_hash(_plain(["replicates=5", "executor=dask"])) == config_hash(_plain([]))
     assert config_hash(_plain(["run.fill_time_s=0.3"])) != config_hash(_plain([]))
+    # where and how fast a run goes is not part of the model: a GPU adds runs to a CPU's store
+    assert config_hash(_plain(["sim.device=cuda", "sim.compile=true"])) == config_hash(_plain([]))
+    assert config_hash(_plain(["sim.dtype=float32"])) != config_hash(_plain(["sim.dtype=float64"]))
 
 
 def test_cli_reports_a_bad_config_and_exits_nonzero(tmp_path):

@@ -83,9 +83,19 @@ def check_kpis(kpis, where: str, name: str = "kpis") -> tuple[str, ...]:
     return tuple(kpis)
 
 
+#: Settings of the ``sim`` block that decide where and how fast a run goes, not what it gives: a
+#: store takes runs made on a GPU or a CPU, compiled or not (their results differ at round-off, as
+#: the C++ kernels' do between CPUs). They are hashed at these values, so stores made before keep
+#: their hash.
+EXECUTION_ONLY = {"device": "cpu", "compile": False}
+
+
 def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> str:
-    """Hash of the result-deciding blocks (default ``MODEL_KEYS``) of the resolved config."""
+    """Hash of the result-deciding blocks (default ``MODEL_KEYS``) of the resolved config
+    (``sim``'s :data:`EXECUTION_ONLY` settings left out)."""
     part = {k: plain.get(k) for k in keys}
+    if isinstance(part.get("sim"), Mapping):
+        part["sim"] = {**part["sim"], **{k: v for k, v in EXECUTION_ONLY.items() if k in part["sim"]}}
     return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
