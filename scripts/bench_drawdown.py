@@ -66,7 +66,7 @@ def _figures(result, members: int) -> dict:
 def time_run(test: DrawDownTest, members: int, device: torch.device) -> dict:
     with CpuMonitor() as cpu:
         result = test.run(replicates=members, device=device)
-    return {**_figures(result, members), "device": str(device), "other_cores": cpu.other_cores}
+    return {**_figures(result, members), "other_cores": cpu.other_cores}
 
 
 def _worker_run(overrides: list[str], seeds: list[int], threads: int) -> dict:
@@ -124,7 +124,7 @@ def main(argv=None) -> None:
             continue
         split = name == "batch" and args.workers > 1
         r = time_workers(args.overrides, members, args.workers) if split else time_run(test, members, device)
-        figures[name] = r
+        figures[name] = r = {**r, "device": str(device)}  # both modes run on sim.device
         how = f" in {r['workers']} processes x {r['threads_per_worker']} threads" if split else ""
         log(f"{name:6s} B={members:3d}{how}: {r['spheres_per_member']} spheres/member, {r['steps']} steps of "
             f"{r['dt_s']:.3g} s; wall {r['wall_s']:.1f} s (fill {r['fill_s']:.1f} s, simulation "
