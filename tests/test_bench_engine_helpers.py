@@ -72,3 +72,20 @@ def test_trim_packing_moves_the_wall_to_the_last_sphere():
 def test_a_device_torch_does_not_know_is_named():
     with pytest.raises(bench.ConfigError, match="--device: device = 'gpu0' is not a torch device"):
         bench.main(["--device", "gpu0", "--no-liggghts", "--quick"])
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--every", "3", "10"], "--every must include 0"),
+    (["--every", "0", "-2"], "distinct ints >= 0"),
+    (["--chunk", "0"], "--chunk and --rounds must be >= 1"),
+])
+def test_bench_reorder_refuses_cases_without_a_baseline_or_steps(monkeypatch, capsys, argv, message):
+    """scripts/bench_reorder.py compares every case with build order: it needs the baseline and steps."""
+    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_reorder.py"
+    spec = importlib.util.spec_from_file_location("bench_reorder", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    monkeypatch.setattr(sys, "argv", ["bench_reorder.py", *argv])
+    with pytest.raises(SystemExit):
+        module.main()
+    assert message in capsys.readouterr().err

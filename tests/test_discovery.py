@@ -592,6 +592,11 @@ def test_a_batch_killed_mid_run_resumes_from_its_checkpoint(tmp_path):
     path = checkpoint_path(tmp_path, model, tasks)
     assert checkpoint_path(tmp_path, model, tasks[::-1]) != path
     assert checkpoint_path(tmp_path, model, [EvalTask({"mu_s_pp": 0.5}, 2, "50-50"), tasks[1]]) != path
+    # how a run goes is not what it is: the same file with reordering switched on or on another device
+    faster = dataclasses.replace(model, settings=dataclasses.replace(model.settings, reorder_every=10), device="cuda")
+    assert checkpoint_path(tmp_path, faster, tasks) == path
+    assert checkpoint_path(tmp_path, dataclasses.replace(model, settings=dataclasses.replace(
+        model.settings, dtype="float32")), tasks) != path
 
     class Killed(Exception):
         pass

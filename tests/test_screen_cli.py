@@ -194,6 +194,9 @@ def test_profiles_compose_to_the_documented_designs():
     assert config_hash(_plain(["run.fill_time_s=0.3"])) != config_hash(_plain([]))
     # where and how fast a run goes is not part of the model: a GPU adds runs to a CPU's store
     assert config_hash(_plain(["sim.device=cuda", "sim.compile=true"])) == config_hash(_plain([]))
+    # so is the bodies' spatial order (round-off only): a store takes runs with and without it
+    assert config_hash(_plain(["+sim.reorder_every=10"])) == config_hash(_plain([]))
+    assert config_hash(_plain(["+sim.reorder_every=0"])) == config_hash(_plain(["+sim.reorder_every=3"]))
     assert config_hash(_plain(["sim.dtype=float32"])) != config_hash(_plain(["sim.dtype=float64"]))
 
 

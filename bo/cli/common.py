@@ -84,10 +84,11 @@ def check_kpis(kpis, where: str, name: str = "kpis") -> tuple[str, ...]:
 
 
 #: Settings of the ``sim`` block that decide where and how fast a run goes, not what it gives: a
-#: store takes runs made on a GPU or a CPU, compiled or not (their results differ at round-off, as
-#: the C++ kernels' do between CPUs). They are hashed at these values, so stores made before keep
-#: their hash.
-EXECUTION_ONLY = {"device": "cpu", "compile": False}
+#: store takes runs made on a GPU or a CPU, compiled or not, with the bodies reordered in space or
+#: not (their results differ at round-off, as the C++ kernels' do between CPUs). They are hashed at
+#: these values, so stores made before keep their hash; None: hashed as if the key were absent
+#: (``reorder_every`` was not in the ``sim`` block when the shipped stores were made).
+EXECUTION_ONLY = {"device": "cpu", "compile": False, "reorder_every": None}
 
 
 def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> str:
@@ -95,7 +96,8 @@ def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) ->
     (``sim``'s :data:`EXECUTION_ONLY` settings left out)."""
     part = {k: plain.get(k) for k in keys}
     if isinstance(part.get("sim"), Mapping):
-        part["sim"] = {**part["sim"], **{k: v for k, v in EXECUTION_ONLY.items() if k in part["sim"]}}
+        sim = {**part["sim"], **{k: v for k, v in EXECUTION_ONLY.items() if k in part["sim"]}}
+        part["sim"] = {k: v for k, v in sim.items() if not (k in EXECUTION_ONLY and EXECUTION_ONLY[k] is None)}
     return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
