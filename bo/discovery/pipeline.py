@@ -374,10 +374,27 @@ def chi2_equivalent(z: float, dof: float) -> float:
 def _run(store: CampaignStore, executor: Executor, stage: str, key: str, points: Sequence[Mapping[str, float]],
          seeds: Sequence[int], conditions: Sequence[str], kpis: Sequence[str]) -> np.ndarray:
     """Run (resume) a batch; ``[n_points, n_conditions, r, K]`` KPI values (NaN: failed/unmeasured)."""
-    stored = store.batch(stage, key, lambda: [dict(p) for p in points], seeds=list(seeds),
-                         conditions=list(conditions))
+    return _run_together(store, executor, stage, [(key, points, seeds, conditions)], kpis)[0]
+
+
+def _run_together(store: CampaignStore, executor: Executor, stage: str,
+                  batches: Sequence[tuple[str, Sequence[Mapping[str, float]], Sequence[int], Sequence[str]]],
+                  kpis: Sequence[str]) -> list[np.ndarray]:
+    """Run (resume) several batches ``(key, points, seeds, conditions)`` of one stage at once, so
+    that every worker of the executor has work (one condition's few held-out runs fill one worker;
+    run one after the other, the conditions of a hypothesis left the others idle). Returns each
+    batch's ``[n_points, n_conditions, r, K]`` KPI values (NaN: failed/unmeasured)."""
+    stored = [store.batch(stage, key, lambda points=points: [dict(p) for p in points], seeds=list(seeds),
+                          conditions=list(conditions)) for key, points, seeds, conditions in batches]
     run_pending(store, executor, stage)
-    out = np.full((len(stored), len(conditions), len(seeds), len(kpis)), np.nan)
+    return [_collect(store, stage, key, len(points), seeds, conditions, kpis)
+            for points, (key, _, seeds, conditions) in zip(stored, batches)]
+
+
+def _collect(store: CampaignStore, stage: str, key: str, n_points: int, seeds: Sequence[int],
+             conditions: Sequence[str], kpis: Sequence[str]) -> np.ndarray:
+    """The stored KPIs of a batch, ``[n_points, n_conditions, r, K]`` (NaN: failed/unmeasured)."""
+    out = np.full((n_points, len(conditions), len(seeds), len(kpis)), np.nan)
     ci = {c: i for i, c in enumerate(conditions)}
     si = {s: i for i, s in enumerate(seeds)}
     for rec in store.records(stage, batch_key=key, status="done"):
@@ -515,11 +532,10 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     unmeasured = list(settings.proposed_conditions) if mechanism is not None else []
     with executor_for(hyp_model) as executor:
         read = kpis + [k for k in settings.proposed_kpis if k not in kpis and mechanism is not None]
-        every_run = _run(store, executor, f"discovery-{name}", design_key, points, settings.fit_seeds, conditions, read)
+        design = [(design_key, points, settings.fit_seeds, conditions)]
         if unmeasured:
-            every_run = np.concatenate([every_run, _run(store, executor, f"discovery-{name}",
-                                                        f"{design_key}/conditions/{_key(unmeasured)}", points,
-                                                        settings.fit_seeds, unmeasured, read)], axis=1)
+            design.append((f"{design_key}/conditions/{_key(unmeasured)}", points, settings.fit_seeds, unmeasured))
+        every_run = np.concatenate(_run_together(store, executor, f"discovery-{name}", design, read), axis=1)
     reps = every_run[:, :len(conditions), :, :len(kpis)]  # [points, measured conditions, seeds, compared KPIs]
     # outputs: measured (condition, KPI) cells; y = replicate means, y_var = variance of the mean
     cells = [(i, c, j, k) for i, c in enumerate(conditions) for j, k in enumerate(kpis) if (c, k) in lab]
@@ -590,16 +606,17 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     # fitted without it
     held: dict[str, np.ndarray] = {}
     failures: dict[str, str] = {}
-    with executor_for(hyp_model) as executor:
-        for c, x in without.items():
-            params = {**calibrated, **x}
-            key = f"held-out/{c}/" + _key(sorted(params.items()), list(settings.seeds))
-            held[c] = _run(store, executor, f"discovery-{name}", key, [params], settings.seeds, [c], kpis)[0, 0]
-            missing = _unmeasured(held[c], c, kpis, lab)
-            if missing:  # the fitted parameters could not be simulated here: no prediction, no score
-                failed = store.records(f"discovery-{name}", batch_key=key, status="failed")
-                failures[c] = (f"{', '.join(missing)} not measured in any run"
-                               + (f"; first error: {failed[0].error}" if failed else ""))
+    held_out = {c: (f"held-out/{c}/" + _key(sorted({**calibrated, **x}.items()), list(settings.seeds)),
+                    [{**calibrated, **x}], settings.seeds, [c]) for c, x in without.items()}
+    with executor_for(hyp_model) as executor:  # every condition's runs at once (_run_together)
+        runs = _run_together(store, executor, f"discovery-{name}", list(held_out.values()), kpis)
+    for (c, (key, *_)), reps_c in zip(held_out.items(), runs):
+        held[c] = reps_c[0, 0]
+        missing = _unmeasured(held[c], c, kpis, lab)
+        if missing:  # the fitted parameters could not be simulated here: no prediction, no score
+            failed = store.records(f"discovery-{name}", batch_key=key, status="failed")
+            failures[c] = (f"{', '.join(missing)} not measured in any run"
+                           + (f"; first error: {failed[0].error}" if failed else ""))
     echo(f"  {name}: {len(names)} parameters, {n_points} points fitted; surrogate held-out chi^2 "
          + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items()))
     hypothesis = HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names},
