@@ -619,6 +619,39 @@ def test_a_batch_killed_mid_run_resumes_from_its_checkpoint(tmp_path):
     assert before > 0 and all(o.wall_time >= before + 0.8 * elapsed for o in resumed)
 
 
+def test_a_checkpoint_made_in_build_order_resumes_with_reordering_on(tmp_path):
+    """The lab campaign switched ``sim.reorder_every`` on while runs stood checkpointed in build
+    order: the batch finds its checkpoint under the same name, resumes it reordered (the file is
+    consumed, the cost carries over) and measures every KPI with the mass conserved."""
+    from bo.campaign.dem import checkpoint_path, evaluate_batch
+    from bo.campaign.executor import EvalTask
+
+    model, _ = _dem_model()
+    tasks = [EvalTask({"mu_s_pp": 0.5}, 0, "50-50"), EvalTask({"mu_s_pp": 0.3}, 1, "50-50")]
+    path = checkpoint_path(tmp_path, model, tasks)
+
+    class Killed(Exception):
+        pass
+
+    def kill(simulated: float, wall: float) -> None:
+        if simulated > 1.2:
+            raise Killed
+
+    test = model.test_for("50-50", [dict(t.params) for t in tasks])
+    with pytest.raises(Killed):
+        test.run_members([(0, 0, 0), (1, 1, 1)], checkpoint=path, checkpoint_every=0.5, progress=kill)
+    before = float(torch.load(path, weights_only=True)["wall_s"])
+    reordered = dataclasses.replace(model, settings=dataclasses.replace(model.settings, reorder_every=1))
+    assert checkpoint_path(tmp_path, reordered, tasks) == path
+    resumed = evaluate_batch(reordered, tasks, checkpoint_dir=str(tmp_path))
+    assert not path.exists()
+    for o in resumed:
+        assert o.ok, o.error
+        assert o.wall_time >= before
+        assert all(math.isfinite(v) for v in o.kpis.values()), o.kpis
+        assert 0 < o.kpis["mass_lower_box_kg"] <= o.kpis["fill_mass_kg"]
+
+
 def test_clump_shape_prior_fits_the_periodic_slice():
     """On the paper's 4 cm periodic slice the lobe spacing prior starts where the largest sinter
     (25 mm) still fits the minimum image (s > 0.5 - 0.95 x 0.04 / (4 x 0.025) = 0.12), and the
