@@ -268,24 +268,28 @@ def _raw_call(extension, system, state, xs, omega, members, order=None):
 
 def test_cpp_member_partition_equals_two_passes_bitwise(extension):
     """Threads owning whole members (one pass) give bitwise the two-pass result, for 1 and 2
-    threads; contacts not grouped by member fall back to two passes (same result again)."""
+    threads; contacts not grouped by member fall back to two passes (same result again). The
+    reference is one member on two threads, which always takes two passes; one member on one
+    thread (a campaign worker) takes the one-pass path and must equal it too."""
     system, state = _system(B=4, N=120, seed=6)
     state, xs, omega = _with_history(system, state, seed=7)
     assert state.pairs.n > 500 and state.walls.n > 30
     threads = torch.get_num_threads()
     shuffled = torch.randperm(state.pairs.n, generator=torch.Generator().manual_seed(8))
     try:
+        torch.set_num_threads(2)
+        two_pass = _raw_call(extension, system, state, xs, omega, members=1)
+        mixed_ref = _raw_call(extension, system, state, xs, omega, members=1, order=shuffled)
         for n in (1, 2):
             torch.set_num_threads(n)
-            two_pass = _raw_call(extension, system, state, xs, omega, members=1)
-            for members in (2, 4):
+            for members in (1, 2, 4):
                 one_pass = _raw_call(extension, system, state, xs, omega, members=members)
                 for a, b in zip(one_pass, two_pass):
                     assert torch.equal(a, b), (n, members)
-            mixed = _raw_call(extension, system, state, xs, omega, members=4, order=shuffled)
-            mixed_ref = _raw_call(extension, system, state, xs, omega, members=1, order=shuffled)
-            for a, b in zip(mixed, mixed_ref):
-                assert torch.equal(a, b), n
+            for members in (1, 4):
+                mixed = _raw_call(extension, system, state, xs, omega, members=members, order=shuffled)
+                for a, b in zip(mixed, mixed_ref):
+                    assert torch.equal(a, b), (n, members)
     finally:
         torch.set_num_threads(threads)
     # The per-member scatter changes nothing but the schedule: the forces are the torch ones.

@@ -306,12 +306,14 @@ TORCHDEM_INLINE void add_rows(const int64_t* body_a, const int64_t* body_b, int6
 // (start[members] = n), read off body_a (member = body / bodies_per_member), assuming the
 // contacts are sorted by member; callers check ownership while they use it. Empty (use two
 // passes) when the bodies do not split evenly into members, or when whole members would load
-// the threads unevenly (fewer than two members per thread and not a multiple of them).
+// the threads unevenly (fewer than two members per thread and not a multiple of them). One
+// member on one thread (a campaign worker's run) is one range too: two passes would only write
+// every row to a buffer and read it back.
 inline std::vector<int64_t> member_starts(const int64_t* body_a, int64_t n, int64_t n_bodies, int64_t members) {
   std::vector<int64_t> start;
   const int64_t threads = at::get_num_threads();
   const bool balanced = members % threads == 0 || members >= 2 * threads;
-  if (members < 2 || n_bodies % members != 0 || !balanced) return start;
+  if (members < 1 || (members < 2 && threads > 1) || n_bodies % members != 0 || !balanced) return start;
   const int64_t per = n_bodies / members;
   start.resize(members + 1);
   start[0] = 0;
