@@ -579,6 +579,24 @@ def test_a_member_that_cannot_be_built_fails_alone():
     assert out[0].kpis != out[2].kpis
 
 
+def _kill_mid_run(model, tasks, path) -> float:
+    """Run ``tasks`` as one batch checkpointing to ``path`` every 0.5 s of simulated time and kill
+    it past 1.2 s; returns the wall time the checkpoint records."""
+    class Killed(Exception):
+        pass
+
+    def kill(simulated: float, wall: float) -> None:
+        if simulated > 1.2:
+            raise Killed
+
+    test = model.test_for("50-50", [dict(t.params) for t in tasks])
+    with pytest.raises(Killed):
+        test.run_members([(k, k, k) for k in range(len(tasks))], checkpoint=path, checkpoint_every=0.5,
+                         progress=kill)
+    assert path.exists()
+    return float(torch.load(path, weights_only=True)["wall_s"])
+
+
 def test_a_batch_killed_mid_run_resumes_from_its_checkpoint(tmp_path):
     """With a checkpoint directory (what torchdem-calibrate, -screen and -study give their
     executors: ``<store>.runs/``) an interrupted batch resumes where its last checkpoint stood:
@@ -598,18 +616,7 @@ def test_a_batch_killed_mid_run_resumes_from_its_checkpoint(tmp_path):
     assert checkpoint_path(tmp_path, dataclasses.replace(model, settings=dataclasses.replace(
         model.settings, dtype="float32")), tasks) != path
 
-    class Killed(Exception):
-        pass
-
-    def kill(simulated: float, wall: float) -> None:
-        if simulated > 1.2:
-            raise Killed
-
-    test = model.test_for("50-50", [dict(t.params) for t in tasks])
-    with pytest.raises(Killed):
-        test.run_members([(0, 0, 0), (1, 1, 1)], checkpoint=path, checkpoint_every=0.5, progress=kill)
-    assert path.exists()
-    before = float(torch.load(path, weights_only=True)["wall_s"])
+    before = _kill_mid_run(model, tasks, path)
     started = time.perf_counter()
     resumed = evaluate_batch(model, tasks, checkpoint_dir=str(tmp_path))
     elapsed = time.perf_counter() - started
@@ -630,17 +637,7 @@ def test_a_checkpoint_made_in_build_order_resumes_with_reordering_on(tmp_path):
     tasks = [EvalTask({"mu_s_pp": 0.5}, 0, "50-50"), EvalTask({"mu_s_pp": 0.3}, 1, "50-50")]
     path = checkpoint_path(tmp_path, model, tasks)
 
-    class Killed(Exception):
-        pass
-
-    def kill(simulated: float, wall: float) -> None:
-        if simulated > 1.2:
-            raise Killed
-
-    test = model.test_for("50-50", [dict(t.params) for t in tasks])
-    with pytest.raises(Killed):
-        test.run_members([(0, 0, 0), (1, 1, 1)], checkpoint=path, checkpoint_every=0.5, progress=kill)
-    before = float(torch.load(path, weights_only=True)["wall_s"])
+    before = _kill_mid_run(model, tasks, path)
     reordered = dataclasses.replace(model, settings=dataclasses.replace(model.settings, reorder_every=1))
     assert checkpoint_path(tmp_path, reordered, tasks) == path
     resumed = evaluate_batch(reordered, tasks, checkpoint_dir=str(tmp_path))

@@ -66,6 +66,14 @@ _VARIANT_FIELDS = {"time_step_fraction": float, "shear_modulus": float, "fines_c
 _GEOMETRY_FIELDS = {"slice_depth": _optional_length, "mirror": _flag}
 
 
+#: Settings that decide where and how fast a run goes, not what it gives: the device, compiled
+#: kernels and the bodies' spatial order (fields of ``DrawDownModel`` and of its ``RunSettings``,
+#: named as in the ``sim`` config block). Runs that differ in them differ at round-off, as the C++
+#: kernels' runs do between CPUs, so a campaign store and a batch's checkpoint do not tell them apart
+#: (``bo.cli.common.config_hash``, ``bo.campaign.dem.checkpoint_path``).
+EXECUTION_ONLY = ("device", "compile", "reorder_every")
+
+
 @dataclass(frozen=True)
 class DrawDownModel:
     """A draw down DEM model ready to evaluate (see the module docstring).
@@ -83,6 +91,14 @@ class DrawDownModel:
     settings: RunSettings
     fixed: Mapping[str, float] = field(default_factory=dict)
     device: str = "cpu"
+
+    def without_execution(self) -> "DrawDownModel":
+        """This model with its :data:`EXECUTION_ONLY` settings at their defaults: what its runs
+        give, whatever device, compilation or body order they run with."""
+        def defaults(obj):
+            return {f.name: f.default for f in dataclasses.fields(obj) if f.name in EXECUTION_ONLY}
+        return dataclasses.replace(self, settings=dataclasses.replace(self.settings, **defaults(self.settings)),
+                                   **defaults(self))
 
     def test_for(self, condition: str, parameter_sets: Sequence[Mapping[str, float]],
                  isolate: bool = True) -> DrawDownTest:

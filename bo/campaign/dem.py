@@ -24,7 +24,6 @@ Contract:
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
@@ -42,11 +41,10 @@ from torchdem.model import DrawDownModel
 def checkpoint_path(checkpoint_dir: str | Path, model: DrawDownModel, tasks: Sequence[EvalTask]) -> Path:
     """The checkpoint file of a batch: named by a hash of the model (its repr), the condition and
     each task's parameters and seed, in order. The model is named without the settings that decide
-    only how a run goes (device, compile, spatial reordering; ``bo.cli.common.EXECUTION_ONLY``): a
-    checkpoint resumes on another device or with reordering switched on (:meth:`Simulation.load`
-    applies a saved order to the system and moves the state to its device)."""
-    execution = dataclasses.replace(model.settings, compile=False, reorder_every=0)
-    named = dataclasses.replace(model, settings=execution, device="cpu")
+    only how a run goes (``torchdem.model.EXECUTION_ONLY``): a checkpoint resumes on another device
+    or with reordering switched on (:meth:`Simulation.load` applies a saved order to the system and
+    moves the state to its device)."""
+    named = model.without_execution()
     text = json.dumps([repr(named), [[t.condition, sorted(t.params.items()), int(t.seed)] for t in tasks]])
     return Path(checkpoint_dir) / f"batch-{hashlib.sha256(text.encode()).hexdigest()[:20]}.pt"
 

@@ -83,21 +83,23 @@ def check_kpis(kpis, where: str, name: str = "kpis") -> tuple[str, ...]:
     return tuple(kpis)
 
 
-#: Settings of the ``sim`` block that decide where and how fast a run goes, not what it gives: a
-#: store takes runs made on a GPU or a CPU, compiled or not, with the bodies reordered in space or
-#: not (their results differ at round-off, as the C++ kernels' do between CPUs). They are hashed at
-#: these values, so stores made before keep their hash; None: hashed as if the key were absent
-#: (``reorder_every`` was not in the ``sim`` block when the shipped stores were made).
-EXECUTION_ONLY = {"device": "cpu", "compile": False, "reorder_every": None}
+#: How the shipped stores hashed the execution-only settings of ``sim``
+#: (``torchdem.model.EXECUTION_ONLY``): ``device`` and ``compile`` were in the block at these values;
+#: the others were absent and are hashed as absent. So stores made before keep their hash, and a
+#: store takes runs made on a GPU or a CPU, compiled or not, reordered or not.
+HASHED_AS = {"device": "cpu", "compile": False}
 
 
 def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> str:
     """Hash of the result-deciding blocks (default ``MODEL_KEYS``) of the resolved config
-    (``sim``'s :data:`EXECUTION_ONLY` settings left out)."""
+    (``sim``'s execution-only settings hashed as :data:`HASHED_AS` says)."""
+    from torchdem.model import EXECUTION_ONLY
+
     part = {k: plain.get(k) for k in keys}
     if isinstance(part.get("sim"), Mapping):
-        sim = {**part["sim"], **{k: v for k, v in EXECUTION_ONLY.items() if k in part["sim"]}}
-        part["sim"] = {k: v for k, v in sim.items() if not (k in EXECUTION_ONLY and EXECUTION_ONLY[k] is None)}
+        sim = part["sim"]
+        part["sim"] = {**{k: v for k, v in sim.items() if k not in EXECUTION_ONLY},
+                       **{k: v for k, v in HASHED_AS.items() if k in sim}}
     return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
