@@ -448,6 +448,10 @@ def test_killed_campaign_resumes_without_losing_or_repeating_a_run(tmp_path):
     ("verification.replicates=0", r"verification: replicates = 0 is not allowed; expected an int >= 1"),
     ("verification.fresh=maybe", r"verification: fresh = 'maybe' is not allowed; expected true or false"),
     ("surrogate.noise=guessed", r"surrogate: noise = 'guessed' is not allowed; expected one of \['learned', 'pooled'\]"),
+    ("surrogate.target_basis=observed", r"surrogate: AdaptiveSettings: target_basis = 'observed' is not allowed; expected one of "
+     r"\['total', 'explainable'\]"),
+    ("surrogate.target_basis=explainable surrogate.replicates=1 surrogate.noise=learned",
+     r"surrogate: target_basis = 'explainable' is not allowed; expected 'total' when points run once"),
     ("surrogate.reuse_screening=maybe", r"surrogate: reuse_screening = 'maybe' is not allowed; expected true or false"),
     ("validation.conditions=[60-40]", r"validation.conditions: \['60-40'\] are not in the measured data"),
     ("measured=/nonexistent/lab.json", r"/nonexistent/lab.json: cannot read measured-data file"),

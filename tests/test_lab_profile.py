@@ -34,6 +34,8 @@ def test_lab_profile_composes_on_the_lab_geometry_within_budget():
     total = screening_runs + a.budget * len(s.surrogate.seeds) + len(s.verification_seeds) \
         + 3 * len(s.validation_seeds)
     assert total <= 215, total
+    # single runs with the pooled noise: the stop counts R^2 against the explainable variance
+    assert a.target_basis == "explainable" and s.surrogate.noise == "pooled"
 
 
 def test_added_parameters_join_the_selection_with_their_bounds():

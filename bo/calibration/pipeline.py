@@ -59,7 +59,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from bo.surrogate.acquisition import (AdaptiveSettings, RoundRecord, SamplingState, best_kernel_cv, latin_hypercube,
-                            propose_batch)
+                                      propose_batch, state_ceiling)
 from torchdem.model import DENSITY_PREFIX
 from bo.campaign.executor import Executor, run_pending
 from bo.surrogate.ga import GASettings, GASummary, repeated_ga
@@ -582,15 +582,18 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                              y=np.array(y[int(usable[:start].sum()):], copy=True), kernel=cv["kernel"],
                              r2_mean=num(cv["mean"]), r2_std=num(cv["std"]), r2_per_seed=tuple(map(num, cv["per_seed"])),
                              actual=np.array(cv["actual"], dtype=np.float64),
-                             predicted=np.array(cv["predicted"], dtype=np.float64))
+                             predicted=np.array(cv["predicted"], dtype=np.float64),
+                             r2_ceiling=state_ceiling(state, config, objective))
         rounds.append(record)
         r2[config.strategy].append(record.r2_mean)
         for t, value in cv["variants"].items():
             r2[t].append(num(value))
         extra = "".join(f", {t} {r2[t][-1]:.3f}" for t in r2 if t != config.strategy)
+        ceiling = (f"; noise ceiling {record.r2_ceiling:.3f}, {record.r2_explained:.3f} of the explainable"
+                   if math.isfinite(record.r2_ceiling) else "")
         echo(f"surrogate round {k}: {X_all.shape[0]} points ({state.n} usable), CV R^2 {record.r2_mean:.3f} "
-             f"+/- {record.r2_std:.3f} ({record.kernel}, {config.strategy}{extra})")
-        if record.r2_mean >= a.target_r2:
+             f"+/- {record.r2_std:.3f} ({record.kernel}, {config.strategy}{extra}{ceiling})")
+        if record.reached(a):
             reason = "target_r2"
             break
         if X_all.shape[0] - n0 >= a.budget:

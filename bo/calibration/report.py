@@ -32,7 +32,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from bo.surrogate.acquisition import plot_actual_vs_predicted
+from bo.surrogate.acquisition import plot_actual_vs_predicted, target_reached
 from bo.calibration.pipeline import CalibrationResult, KPIAgreement
 from bo.report.plots import write_relative_error_plot
 from bo.screening.pipeline import json_ready, measured_name
@@ -83,8 +83,10 @@ def calibration_payload(result: CalibrationResult) -> dict:
                       "points_run": sur.points_run, "dropped_points": sur.dropped_points,
                       "reused_screening_points": sur.reused_points, "reuse_note": sur.reuse_note,
                       "stopped_because": sur.stopped_because, "target_r2": s.surrogate.adaptive.target_r2,
+                      "target_basis": s.surrogate.adaptive.target_basis,
                       "rounds": [{"round": r.index, "n_points": r.n_points, "kernel": r.kernel,
-                                  "r2_mean": r.r2_mean, "r2_std": r.r2_std} for r in sur.rounds],
+                                  "r2_mean": r.r2_mean, "r2_std": r.r2_std, "r2_ceiling": r.r2_ceiling,
+                                  "r2_explained": r.r2_explained} for r in sur.rounds],
                       "strategy_r2": {k: list(v) for k, v in sur.strategy_r2.items()},
                       "strategy_comparison": strategy_comparison(result)},
         "ga": _ga_json(result),
@@ -108,7 +110,8 @@ def strategy_comparison(result: CalibrationResult) -> dict:
     r = len(s.seeds)
     out = {}
     for strategy, values in sur.strategy_r2.items():
-        reached = next((rec.n_points for rec, v in zip(sur.rounds, values) if v >= s.adaptive.target_r2), None)
+        reached = next((rec.n_points for rec, v in zip(sur.rounds, values)
+                        if target_reached(v, rec.r2_ceiling, s.adaptive)), None)
         out[strategy] = {"r2_per_round": list(values), "points_to_target": reached,
                          "dem_runs_to_target": None if reached is None else max(reached - sur.reused_points, 0) * r}
     return out
@@ -218,14 +221,23 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
               "| parameter | low | high |", "| --- | ---: | ---: |"]
     lines += [f"| {n} | {sur.bounds[0, j]:.4g} | {sur.bounds[1, j]:.4g} |" for j, n in enumerate(sur.parameters)]
     strategies = list(sur.strategy_r2)
-    lines += ["", "| round | points | kernel | " + " | ".join(f"CV R^2 {t}" for t in strategies) + " |",
-              "| --- | ---: | --- | " + " | ".join("---:" for _ in strategies) + " |"]
+    # the noise ceiling: the CV R^2 that the DEM noise of the held-out points leaves attainable
+    with_ceiling = any(math.isfinite(rec.r2_ceiling) for rec in sur.rounds)
+    extra_head = " | noise ceiling | explained share" if with_ceiling else ""
+    lines += ["", "| round | points | kernel | " + " | ".join(f"CV R^2 {t}" for t in strategies) + extra_head + " |",
+              "| --- | ---: | --- | " + " | ".join("---:" for _ in strategies) + (" | ---: | ---:" if with_ceiling else "")
+              + " |"]
+    fmt = lambda v: f"{v:.3f}" if math.isfinite(v) else "-"  # noqa: E731
     for i, rec in enumerate(sur.rounds):
         cells = [f"{sur.strategy_r2[t][i]:.3f}" + (f" +- {rec.r2_std:.3f}" if t == s.surrogate.config.strategy else "")
                  for t in strategies]
+        if with_ceiling:
+            cells += [fmt(rec.r2_ceiling), fmt(rec.r2_explained)]
         lines.append(f"| {rec.index} | {rec.n_points} | {rec.kernel} | " + " | ".join(cells) + " |")
     comp = payload["surrogate"]["strategy_comparison"]
-    lines += [""] + [f"- `{t}`: reached R^2 >= {s.surrogate.adaptive.target_r2} "
+    basis = s.surrogate.adaptive.target_basis
+    lines += [""] + [f"- `{t}`: reached R^2 >= {s.surrogate.adaptive.target_r2}"
+                     + (" of the explainable variance " if basis == "explainable" else " ")
                      + (f"after {c['points_to_target']} points ({c['dem_runs_to_target']} DEM runs)"
                         if c["points_to_target"] is not None else "in no round") for t, c in comp.items()]
     if len(strategies) > 1:

@@ -143,7 +143,7 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     acquisition = _wrap(f"{where}.acquisition", lambda: AcquisitionSettings(**acq))
     adaptive = _wrap(where, lambda: AdaptiveSettings(
         budget=cfg.get("budget"), points_per_parameter=cfg.get("points_per_parameter"), q=cfg.get("q"),
-        target_r2=cfg.get("target_r2"), n_folds=cfg.get("n_folds"), cv_seeds=tuple(cfg.get("cv_seeds") or ()),
+        target_r2=cfg.get("target_r2"), target_basis=cfg.get("target_basis", "total"), n_folds=cfg.get("n_folds"), cv_seeds=tuple(cfg.get("cv_seeds") or ()),
         kernels=tuple(kernels), seed=base_seed, acquisition=acquisition))
     if names is not None:
         _wrap(where, lambda: adaptive.initial_size(len(names) + len(checked_added)))  # budget vs initial design, up front
@@ -151,10 +151,14 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     noise = cfg.get("noise", "learned")
     if noise not in NOISE_MODELS:
         raise out_of_range("noise", noise, f"one of {list(NOISE_MODELS)}", where)
+    seeds = _seeds(cfg, where, base_seed)
+    if adaptive.target_basis == "explainable" and noise == "learned" and len(seeds) < 2:
+        raise out_of_range("target_basis", adaptive.target_basis, "'total' when points run once with learned noise "
+                           "('explainable' needs each point's noise: replicates >= 2 or noise: pooled)", where)
     reuse = cfg.get("reuse_screening", False)
     if not isinstance(reuse, bool):
         raise out_of_range("reuse_screening", reuse, "true or false (the screening's points as surrogate data)", where)
-    return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=_seeds(cfg, where, base_seed),
+    return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=seeds,
                                   adaptive=adaptive, config=config,
                                   compare_strategies=bool(cfg.get("compare_strategies")), added=checked_added,
                                   noise=noise, reuse_screening=reuse)

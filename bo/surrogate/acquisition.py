@@ -23,7 +23,9 @@ Adaptive sampling is a pure function of plain data plus a thin loop:
 * ``next_step(state, bounds, settings, config, objective)`` decides deterministically what to
   evaluate next: while ``n < n_initial``, the remaining rows of the seeded LHS; otherwise it
   cross-validates the surrogate on all data (``RoundRecord``) and stops when the mean CV R^2
-  reaches ``target_r2`` or ``n >= budget``, else proposes ``min(q, budget - n)`` points with
+  reaches ``target_r2`` (``target_basis="explainable"``: when ``R^2 / ceiling`` does, the
+  ceiling being the R^2 the DEM noise leaves attainable, ``bo.surrogate.gp.r2_ceiling``) or
+  ``n >= budget``, else proposes ``min(q, budget - n)`` points with
   ``propose_batch(..., seed=settings.seed + n)``. Rounds are defined by counts: round 0 is
   the first ``n_initial`` points, round k adds the next ``q``. Determinism is in terms of
   the evaluated points only: a store interrupted in the middle of a batch should keep the
@@ -62,7 +64,8 @@ from scipy.stats import qmc
 
 from bo.surrogate.objective import ObjectiveSpec
 from bo.surrogate.gp import (KERNELS, DTYPE, CVSummary, Surrogate, SurrogateConfig, as_bounds,
-                          cross_validated_r2, fit_surrogate, _validate_data)
+                          cross_validated_r2, fit_surrogate, objective_noise_variance, r2_ceiling,
+                          _validate_data)
 from torchdem.errors import ConfigError, out_of_range
 
 __all__ = [
@@ -80,7 +83,18 @@ __all__ = [
     "record_from_cv",
     "adaptive_sampling",
     "plot_actual_vs_predicted",
+    "target_reached",
+    "state_ceiling",
+    "TARGET_BASES",
+    "MIN_CEILING",
 ]
+
+#: What ``AdaptiveSettings.target_r2`` is a share of: the observed objective's variance (the
+#: paper) or the part of it the DEM noise leaves explainable.
+TARGET_BASES: tuple[str, ...] = ("total", "explainable")
+#: Below this noise ceiling the explained share ``R^2 / ceiling`` is a ratio of two noisy small
+#: numbers, and the ``"explainable"`` rule leaves the stop to the budget.
+MIN_CEILING = 0.5
 
 
 def _require_int(name: str, value, minimum: int, source: str) -> None:
@@ -189,6 +203,12 @@ class AdaptiveSettings:
         points_per_parameter: LHS points per parameter when ``n_initial`` is None (paper: 10).
         q: points per adaptive round (paper: 10), >= 1.
         target_r2: stop when the mean CV R^2 reaches this, in (0, 1] (paper: 0.95).
+        target_basis: what ``target_r2`` is a share of. ``"total"`` (the paper): the variance of
+            the observed objective, noise included, so a noisy objective may never reach 0.95.
+            ``"explainable"``: the variance left once the DEM noise is taken out, ``R^2 /
+            ceiling`` (``RoundRecord.r2_explained``); it needs the points' noise (``y_var``), and
+            while the ceiling is below ``MIN_CEILING`` (noise swamps the design's spread) only
+            the budget stops the loop.
         n_folds: folds of the CV R^2, >= 2.
         cv_seeds: fold-assignment seeds; mean and std over them (paper: 5 seeds).
         kernels: candidate kernels; with more than one, every round picks the one with the
@@ -202,6 +222,7 @@ class AdaptiveSettings:
     points_per_parameter: int = 10
     q: int = 10
     target_r2: float = 0.95
+    target_basis: str = "total"
     n_folds: int = 5
     cv_seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     kernels: tuple[str, ...] = ("matern52",)
@@ -220,6 +241,8 @@ class AdaptiveSettings:
         _require_int("q", self.q, 1, src)
         if not (isinstance(self.target_r2, (int, float)) and 0.0 < self.target_r2 <= 1.0):
             raise out_of_range("target_r2", self.target_r2, "a number in (0, 1]", src)
+        if self.target_basis not in TARGET_BASES:
+            raise out_of_range("target_basis", self.target_basis, f"one of {list(TARGET_BASES)}", src)
         _require_int("n_folds", self.n_folds, 2, src)
         object.__setattr__(self, "cv_seeds", tuple(self.cv_seeds))
         if not self.cv_seeds:
@@ -302,6 +325,8 @@ class RoundRecord:
         r2_mean, r2_std, r2_per_seed: CV R^2 over ``cv_seeds`` (Table 7).
         actual, predicted: ``[n_points]`` objective values and held-out CV predictions of
             the first CV seed (Fig. 13).
+        r2_ceiling: the CV R^2 the points' DEM noise leaves attainable
+            (``bo.surrogate.gp.r2_ceiling``); NaN where the noise is not known.
     """
 
     index: int
@@ -314,6 +339,39 @@ class RoundRecord:
     r2_per_seed: tuple[float, ...]
     actual: np.ndarray
     predicted: np.ndarray
+    r2_ceiling: float = math.nan
+
+    @property
+    def r2_explained(self) -> float:
+        """Share of the explainable variance explained, ``r2_mean / r2_ceiling`` (NaN while the
+        ceiling is unknown or below ``MIN_CEILING``)."""
+        if not (self.r2_ceiling >= MIN_CEILING):
+            return math.nan
+        return self.r2_mean / self.r2_ceiling
+
+    def reached(self, settings: "AdaptiveSettings") -> bool:
+        """Whether this round meets the stop rule of ``settings`` (``target_r2`` on its basis)."""
+        return target_reached(self.r2_mean, self.r2_ceiling, settings)
+
+
+def target_reached(r2_mean: float, ceiling: float, settings: AdaptiveSettings) -> bool:
+    """The stop rule: ``r2_mean >= target_r2`` (basis ``"total"``), or ``r2_mean / ceiling >=
+    target_r2`` with ``ceiling >= MIN_CEILING`` (basis ``"explainable"``)."""
+    if settings.target_basis == "total":
+        return r2_mean >= settings.target_r2
+    return bool(ceiling >= MIN_CEILING and r2_mean / ceiling >= settings.target_r2)
+
+
+def state_ceiling(state: "SamplingState", config: SurrogateConfig,
+                  objective: ObjectiveSpec | None = None) -> float:
+    """``r2_ceiling`` of the objective values of ``state`` (NaN without ``y_var``)."""
+    if state.y_var is None or state.n < 2:
+        return math.nan
+    y = np.asarray(state.y, dtype=np.float64)
+    actual = y.reshape(-1) if config.strategy == "scalar" else np.asarray(objective(y))
+    if float(actual.var()) == 0.0:
+        return math.nan
+    return r2_ceiling(actual, objective_noise_variance(y, state.y_var, objective, config.strategy))
 
 
 @dataclass(frozen=True)
@@ -378,16 +436,19 @@ def round_record(state: SamplingState, bounds, settings: AdaptiveSettings,
                           f"initial design of {n_initial} points")
     best = best_kernel_cv(state, b, settings, config, objective)
     index, start, stop = _round_bounds(state.n, n_initial, settings.q)
-    return record_from_cv(best, index, state.n, state.X[start:stop], state.y[start:stop])
+    return record_from_cv(best, index, state.n, state.X[start:stop], state.y[start:stop],
+                          ceiling=state_ceiling(state, config, objective))
 
 
-def record_from_cv(summary: CVSummary, index: int, n_points: int, X, y) -> RoundRecord:
+def record_from_cv(summary: CVSummary, index: int, n_points: int, X, y,
+                   ceiling: float = math.nan) -> RoundRecord:
     """``RoundRecord`` of round ``index`` (its points ``X``, values ``y``) from a CV summary."""
     first = summary.results[0]
     return RoundRecord(index=index, n_points=n_points, X=np.array(X, copy=True),
                        y=np.array(y, copy=True), kernel=summary.kernel, r2_mean=summary.mean,
                        r2_std=summary.std, r2_per_seed=summary.per_seed,
-                       actual=first.actual.copy(), predicted=first.predicted.copy())
+                       actual=first.actual.copy(), predicted=first.predicted.copy(),
+                       r2_ceiling=float(ceiling))
 
 
 def next_step(state: SamplingState, bounds, settings: AdaptiveSettings,
@@ -407,7 +468,7 @@ def next_step(state: SamplingState, bounds, settings: AdaptiveSettings,
 
     record = round_record(state, b, settings, config, objective)
     empty = np.zeros((0, d))
-    if record.r2_mean >= settings.target_r2:
+    if record.reached(settings):
         return NextStep(points=empty, done=True, reason="target_r2", record=record)
     if n >= settings.budget:
         return NextStep(points=empty, done=True, reason="budget", record=record)

@@ -49,6 +49,15 @@ of the held-out KPIs. ``cross_validated_r2`` repeats this over seeds (default 5,
 and reports mean and standard deviation (population std, ``ddof=0``); ``select_kernel`` picks
 the kernel with the highest mean CV R^2 (ties: first in the given order).
 
+The noise ceiling (``objective_noise_variance``, ``r2_ceiling``): a held-out value carries its
+own DEM noise, which no surrogate can predict, so even the noise-free objective scores only
+``E[R^2] = 1 - mean(noise variance) / var(actual)`` in cross-validation. With ``y_var`` known
+(replicates or pooled replicate scatter) the ceiling follows from the data alone: for
+``"scalar"`` the noise variance of a point is its ``y_var``; for ``"per_kpi"`` it is the
+variance of Eq. 7 of ``y + e``, ``e ~ N(0, diag y_var)``, by fixed-seed Monte Carlo (the
+delta method fails where a KPI sits on its measured value, at the kink of ``|.|``).
+``R^2 / ceiling`` is the share of the explainable variance the surrogate explains.
+
 Paper: Hadi, Pang, Schott, section 3.4.3, Eqs. 9-15, Tables 7 and A.2.
 """
 from __future__ import annotations
@@ -94,6 +103,8 @@ __all__ = [
     "cross_validate",
     "cross_validated_r2",
     "select_kernel",
+    "objective_noise_variance",
+    "r2_ceiling",
 ]
 
 DTYPE = torch.float64
@@ -584,6 +595,45 @@ def cross_validated_r2(X, y, bounds, config: SurrogateConfig = SurrogateConfig()
     r2 = np.array([r.r2 for r in results])
     return CVSummary(kernel=config.kernel, mean=float(r2.mean()), std=float(r2.std()),
                      per_seed=tuple(float(v) for v in r2), results=results)
+
+
+def objective_noise_variance(y, y_var, objective: ObjectiveSpec | None = None, strategy: str = "scalar", *,
+                             n_samples: int = 4096, seed: int = 0) -> np.ndarray:
+    """``[n]`` noise variance of the objective value of each point (see the module docstring).
+
+    ``y``/``y_var``: ``[n]`` objective values and their variances (``"scalar"``), or ``[n, M]``
+    KPI means and their variances (``"per_kpi"``, with ``objective``)."""
+    src = "objective_noise_variance"
+    if strategy not in STRATEGIES:
+        raise out_of_range("strategy", strategy, f"one of {list(STRATEGIES)}", src)
+    yy = np.asarray(y, dtype=np.float64)
+    vv = np.asarray(y_var, dtype=np.float64)
+    if vv.shape != yy.shape:
+        raise ConfigError(f"{src}: y_var has shape {vv.shape}; expected the shape of y {yy.shape}")
+    if not np.all(np.isfinite(vv)) or np.any(vv < 0):
+        raise out_of_range("y_var", vv[~(np.isfinite(vv) & (vv >= 0))][:3].tolist(), "finite values >= 0", src)
+    if strategy == "scalar":
+        return vv.reshape(-1).copy()
+    if objective is None or yy.ndim != 2 or yy.shape[1] != objective.n_kpis:
+        raise ConfigError(f"{src}: strategy 'per_kpi' needs y of shape [n, M] and objective=ObjectiveSpec(...) "
+                          f"with M KPIs; got y of shape {yy.shape}")
+    e = np.random.default_rng(seed).standard_normal((n_samples, 1, yy.shape[1]))
+    samples = np.asarray(objective(yy[None] + e * np.sqrt(vv)[None]))  # [S, n]
+    return samples.var(axis=0, ddof=1)
+
+
+def r2_ceiling(actual, noise_var) -> float:
+    """Expected CV R^2 of a surrogate that predicts the noise-free objective exactly:
+    ``1 - mean(noise_var) / var(actual)`` (``actual [n]`` objective values, ``noise_var [n]``
+    their noise variances). At most 1; may be <= 0 where noise swamps the design's spread."""
+    a = np.asarray(actual, dtype=np.float64).reshape(-1)
+    v = np.asarray(noise_var, dtype=np.float64).reshape(-1)
+    if a.shape != v.shape or a.size < 2:
+        raise ConfigError(f"r2_ceiling: {a.size} actual values and {v.size} noise variances; expected as many, >= 2")
+    spread = float(a.var())
+    if spread == 0.0:
+        raise ConfigError("r2_ceiling: actual values are all equal; R^2 is undefined")
+    return 1.0 - float(v.mean()) / spread
 
 
 def select_kernel(X, y, bounds, config: SurrogateConfig = SurrogateConfig(), *,
