@@ -298,6 +298,40 @@ def test_hidden_density_effect_is_named_and_gains_on_held_out_conditions(tmp_pat
         assert abs(g.after_error_pct) < 0.3 * abs(g.before_error_pct), g
 
 
+def test_an_unresolved_fit_has_its_fitted_points_run_before_its_verdict(tmp_path):
+    """Four design points for two densities: the GP's uncertainty at the fit exceeds the data's, so
+    the fit is unresolved (fit_check) and its held-out runs land far off (score in the hundreds).
+    ``escalations=1`` has the DEM run the points the fits chose (on every condition and each of the
+    three left-out ones) in a batch of their own; with them the GP knows the region the fits need,
+    the fit is resolved, finds the hidden densities and scores near the cells' count. A second
+    data set reuses the design but not those data-dependent points; a fit resolved at once runs
+    no more points."""
+    from bo.discovery.pipeline import fit_check
+
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    small = dict(candidates=("density_per_material",), points_per_parameter=2, min_points=4)
+    before = _discover(tmp_path / "once", lab, escalations=0, **small)
+    h0 = next(h for h in before.hypotheses if h.name == "density_per_material")
+    assert h0.points == 4 and not fit_check(h0, 0.05)[0] and h0.score > 100
+    after = _discover(tmp_path / "twice", lab, escalations=1, **small)
+    h1 = next(h for h in after.hypotheses if h.name == "density_per_material")
+    assert h1.points == 8 and fit_check(h1, 0.05)[0] and h1.score < 30
+    assert after.cause == "density_per_material" and not after.unresolved
+    assert after.extension["density_sinter"] == pytest.approx(km.NOMINAL_DENSITY["sinter"] * 1.25, rel=0.05)
+    store = CampaignStore(tmp_path / "twice" / "d.sqlite", "known", extra_stages=discovery_stages())
+    keys = lambda: sorted(k for _, k in store.batch_keys("discovery-density_per_material")  # noqa: E731
+                          if not k.startswith("held-out/"))
+    first = keys()
+    assert [k.split("/")[0] for k in first] == ["lhs", "refine"]
+    assert len({r.point_index for r in store.records(batch_key=first[1])}) == 4
+    _discover(tmp_path / "twice", _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.2}), escalations=1, **small)
+    second = keys()
+    assert second[0] == first[0] and len(second) == 3  # the design shared, the refinement per data set
+    resolved = _discover(tmp_path / "default", lab, escalations=1, candidates=("density_per_material",))
+    h2 = next(h for h in resolved.hypotheses if h.name == "density_per_material")
+    assert h2.points == 10 and fit_check(h2, 0.05)[0]
+
+
 def test_no_candidates_measures_the_discrepancy_only(tmp_path):
     lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
     result = _discover(tmp_path, lab, candidates=())

@@ -58,6 +58,7 @@ def discovery_settings_from(plain: Mapping[str, Any]):
             kpis=check_kpis(cfg.get("kpis"), where), seeds=seeds, fit_seeds=fit, candidates=candidates,
             refit=tuple(refit), refit_fraction=float(cfg.get("refit_fraction")),
             points_per_parameter=cfg.get("points_per_parameter"), min_points=cfg.get("min_points"),
+            escalations=cfg.get("escalations", 1),
             alpha=float(cfg.get("alpha")), penalty=float(cfg.get("penalty")), margin=float(cfg.get("margin")),
             always_score=bool(cfg.get("always_score")), ga=ga, kernel=str(cfg.get("kernel")), seed=base,
             fit_starts=cfg.get("fit_starts", 3), fit_search=str(cfg.get("fit_search", "multistart")),

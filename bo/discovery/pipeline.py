@@ -108,8 +108,10 @@ PARAMETERS = "parameters"
 #: silently reused. 1: the fits weighed each cell by the lab's uncertainty alone when the design
 #: ran each point once, and there was no fit check; 2: the DEM noise of the held-out mean in every
 #: fit's chi^2, and :func:`fit_check`; 3: each fit searched by a Sobol sample and L-BFGS-B polish
-#: (``fit_search="multistart"``) instead of three GA runs.
-VERDICT_RULES = 3
+#: (``fit_search="multistart"``) instead of three GA runs; 4: a fit left unresolved by
+#: :func:`fit_check` has the DEM run the points it chose and is refitted (``escalations`` times)
+#: before the verdict.
+VERDICT_RULES = 4
 
 
 def discovery_stages(names: Sequence[str] | None = None) -> tuple[str, ...]:
@@ -131,6 +133,10 @@ class DiscoverySettings:
         refit: calibrated parameters free in every hypothesis; refit_fraction: their range,
             ``value x (1 +- fraction)`` (friction >= 0, restitution in (0, 1]).
         points_per_parameter, min_points: design size per hypothesis.
+        escalations: times a hypothesis whose fit is unresolved (:func:`fit_check`) has the DEM
+            run the points its fits chose (on every condition and each left-out one, with
+            ``fit_seeds``) and its GP refitted with them before it is scored. Unlike the design,
+            these runs depend on the data.
         alpha: significance of the discrepancy test. penalty: held-out chi^2 per added
             parameter. margin: held-out chi^2 a cause must gain over the parameters hypothesis.
         always_score: fit the hypotheses even without a significant discrepancy.
@@ -156,6 +162,7 @@ class DiscoverySettings:
     refit_fraction: float = 0.2
     points_per_parameter: int = 5
     min_points: int = 6
+    escalations: int = 1
     alpha: float = 0.05
     penalty: float = 2.0
     margin: float = 4.0
@@ -197,6 +204,8 @@ class DiscoverySettings:
         if isinstance(self.search_samples, bool) or not isinstance(self.search_samples, int) \
                 or self.search_samples < 16:
             raise out_of_range("search_samples", self.search_samples, "an integer >= 16", source)
+        if isinstance(self.escalations, bool) or not isinstance(self.escalations, int) or self.escalations < 0:
+            raise out_of_range("escalations", self.escalations, "an integer >= 0", source)
         for name in ("points_per_parameter", "min_points"):
             if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), int) \
                     or getattr(self, name) < 2:
@@ -522,70 +531,94 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
         return _Fitted(HypothesisScore(name, description, (), {}, 0, {}, {c: {} for c in conditions}, {}, math.nan,
                                        math.nan, 0), {c: baseline_reps[i] for i, c in enumerate(conditions)}, ())
     b = np.array([[bounds[n][0] for n in names], [bounds[n][1] for n in names]], dtype=np.float64)
-    n_points = max(settings.min_points, settings.points_per_parameter * len(names))
-    X = latin_hypercube(b, n_points, seed=settings.seed)
-    points = [{**calibrated, **dict(zip(names, map(float, x)))} for x in X]
+    size = max(settings.min_points, settings.points_per_parameter * len(names))
     hyp_model = model if mechanism is None else mechanism.apply(model)
-    design_key = f"lhs/{_key(names, b.tolist(), n_points, settings.seed)}"
     # a candidate's design also runs on the proposed conditions (a batch of its own, so that a
     # store's design batches stay as they are)
     unmeasured = list(settings.proposed_conditions) if mechanism is not None else []
-    with executor_for(hyp_model) as executor:
-        read = kpis + [k for k in settings.proposed_kpis if k not in kpis and mechanism is not None]
-        design = [(design_key, points, settings.fit_seeds, conditions)]
-        if unmeasured:
-            design.append((f"{design_key}/conditions/{_key(unmeasured)}", points, settings.fit_seeds, unmeasured))
-        every_run = np.concatenate(_run_together(store, executor, f"discovery-{name}", design, read), axis=1)
-    reps = every_run[:, :len(conditions), :, :len(kpis)]  # [points, measured conditions, seeds, compared KPIs]
-    # outputs: measured (condition, KPI) cells; y = replicate means, y_var = variance of the mean
+    read = kpis + [k for k in settings.proposed_kpis if k not in kpis and mechanism is not None]
     cells = [(i, c, j, k) for i, c in enumerate(conditions) for j, k in enumerate(kpis) if (c, k) in lab]
-    counts = np.stack([np.isfinite(reps[:, i, :, j]).sum(axis=1) for i, _, j, _ in cells], axis=1)
-    with warnings.catch_warnings():  # a point with no finite replicate: NaN, not usable
-        warnings.simplefilter("ignore", RuntimeWarning)
-        Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i, _, j, _ in cells], axis=1)
-    usable = (counts >= min(2, len(settings.fit_seeds))).all(axis=1) & np.isfinite(Y).all(axis=1)
-    if usable.sum() < max(4, len(names) + 2):
-        failed = store.records(f"discovery-{name}", batch_key=design_key, status="failed")
-        first = (f"; {len(failed)} run(s) failed, the first ({failed[0].condition}, seed {failed[0].seed}, "
-                 + ", ".join(f"{n} = {failed[0].params[n]:.4g}" for n in names if n in failed[0].params)
-                 + f"): {failed[0].error}") if failed else ""
-        raise ConfigError(f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points have "
-                          f"every KPI measured on every condition{first} (all runs in {store.path})")
-    V = None
-    if len(settings.fit_seeds) > 1:  # variance of each design point's mean, from the design's pooled noise
-        design_noise = ReplicateNoise.of(kpis, [reps[usable]])
-        V = np.array([[design_noise.variance(k) for _, _, _, k in cells]]) / np.maximum(counts, 1)
-        V = np.where(np.isfinite(V), V, 0.0)
     lab_mean = np.array([lab[(c, k)][0] for _, c, _, k in cells])
     lab_var = np.array([lab[(c, k)][1] ** 2 for _, c, _, k in cells])
     output_names = tuple(f"{c}|{k}" for _, c, _, k in cells)
     spec = ObjectiveSpec(output_names, tuple(np.where(lab_mean == 0, 1.0, lab_mean)), source=f"hypothesis {name}")
-    surrogate = fit_surrogate(X[usable], Y[usable], b, SurrogateConfig(kernel=settings.kernel, strategy="per_kpi"),
-                              y_var=None if V is None else V[usable], objective=spec)
-    # The fits minimise the chi^2 that the held-out runs will be scored by: a mean of
-    # len(settings.seeds) DEM runs against the lab, so each cell's denominator carries that mean's
-    # variance, the DEM noise pooled over the discrepancy runs and the design's replicates (with one
-    # run per design point the design has none; leaving the DEM noise out then weighed the KPIs by
-    # the lab's uncertainty alone and made every surrogate fit look far off its data).
-    fit_noise = ReplicateNoise.of(kpis, [baseline_reps] + ([reps[usable]] if len(settings.fit_seeds) > 1 else []))
-    dem_var = np.array([fit_noise.variance(k) for _, _, _, k in cells]) / len(settings.seeds)
-    dem_var = np.where(np.isfinite(dem_var), dem_var, 0.0)
     cond_of = np.array([c for _, c, _, _ in cells])
+    X = np.zeros((0, len(names)))
+    every_run = None
+    design_keys: list[str] = []
+    X_new = latin_hypercube(b, size, seed=settings.seed)
+    for round_ in range(settings.escalations + 1):
+        # Round 0 is the design: it does not depend on the data, so it runs once in a store and every
+        # data set reuses it. Each later round (only while the fit is unresolved) runs the points the
+        # fits chose, where the GP knew too little: the fit on every condition and each left-out fit.
+        design_key = (f"lhs/{_key(names, b.tolist(), size, settings.seed)}" if round_ == 0
+                      else f"refine/{_key(names, X_new.tolist(), list(settings.fit_seeds))}")
+        design_keys.append(design_key)
+        points = [{**calibrated, **dict(zip(names, map(float, x)))} for x in X_new]
+        with executor_for(hyp_model) as executor:
+            design = [(design_key, points, settings.fit_seeds, conditions)]
+            if unmeasured:
+                design.append((f"{design_key}/conditions/{_key(unmeasured)}", points, settings.fit_seeds, unmeasured))
+            runs = np.concatenate(_run_together(store, executor, f"discovery-{name}", design, read), axis=1)
+        X = np.concatenate([X, X_new])
+        every_run = runs if every_run is None else np.concatenate([every_run, runs])
+        n_points = X.shape[0]
+        reps = every_run[:, :len(conditions), :, :len(kpis)]  # [points, measured conditions, seeds, compared KPIs]
+        # outputs: measured (condition, KPI) cells; y = replicate means, y_var = variance of the mean
+        counts = np.stack([np.isfinite(reps[:, i, :, j]).sum(axis=1) for i, _, j, _ in cells], axis=1)
+        with warnings.catch_warnings():  # a point with no finite replicate: NaN, not usable
+            warnings.simplefilter("ignore", RuntimeWarning)
+            Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i, _, j, _ in cells], axis=1)
+        usable = (counts >= min(2, len(settings.fit_seeds))).all(axis=1) & np.isfinite(Y).all(axis=1)
+        if usable.sum() < max(4, len(names) + 2):
+            failed = [r for k in design_keys for r in store.records(f"discovery-{name}", batch_key=k, status="failed")]
+            first = (f"; {len(failed)} run(s) failed, the first ({failed[0].condition}, seed {failed[0].seed}, "
+                     + ", ".join(f"{n} = {failed[0].params[n]:.4g}" for n in names if n in failed[0].params)
+                     + f"): {failed[0].error}") if failed else ""
+            raise ConfigError(f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points "
+                              f"have every KPI measured on every condition{first} (all runs in {store.path})")
+        V = None
+        if len(settings.fit_seeds) > 1:  # variance of each design point's mean, from the design's pooled noise
+            design_noise = ReplicateNoise.of(kpis, [reps[usable]])
+            V = np.array([[design_noise.variance(k) for _, _, _, k in cells]]) / np.maximum(counts, 1)
+            V = np.where(np.isfinite(V), V, 0.0)
+        surrogate = fit_surrogate(X[usable], Y[usable], b, SurrogateConfig(kernel=settings.kernel, strategy="per_kpi"),
+                                  y_var=None if V is None else V[usable], objective=spec)
+        # The fits minimise the chi^2 that the held-out runs will be scored by: a mean of
+        # len(settings.seeds) DEM runs against the lab, so each cell's denominator carries that mean's
+        # variance, the DEM noise pooled over the discrepancy runs and the design's replicates (with one
+        # run per design point the design has none; leaving the DEM noise out then weighed the KPIs by
+        # the lab's uncertainty alone and made every surrogate fit look far off its data).
+        fit_noise = ReplicateNoise.of(kpis, [baseline_reps] + ([reps[usable]] if len(settings.fit_seeds) > 1 else []))
+        dem_var = np.array([fit_noise.variance(k) for _, _, _, k in cells]) / len(settings.seeds)
+        dem_var = np.where(np.isfinite(dem_var), dem_var, 0.0)
 
-    def fit(mask: np.ndarray) -> dict[str, float]:
-        def chi2(x: np.ndarray) -> np.ndarray:
-            mean, var = surrogate.predict_outputs(x)
-            return _expected_chi2_terms(mean[:, mask], var[:, mask], dem_var[mask], lab_mean[mask],
-                                        lab_var[mask]).sum(-1)
-        # several starts: the verdict must not hinge on one search that stalled
-        if settings.fit_search == "multistart":
-            res = multistart_minimum(chi2, b, samples=settings.search_samples, starts=settings.fit_starts,
-                                     seed=settings.seed)
-        else:
-            res = min((minimise_surrogate(chi2, b, settings.ga, seed=settings.seed + k)
-                       for k in range(settings.fit_starts)), key=lambda r: r.fitness)
-        return dict(zip(names, map(float, res.x)))
+        def fit(mask: np.ndarray, surrogate=surrogate, dem_var=dem_var) -> dict[str, float]:
+            def chi2(x: np.ndarray) -> np.ndarray:
+                mean, var = surrogate.predict_outputs(x)
+                return _expected_chi2_terms(mean[:, mask], var[:, mask], dem_var[mask], lab_mean[mask],
+                                            lab_var[mask]).sum(-1)
+            # several starts: the verdict must not hinge on one search that stalled
+            if settings.fit_search == "multistart":
+                res = multistart_minimum(chi2, b, samples=settings.search_samples, starts=settings.fit_starts,
+                                         seed=settings.seed)
+            else:
+                res = min((minimise_surrogate(chi2, b, settings.ga, seed=settings.seed + k)
+                           for k in range(settings.fit_starts)), key=lambda r: r.fitness)
+            return dict(zip(names, map(float, res.x)))
 
+        every = fit(np.ones(len(cells), dtype=bool))
+        mean, var = surrogate.predict_outputs(np.array([[every[n] for n in names]]))
+        misfit = float((((mean[0] - lab_mean) ** 2) / (dem_var + lab_var)).sum())
+        surrogate_chi2 = float((var[0] / (dem_var + lab_var)).sum())
+        if fit_resolved(misfit, surrogate_chi2, len(cells), len(names), settings.alpha)[0] \
+                or round_ == settings.escalations:
+            break
+        chosen = [every] + [fit(cond_of != c) for c in conditions if (cond_of != c).any() and (cond_of == c).any()]
+        X_new = np.unique(np.array([[x[n] for n in names] for x in chosen]), axis=0)
+        echo(f"  {name}: fit unresolved with {n_points} design points (its GP's uncertainty at the fit exceeds "
+             f"the data's); the DEM runs the {len(X_new)} fitted points")
+    in_sample = misfit + surrogate_chi2  # _expected_chi2_terms, split in its two parts
     predicted, without = {}, {}
     for c in conditions:
         train = cond_of != c
@@ -597,11 +630,6 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
         predicted[c] = float(_expected_chi2_terms(mean[0, test], var[0, test], dem_var[test], lab_mean[test],
                                                   lab_var[test]).sum())
         without[c] = x
-    every = fit(np.ones(len(cells), dtype=bool))
-    mean, var = surrogate.predict_outputs(np.array([[every[n] for n in names]]))
-    misfit = float((((mean[0] - lab_mean) ** 2) / (dem_var + lab_var)).sum())
-    surrogate_chi2 = float((var[0] / (dem_var + lab_var)).sum())
-    in_sample = misfit + surrogate_chi2  # _expected_chi2_terms, split in its two parts
     # the held-out predictions checked with the DEM: each condition run with the parameters
     # fitted without it
     held: dict[str, np.ndarray] = {}
@@ -988,6 +1016,15 @@ def separability(fitted: Sequence[_Fitted], mechanisms: Mapping[str, Mechanism],
     return out
 
 
+def fit_resolved(misfit: float, surrogate_chi2: float, cells: int, d: int, alpha: float) -> tuple[bool, float]:
+    """``(resolved, p)`` of :func:`fit_check` from a fit's two chi^2 parts (``misfit``: the GP mean's,
+    ``surrogate_chi2``: its own uncertainty's) over ``cells`` cells and ``d`` parameters."""
+    if cells == 0 or not (math.isfinite(misfit) and math.isfinite(surrogate_chi2)):
+        return True, math.nan
+    p = float(stats.chi2.sf(misfit + surrogate_chi2, max(cells - d, 1)))
+    return bool(p >= alpha or surrogate_chi2 <= cells), p
+
+
 def fit_check(h: HypothesisScore, alpha: float) -> tuple[bool, str]:
     """Does ``h``'s fit reproduce the conditions it was fitted on, and if not, is its surrogate to
     blame? Returns ``(resolved, why)``.
@@ -1001,13 +1038,12 @@ def fit_check(h: HypothesisScore, alpha: float) -> tuple[bool, str]:
     it is larger (per cell on average, sigma_GP^2 > s^2 / r + u^2), the design is too sparse to
     say where the hypothesis fits best; its held-out runs were made at a guess, so they cannot rule
     it out (unresolved)."""
-    if not h.parameters or h.fit_cells == 0 or not (math.isfinite(h.fit_misfit_chi2)
-                                                    and math.isfinite(h.fit_surrogate_chi2)):
+    if not h.parameters or h.fit_cells == 0:
+        return True, ""
+    resolved, p = fit_resolved(h.fit_misfit_chi2, h.fit_surrogate_chi2, h.fit_cells, len(h.parameters), alpha)
+    if resolved:
         return True, ""
     dof = max(h.fit_cells - len(h.parameters), 1)
-    p = float(stats.chi2.sf(h.fit_misfit_chi2 + h.fit_surrogate_chi2, dof))
-    if p >= alpha or h.fit_surrogate_chi2 <= h.fit_cells:
-        return True, ""
     return False, (f"{h.name}'s surrogate cannot reproduce the conditions it was fitted on (expected chi^2 "
                    f"{h.fit_misfit_chi2 + h.fit_surrogate_chi2:.1f} on {dof} degrees of freedom, p = {p:.2g}, of "
                    f"which {h.fit_surrogate_chi2:.1f} is the GP's own uncertainty at the fit, more than the "
