@@ -44,15 +44,19 @@ returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model
    (learned by the GP when the design runs each point once). The fits minimise the chi^2 the
    held-out runs are scored by: per cell ``((mu - y)^2 + sigma_GP^2) / (s_k^2 / r + u^2)`` with r
    the held-out replicates and ``s_k`` pooled over the discrepancy runs and the design's replicates.
-3. Cause: the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
+3. Cause: none while the discrepancy, with the noise pooled over every run, is not significant;
+   else the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
    than ``max(margin, 2 x gain_noise_sd)``; else none: no candidate explains the discrepancy
    better than the parameters and noise. If another candidate also beats it so and lies within
    ``max(margin, 2 sd)`` of the best (sd: the DEM-noise sd of the two scores' difference), the
    candidates cannot be told apart: none is named and ``DiscoveryResult.tied`` lists them
    (:func:`tied_with`). Nor is one named while another candidate's fit is unresolved: its
    surrogate, at the parameters fitted on every condition, cannot reproduce those conditions
-   and its own uncertainty there exceeds the data's (:func:`fit_check`); its held-out runs were
-   made at a guess and cannot rule it out (``DiscoveryResult.unresolved``). A named cause comes with the share of the calibrated model's chi^2 it
+   and its own uncertainty there exceeds the data's, or a left-out fit went astray (its DEM
+   runs miss the held-out condition far beyond its GP's prediction) (:func:`fit_check`); its
+   held-out runs were made at a guess and cannot rule it out (``DiscoveryResult.unresolved``).
+   Before that, such a fit is refined ``escalations`` times: the DEM runs the points its fits
+   chose, on every condition, and the GP and the fits are made again. A named cause comes with the share of the calibrated model's chi^2 it
    removes on the held-out cells and, when the extended model still misses there beyond noise,
    the statement that it is partial and what remains (:func:`explained_share`). ``gain_noise_sd`` is the standard deviation the score
    difference would have from DEM noise alone if both hypotheses predicted the same means: per
@@ -281,6 +285,9 @@ class HypothesisScore:
         fit_misfit_chi2, fit_surrogate_chi2: the in-sample chi^2 at ``fitted_all`` split into the
             GP mean's misfit, ``sum (mu - y)^2 / (s^2 + u^2)``, and the GP's own uncertainty,
             ``sum sigma_GP^2 / (s^2 + u^2)``; fit_cells: the cells fitted (:func:`fit_check`).
+        astray: condition -> (the DEM's held-out chi^2, the GP's prediction) where a left-out fit
+            went astray (:func:`prediction_astray`) even after ``escalations``; such a fit is
+            unresolved (:func:`fit_check`).
     """
 
     name: str
@@ -304,6 +311,7 @@ class HypothesisScore:
     fit_misfit_chi2: float = math.nan
     fit_surrogate_chi2: float = math.nan
     fit_cells: int = 0
+    astray: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -611,46 +619,60 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
         mean, var = surrogate.predict_outputs(np.array([[every[n] for n in names]]))
         misfit = float((((mean[0] - lab_mean) ** 2) / (dem_var + lab_var)).sum())
         surrogate_chi2 = float((var[0] / (dem_var + lab_var)).sum())
-        if fit_resolved(misfit, surrogate_chi2, len(cells), len(names), settings.alpha)[0] \
-                or round_ == settings.escalations:
+        predicted, without = {}, {}
+        for c in conditions:
+            train = cond_of != c
+            if not train.any() or not (~train).any():
+                continue
+            x = fit(train)
+            mean, var = surrogate.predict_outputs(np.array([[x[n] for n in names]]))
+            test = ~train
+            predicted[c] = float(_expected_chi2_terms(mean[0, test], var[0, test], dem_var[test], lab_mean[test],
+                                                      lab_var[test]).sum())
+            without[c] = x
+        # the held-out predictions checked with the DEM: each condition run with the parameters
+        # fitted without it
+        held: dict[str, np.ndarray] = {}
+        failures: dict[str, str] = {}
+        held_out = {c: (f"held-out/{c}/" + _key(sorted({**calibrated, **x}.items()), list(settings.seeds)),
+                        [{**calibrated, **x}], settings.seeds, [c]) for c, x in without.items()}
+        with executor_for(hyp_model) as executor:  # every condition's runs at once (_run_together)
+            runs = _run_together(store, executor, f"discovery-{name}", list(held_out.values()), kpis)
+        for (c, (key, *_)), reps_c in zip(held_out.items(), runs):
+            held[c] = reps_c[0, 0]
+            missing = _unmeasured(held[c], c, kpis, lab)
+            if missing:  # the fitted parameters could not be simulated here: no prediction, no score
+                failed = store.records(f"discovery-{name}", batch_key=key, status="failed")
+                failures[c] = (f"{', '.join(missing)} not measured in any run"
+                               + (f"; first error: {failed[0].error}" if failed else ""))
+        # A left-out fit astray: its DEM runs miss the held-out condition by far more than its GP
+        # predicted there, so the GP misjudged the point, and the verdict must not hinge on it.
+        astray = {}
+        for c, reps_c in held.items():
+            if c in failures:
+                continue
+            test = cond_of == c
+            dem_chi2 = float(((np.nanmean(reps_c[:, [kpis.index(k) for _, cc, _, k in cells if cc == c]], axis=0)
+                               - lab_mean[test]) ** 2 / (dem_var[test] + lab_var[test])).sum())
+            if prediction_astray(dem_chi2, predicted[c], int(test.sum())):
+                astray[c] = (dem_chi2, predicted[c])
+        resolved = fit_resolved(misfit, surrogate_chi2, len(cells), len(names), settings.alpha)[0]
+        if (resolved and not astray) or round_ == settings.escalations:
             break
-        chosen = [every] + [fit(cond_of != c) for c in conditions if (cond_of != c).any() and (cond_of == c).any()]
+        chosen = [every, *without.values()]
         X_new = np.unique(np.array([[x[n] for n in names] for x in chosen]), axis=0)
-        echo(f"  {name}: fit unresolved with {n_points} design points (its GP's uncertainty at the fit exceeds "
-             f"the data's); the DEM runs the {len(X_new)} fitted points")
+        why = ([] if resolved else ["its GP's uncertainty at the fit exceeds the data's"]) + [
+            f"the DEM misses {c} with chi^2 {v[0]:.1f} where its GP predicted {v[1]:.1f}" for c, v in astray.items()]
+        echo(f"  {name}: fit unresolved with {n_points} design points ({'; '.join(why)}); the DEM runs the "
+             f"{len(X_new)} fitted points")
     in_sample = misfit + surrogate_chi2  # _expected_chi2_terms, split in its two parts
-    predicted, without = {}, {}
-    for c in conditions:
-        train = cond_of != c
-        if not train.any() or not (~train).any():
-            continue
-        x = fit(train)
-        mean, var = surrogate.predict_outputs(np.array([[x[n] for n in names]]))
-        test = ~train
-        predicted[c] = float(_expected_chi2_terms(mean[0, test], var[0, test], dem_var[test], lab_mean[test],
-                                                  lab_var[test]).sum())
-        without[c] = x
-    # the held-out predictions checked with the DEM: each condition run with the parameters
-    # fitted without it
-    held: dict[str, np.ndarray] = {}
-    failures: dict[str, str] = {}
-    held_out = {c: (f"held-out/{c}/" + _key(sorted({**calibrated, **x}.items()), list(settings.seeds)),
-                    [{**calibrated, **x}], settings.seeds, [c]) for c, x in without.items()}
-    with executor_for(hyp_model) as executor:  # every condition's runs at once (_run_together)
-        runs = _run_together(store, executor, f"discovery-{name}", list(held_out.values()), kpis)
-    for (c, (key, *_)), reps_c in zip(held_out.items(), runs):
-        held[c] = reps_c[0, 0]
-        missing = _unmeasured(held[c], c, kpis, lab)
-        if missing:  # the fitted parameters could not be simulated here: no prediction, no score
-            failed = store.records(f"discovery-{name}", batch_key=key, status="failed")
-            failures[c] = (f"{', '.join(missing)} not measured in any run"
-                           + (f"; first error: {failed[0].error}" if failed else ""))
     echo(f"  {name}: {len(names)} parameters, {n_points} points fitted; surrogate held-out chi^2 "
          + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items()))
     hypothesis = HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names},
                                  len(extra), {}, without, every, in_sample, math.nan, n_points,
                                  predicted_chi2=predicted, held_out_failures=failures,
-                                 fit_misfit_chi2=misfit, fit_surrogate_chi2=surrogate_chi2, fit_cells=len(cells))
+                                 fit_misfit_chi2=misfit, fit_surrogate_chi2=surrogate_chi2, fit_cells=len(cells),
+                                 astray=astray)
     keys = [(c, k) for _, c, _, k in cells]
     wanted = [(c, k) for c in conditions for k in read[len(kpis):]] + [(c, k) for c in unmeasured for k in kpis]
     proposed, proposed_sd = _proposed_models(name, every_run, conditions + unmeasured, read, wanted,
@@ -819,7 +841,16 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         checks = {h.name: fit_check(h, settings.alpha) for h in candidates}
         unresolved = tuple(n for n, (resolved, _) in checks.items() if not resolved)
         blocking = [n for n in unresolved if best is None or n != best.name]
-        if best is not None and best.score < reference.score - need and rivals:
+        if not discrepancy.significant:
+            # the discrepancy runs' own noise had called it significant; with the noise pooled over
+            # every run of the discovery it is not, so there is nothing to explain
+            explanation = (f"With the DEM noise pooled over every run of the discovery, the calibrated model "
+                           f"agrees with the measurements within noise (chi^2 = {discrepancy.chi2:.1f} on "
+                           f"{discrepancy.dof} cells, p = {discrepancy.p_value:.3g} >= {settings.alpha}); the "
+                           f"discrepancy runs' own noise estimate had called it significant. No cause is named"
+                           + (f" (the best candidate, {best.name}, scores {best.score:.1f} against "
+                              f"{reference.score:.1f})." if best is not None else "."))
+        elif best is not None and best.score < reference.score - need and rivals:
             tied = (best.name, *(r.name for r in rivals))
             explanation = (f"The candidates {list(tied)} cannot be told apart: each beats refitting the calibrated "
                            f"parameters alone (score {reference.score:.1f}; {rule}), and their scores ("
@@ -847,11 +878,6 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
             explanation = ("No candidate explains the discrepancy better than the calibrated parameters and noise: "
                            + (f"the best, {best.name}, scores {best.score:.1f} against {reference.score:.1f} "
                               f"({rule})." if best is not None else "no candidate could be fitted."))
-        if not discrepancy.significant:
-            explanation += (f" With the DEM noise pooled over every run of the discovery, the calibrated model "
-                            f"agrees with the measurements within noise (chi^2 = {discrepancy.chi2:.1f} on "
-                            f"{discrepancy.dof} cells, p = {discrepancy.p_value:.3g}); the discrepancy runs' own "
-                            f"noise estimate had called it significant.")
     echo(f"cause: {cause}. {explanation}")
     gain: list[GainRow] = []
     extension: dict[str, float] = {}
@@ -1025,6 +1051,23 @@ def fit_resolved(misfit: float, surrogate_chi2: float, cells: int, d: int, alpha
     return bool(p >= alpha or surrogate_chi2 <= cells), p
 
 
+#: A left-out fit is astray when its DEM held-out chi^2 lies beyond this upper quantile of the
+#: noncentral chi^2 its GP predicts (a discovery makes some 30 such checks).
+ASTRAY_P = 0.001
+
+
+def prediction_astray(dem_chi2: float, predicted: float, cells: int) -> bool:
+    """Whether the DEM's held-out chi^2 of a left-out fit (``cells`` cells) exceeds its GP's
+    prediction beyond noise: above the ``1 - ASTRAY_P`` quantile of a noncentral chi^2 of ``cells``
+    degrees of freedom and mean ``predicted`` (noncentrality ``predicted - cells``, at least 0). A
+    DEM chi^2 below the prediction never counts: the GP erred on the safe side."""
+    if cells == 0 or not (math.isfinite(dem_chi2) and math.isfinite(predicted)):
+        return False
+    lam = max(predicted - cells, 0.0)
+    limit = stats.ncx2.isf(ASTRAY_P, cells, lam) if lam > 0 else stats.chi2.isf(ASTRAY_P, cells)
+    return dem_chi2 > max(float(limit), predicted)
+
+
 def fit_check(h: HypothesisScore, alpha: float) -> tuple[bool, str]:
     """Does ``h``'s fit reproduce the conditions it was fitted on, and if not, is its surrogate to
     blame? Returns ``(resolved, why)``.
@@ -1037,9 +1080,14 @@ def fit_check(h: HypothesisScore, alpha: float) -> tuple[bool, str]:
     hypothesis itself cannot reproduce the data (resolved: its held-out runs judge it fairly). If
     it is larger (per cell on average, sigma_GP^2 > s^2 / r + u^2), the design is too sparse to
     say where the hypothesis fits best; its held-out runs were made at a guess, so they cannot rule
-    it out (unresolved)."""
+    it out (unresolved). So is a fit with a left-out fit astray (``h.astray``: its DEM runs missed
+    the held-out condition far beyond what its GP predicted there, :func:`prediction_astray`)."""
     if not h.parameters or h.fit_cells == 0:
         return True, ""
+    if h.astray:
+        return False, (f"{h.name}'s left-out fit went astray where its GP misjudged the point: "
+                       + ", ".join(f"on {c} the DEM's chi^2 is {d:.1f} where the GP predicted {p:.1f}"
+                                   for c, (d, p) in h.astray.items()))
     resolved, p = fit_resolved(h.fit_misfit_chi2, h.fit_surrogate_chi2, h.fit_cells, len(h.parameters), alpha)
     if resolved:
         return True, ""
