@@ -78,8 +78,8 @@ def test_fit_check_flags_a_fit_left_uncertain_by_its_surrogate():
 def test_a_left_out_fit_astray_is_flagged_beyond_noise_only():
     """prediction_astray: a DEM held-out chi^2 beyond the 99.9 % point of the noncentral chi^2 its
     GP predicts (4 cells, predicted 16.9: noncentrality 12.9, limit 48.7). Where the GP predicted
-    right, z^2 sums drawn with that noncentrality are flagged in about 0.1 % of draws; a fit so
-    flagged is unresolved (fit_check)."""
+    right, z^2 sums drawn with that noncentrality are flagged in about 0.1 % of draws. A flag
+    triggers the refinement; it does not block a verdict itself (fit_check)."""
     assert prediction_astray(67.4, 16.9, 4)      # the walls twin: the GP misjudged the point
     assert not prediction_astray(48.5, 16.9, 4) and prediction_astray(48.9, 16.9, 4)
     assert not prediction_astray(2.0, 60.0, 4)   # the DEM did better than predicted
@@ -89,7 +89,7 @@ def test_a_left_out_fit_astray_is_flagged_beyond_noise_only():
         draws = ((offset + rng.standard_normal((20000, k))) ** 2).sum(axis=1)
         flagged = np.mean([prediction_astray(d, predicted, k) for d in draws])
         assert flagged < 0.002, (predicted, k, flagged)
+    # once refined, the held-out runs are the DEM's own evidence: an astray fit alone blocks nothing
     h = dataclasses.replace(_hyp("A", 10.0, (1.0, 1.0, 1.0)), fit_misfit_chi2=10.0, fit_surrogate_chi2=3.0,
                             fit_cells=16, astray={"50-50-reverse": (67.4, 16.9)})
-    resolved, why = fit_check(h, 0.05)
-    assert not resolved and "on 50-50-reverse the DEM's chi^2 is 67.4 where the GP predicted 16.9" in why
+    assert fit_check(h, 0.05) == (True, "")
