@@ -330,6 +330,17 @@ def test_an_unresolved_fit_has_its_fitted_points_run_before_its_verdict(tmp_path
     resolved = _discover(tmp_path / "default", lab, escalations=1, candidates=("density_per_material",))
     h2 = next(h for h in resolved.hypotheses if h.name == "density_per_material")
     assert h2.points == 10 and fit_check(h2, 0.05)[0]
+    # a left-out fit still astray after refinement is reported (json and markdown), not hidden
+    from bo.discovery.report import write_discovery_report
+
+    marked = dataclasses.replace(after, hypotheses=tuple(
+        dataclasses.replace(h, astray={"75-25": (50.0, 10.0)}) if h.name == "density_per_material" else h
+        for h in after.hypotheses))
+    files = write_discovery_report(marked, tmp_path / "report")
+    doc = json.loads(files["json"].read_text())
+    entry = next(c for c in doc["candidates"] if c["name"] == "density_per_material")
+    assert entry["fit_check"]["astray"] == {"75-25": {"dem_chi2": 50.0, "predicted_chi2": 10.0}}
+    assert "its fit without 75-25 stayed astray after refinement" in files["md"].read_text()
 
 
 def test_no_candidates_measures_the_discrepancy_only(tmp_path):

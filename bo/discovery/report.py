@@ -57,7 +57,9 @@ def discovery_payload(result: DiscoveryResult) -> dict:
                         "held_out_chi2": dict(h.held_out_chi2), "predicted_held_out_chi2": dict(h.predicted_chi2),
                         "score": h.score, "gain_noise_sd": h.gain_noise_sd, "in_sample_chi2": h.in_sample_chi2,
                         "fit_check": {"misfit_chi2": h.fit_misfit_chi2, "surrogate_chi2": h.fit_surrogate_chi2,
-                                      "cells": h.fit_cells, "resolved": h.name not in result.unresolved},
+                                      "cells": h.fit_cells, "resolved": h.name not in result.unresolved,
+                                      "astray": {c: {"dem_chi2": v[0], "predicted_chi2": v[1]}
+                                                 for c, v in h.astray.items()}},
                         "fitted_all": dict(h.fitted_all), "fitted_without": {c: dict(v) for c, v in
                                                                              h.fitted_without.items()},
                         "design_points": h.points, "skipped": h.skipped,
@@ -165,6 +167,8 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                          + f"{fit} |")
         failed = [f"- {h.name}: the held-out runs on {c} failed ({why})"
                   for h in result.hypotheses for c, why in h.held_out_failures.items()]
+        failed += [f"- {h.name}: its fit without {c} stayed astray after refinement: the DEM's held-out chi^2 "
+                   f"{v[0]:.1f} where its GP predicted {v[1]:.1f}" for h in result.hypotheses for c, v in h.astray.items()]
         lines += [""] + failed if failed else []
         scored = [h for h in result.hypotheses[1:] if h.skipped is None and h.held_out_cells]
         best = min(scored, key=lambda h: h.score) if scored else None
