@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sqlite3
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
 from bo.calibration.pipeline import pooled_replicate_covariance
+from bo.campaign.progress import open_read_only
 from bo.screening.pipeline import measured_name
 from bo.surrogate.gp import objective_noise_variance, r2_ceiling
 from bo.surrogate.objective import ObjectiveSpec
@@ -34,9 +34,7 @@ KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "m
 
 
 def _rows(path: Path, sql: str, args: tuple = ()) -> list:
-    if not path.is_file():
-        raise ConfigError(f"campaign store {str(path)!r} does not exist (noise_ceiling)")
-    conn = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
+    conn = open_read_only(path, "noise_ceiling")
     try:
         return conn.execute(sql, args).fetchall()
     finally:

@@ -116,21 +116,23 @@ class StoreProgress:
         return sum(c.remaining for c in self.classes)
 
 
-def _open_read_only(path: Path) -> sqlite3.Connection:
+def open_read_only(path: Path, source: str = "store_progress") -> sqlite3.Connection:
+    """A read-only connection to a campaign store (it never writes, and waits on no writer)."""
+    path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"campaign store {str(path)!r} does not exist (store_progress)")
+        raise ConfigError(f"campaign store {str(path)!r} does not exist ({source})")
     try:
         conn = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
         conn.execute("SELECT 1 FROM evaluations LIMIT 1")
     except sqlite3.DatabaseError as exc:
-        raise ConfigError(f"{path}: not a campaign store ({exc}) (store_progress)") from None
+        raise ConfigError(f"{path}: not a campaign store ({exc}) ({source})") from None
     return conn
 
 
 def store_progress(path: str | Path) -> StoreProgress:
     """Tasks per status, worker time spent and the estimated worker time left in a store."""
     path = Path(path)
-    conn = _open_read_only(path)
+    conn = open_read_only(path)
     try:
         rows = conn.execute("SELECT stage, params, seed, condition, status, wall_time, claimed_by, finished_at "
                             "FROM evaluations ORDER BY task_id").fetchall()
