@@ -624,6 +624,73 @@ def test_a_member_that_cannot_be_built_fails_alone():
     assert out[0].kpis != out[2].kpis
 
 
+def test_a_run_that_blows_up_is_run_again_at_a_shorter_step():
+    """At the Rayleigh time step itself the mini box's fill blows up (bodies at hundreds of m/s
+    0.2 s in); with ``retry_time_steps`` the run goes again alone at 0.3 of it (the smoke
+    profile's stable step) and succeeds: its outcome records that step, its cost both attempts,
+    and the batch's other run is untouched. Without retries it fails with the guard's message."""
+    from bo.campaign.dem import evaluate_batch
+    from bo.campaign.executor import EvalTask
+
+    model, _ = _dem_model()
+    at = lambda fraction, retry: dataclasses.replace(model, settings=dataclasses.replace(  # noqa: E731
+        model.settings, time_step_fraction=fraction, retry_time_steps=retry))
+    task = EvalTask({"mu_s_pp": 0.5}, 0, "50-50")
+    [plain] = evaluate_batch(at(1.0, ()), [task])
+    assert not plain.ok and plain.error.startswith("BlowUpError") and "max_speed" in plain.error, plain.error
+    assert "run again" not in plain.error
+    [retried] = evaluate_batch(at(1.0, (0.3,)), [task])
+    assert retried.ok, retried.error
+    system, _, _ = at(1.0, ()).test_for("50-50", [task.params], time_step_scale=0.3).build([0], [0])
+    assert retried.kpis["time_step_s"] == pytest.approx(float(system.dt), rel=1e-12)
+    assert retried.wall_time > plain.wall_time
+    assert 0 < retried.kpis["mass_lower_box_kg"] <= retried.kpis["fill_mass_kg"]
+    # at the profile's own step the run needs no retry and reports no step of its own
+    [normal] = evaluate_batch(model, [task])
+    assert normal.ok and "time_step_s" not in normal.kpis
+
+
+def test_a_run_that_blows_up_at_every_retry_names_every_attempt():
+    """A guard no run can pass (0.01 m/s: the fill falls faster at once) fails the first attempt
+    and each retry; the error lists them in order, with their factors."""
+    from bo.campaign.dem import evaluate_batch
+    from bo.campaign.executor import EvalTask
+
+    model, _ = _dem_model()
+    s = model.settings
+    strict = dataclasses.replace(model, settings=dataclasses.replace(
+        s, retry_time_steps=(0.8, 0.6), guards=dataclasses.replace(s.guards, max_speed=0.01, check_every=10)))
+    [out] = evaluate_batch(strict, [EvalTask({"mu_s_pp": 0.5}, 0, "50-50")])
+    assert not out.ok
+    first, rest = out.error.split("; run again ", 1)
+    assert first.startswith("BlowUpError: member 0 (seed 0): a body moves at")
+    assert rest.startswith("at 0.8 of the time step: BlowUpError") and "; at 0.6 of the time step: BlowUpError" in rest
+    assert out.error.count("BlowUpError") == 3
+
+
+@pytest.mark.parametrize("value", [[1.2], [0.6, 0.8], [0.0], "0.8"])
+def test_retry_time_steps_out_of_range_is_named(value):
+    from torchdem import config
+
+    plain = _plain(["profile=cpu"])
+    with pytest.raises(ConfigError, match="retry_time_steps"):
+        config.run_settings_from({**plain["sim"], "retry_time_steps": value}, plain["run"])
+
+
+def test_retry_time_steps_leave_the_store_hash_and_checkpoints_alone(tmp_path):
+    from bo.campaign.dem import checkpoint_path
+    from bo.campaign.executor import EvalTask
+    from bo.cli.common import config_hash
+
+    plain = _plain(["profile=cpu"])
+    assert config_hash({**plain, "sim": {**plain["sim"], "retry_time_steps": []}}) == config_hash(plain)
+    model, _ = _dem_model()
+    tasks = [EvalTask({"mu_s_pp": 0.5}, 0, "50-50")]
+    none = dataclasses.replace(model, settings=dataclasses.replace(model.settings, retry_time_steps=()))
+    assert checkpoint_path(tmp_path, none, tasks) == checkpoint_path(tmp_path, model, tasks)
+    assert checkpoint_path(tmp_path, model, tasks, 0.8) != checkpoint_path(tmp_path, model, tasks)
+
+
 def _kill_mid_run(model, tasks, path) -> float:
     """Run ``tasks`` as one batch checkpointing to ``path`` every 0.5 s of simulated time and kill
     it past 1.2 s; returns the wall time the checkpoint records."""

@@ -495,3 +495,22 @@ def test_a_run_asked_for_again_in_another_batch_is_not_computed_again(tmp_path):
     assert {r.status for r in store.records("initial", batch_key="shared")} == {"done"}
     store.batch("initial", "fresh", lambda: [POINTS[0]], seeds=(0, 1), conditions=("50-50",), share=False)
     assert {r.status for r in store.records("initial", batch_key="fresh")} == {"pending"}
+
+
+def test_retry_failed_puts_failed_runs_back_only_when_asked(tmp_path):
+    """``retry_failed: true`` (torchdem-calibrate, -screen, -study, -discover) re-queues the failed
+    runs of a resumed store, e.g. after ``sim.retry_time_steps`` was added; false leaves them."""
+    from bo.cli.common import requeue_failed
+
+    store = new_store(tmp_path)
+    fill(store)
+    claimed = store.claim(6)
+    assert store.record([(claimed[0], EvalOutcome.failure("BlowUpError: ...", 1.0))]) == 1
+    said = []
+    assert requeue_failed({"retry_failed": False}, store, said.append) == 0
+    assert requeue_failed({}, store, said.append) == 0 and store.counts()["failed"] == 1 and not said
+    assert requeue_failed({"retry_failed": True}, store, said.append) == 1
+    assert store.counts()["failed"] == 0 and store.counts()["pending"] == 1
+    assert said == [f"retry_failed: 1 failed run(s) of {store.path} back in the queue"]
+    with pytest.raises(ConfigError, match=r"retry_failed = 'yes'.*true or false"):
+        requeue_failed({"retry_failed": "yes"}, store)

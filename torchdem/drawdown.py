@@ -100,6 +100,11 @@ class RunSettings:
         fill_packing: how the rained fill keeps particles apart: ``"bounding"`` (each particle's
             bounding sphere) or ``"lobes"`` (its own spheres, so a flat clump takes the room of
             its lobes; needed where flat sinter would overflow the fill column).
+        retry_time_steps: factors (each in (0, 1), decreasing) of the time step at which a
+            campaign run that blew up is run again, alone, in turn
+            (:func:`bo.campaign.dem.evaluate_batch`); () fails it at once. How a failed run is
+            recovered, not what a run gives: left out of the repr, so checkpoint names and store
+            hashes do not see it.
     """
 
     fill_time: float = 0.8
@@ -123,6 +128,7 @@ class RunSettings:
     front_back_material: Material | None = None
     reorder_every: int = 0
     fill_packing: str = "bounding"
+    retry_time_steps: tuple[float, ...] = field(default=(), repr=False)
 
     def validate(self, source: str = "sim") -> "RunSettings":
         if self.rolling_stiffness not in ("tangential", "ai2011"):
@@ -157,6 +163,11 @@ class RunSettings:
             raise out_of_range("loose_fraction", self.loose_fraction, "(0, 0.6)", source)
         if not 0 < self.time_step_fraction <= 1:
             raise out_of_range("time_step_fraction", self.time_step_fraction, "(0, 1] of the Rayleigh time step", source)
+        retry = self.retry_time_steps
+        if not isinstance(retry, tuple) or any(isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f < 1
+                                               for f in retry) or any(b >= a for a, b in zip(retry, retry[1:])):
+            raise out_of_range("retry_time_steps", retry, "a decreasing list of factors in (0, 1) of the time step "
+                               "(e.g. [0.8, 0.6]), or [] for no retry", source)
         if self.shear_modulus is not None and not self.shear_modulus > 0:
             raise out_of_range("shear_modulus", self.shear_modulus, "> 0 Pa or null", source)
         if self.rsd_component not in ("sinter", "pellet"):

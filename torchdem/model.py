@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 from torchdem.drawdown import DrawDownTest, RunSettings
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, out_of_range
 from torchdem.geometry import DrawDownGeometry
 from torchdem.measured import MeasuredData
 from torchdem.mixture import Mixture, ParticleMaterial, trilobe_shape
@@ -70,8 +70,10 @@ _GEOMETRY_FIELDS = {"slice_depth": _optional_length, "mirror": _flag}
 #: kernels and the bodies' spatial order (fields of ``DrawDownModel`` and of its ``RunSettings``,
 #: named as in the ``sim`` config block). Runs that differ in them differ at round-off, as the C++
 #: kernels' runs do between CPUs, so a campaign store and a batch's checkpoint do not tell them apart
-#: (``bo.cli.common.config_hash``, ``bo.campaign.dem.checkpoint_path``).
-EXECUTION_ONLY = ("device", "compile", "reorder_every")
+#: (``bo.cli.common.config_hash``, ``bo.campaign.dem.checkpoint_path``). ``retry_time_steps`` is
+#: one too: it decides only whether a run that blew up is run again at a shorter step (the outcome
+#: of such a run records the step it ran at, ``time_step_s``).
+EXECUTION_ONLY = ("device", "compile", "reorder_every", "retry_time_steps")
 
 
 @dataclass(frozen=True)
@@ -101,12 +103,18 @@ class DrawDownModel:
                                    **defaults(self))
 
     def test_for(self, condition: str, parameter_sets: Sequence[Mapping[str, float]],
-                 isolate: bool = True) -> DrawDownTest:
+                 isolate: bool = True, time_step_scale: float = 1.0) -> DrawDownTest:
         """The :class:`DrawDownTest` of a (possibly variant) condition with these parameter sets.
 
         ``isolate`` (campaigns): a blow-up fails that member only (its outcome says why), not the
-        whole ensemble; False keeps the run settings' own ``guards.on_blowup``."""
+        whole ensemble; False keeps the run settings' own ``guards.on_blowup``.
+        ``time_step_scale``: a factor in (0, 1] on the condition's time step (the retry of a run
+        that blew up)."""
+        if not 0 < time_step_scale <= 1:
+            raise out_of_range("time_step_scale", time_step_scale, "(0, 1]", "DrawDownModel.test_for")
         base, settings = split_condition(condition, self.settings)
+        if time_step_scale != 1:
+            settings = dataclasses.replace(settings, time_step_fraction=settings.time_step_fraction * time_step_scale)
         geometry = condition_geometry(condition, self.geometry)
         if isolate:
             settings = dataclasses.replace(settings, guards=dataclasses.replace(settings.guards, on_blowup="isolate"))

@@ -29,7 +29,7 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, config_hash, executor_from,
+from bo.cli.common import (requeue_failed, MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, config_hash, executor_from,
                            executor_settings_from, plain_config, replicate_seeds, screen_settings_from,
                            store_path_from)
 from torchdem.config import parameter_range
@@ -249,6 +249,7 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     # the measured data decide the conditions' mixtures, so they are part of the model
     store = CampaignStore(path, config_hash(plain, MODEL_KEYS + ("measured",)),
                           allow_config_mismatch=bool(plain.get("allow_config_mismatch")), extra_stages=EXTRA_STAGES)
+    requeue_failed(plain, store, echo)
     started = time.perf_counter()
     echo(f"torchdem-calibrate: store {path}" + (f" (from {source})" if source else "") + f", output {out}")
     with executor_from(executor_settings, model, checkpoints=checkpoint_dir_for(path)) as executor:

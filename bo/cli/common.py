@@ -181,6 +181,19 @@ def checkpoint_dir_for(store_path: Path) -> Path:
     return Path(str(store_path) + ".runs")
 
 
+def requeue_failed(plain: Mapping[str, Any], store, echo=print) -> int:
+    """With ``retry_failed: true``, put the store's failed runs back in the queue (after their cause
+    was fixed, e.g. ``sim.retry_time_steps`` added); returns how many."""
+    flag = plain.get("retry_failed", False)
+    if not isinstance(flag, bool):
+        raise out_of_range("retry_failed", flag, "true or false", "config")
+    if not flag:
+        return 0
+    n = store.reset_failed()
+    echo(f"retry_failed: {n} failed run(s) of {store.path} back in the queue")
+    return n
+
+
 def store_path_from(plain: Mapping[str, Any], out: Path) -> Path:
     """``store`` if given, else ``campaign.sqlite`` in the run directory."""
     store = plain.get("store")

@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, check_kpis, config_hash, executor_settings_from, plain_config,
+from bo.cli.common import (requeue_failed, MODEL_KEYS, _int, check_kpis, config_hash, executor_settings_from, plain_config,
                            replicate_seeds, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
@@ -163,6 +163,7 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     store = CampaignStore(path, config_hash(hashed, MODEL_KEYS + ("measured", "calibration")),
                           allow_config_mismatch=bool(plain.get("allow_config_mismatch")),
                           extra_stages=discovery_stages())
+    requeue_failed(plain, store, echo)
     echo(f"torchdem-discover: {len(measured.names)} conditions of {measured.origin}; calibrated set from {source}; "
          f"store {path}")
     started = time.perf_counter()

@@ -26,7 +26,7 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
+from bo.cli.common import (requeue_failed, checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
                            measured_kpis_from, model_from, plain_config, screen_settings_from, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 
@@ -42,6 +42,7 @@ def screen(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     model = model_from(plain)
     path = store_path_from(plain, out)
     store = CampaignStore(path, config_hash(plain), allow_config_mismatch=bool(plain.get("allow_config_mismatch")))
+    requeue_failed(plain, store, echo)
     stage = "screening"
     before = store.counts(stage)["done"] + store.counts(stage)["failed"]
     started = time.perf_counter()

@@ -24,7 +24,7 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (_int, check_kpis, checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
+from bo.cli.common import (requeue_failed, _int, check_kpis, checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
                            measured_kpis_from, model_from, plain_config, replicate_seeds, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
@@ -168,6 +168,7 @@ def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     path = store_path_from(plain, out)
     store = CampaignStore(path, config_hash(plain), extra_stages=STUDY_STAGES,
                           allow_config_mismatch=bool(plain.get("allow_config_mismatch")))
+    requeue_failed(plain, store, echo)
     stage = s.study
     counts = store.counts(stage)
     before = counts["done"] + counts["failed"]
