@@ -36,6 +36,9 @@ def test_lab_profile_composes_on_the_lab_geometry_within_budget():
     assert total <= 215, total
     # single runs with the pooled noise: the stop counts R^2 against the explainable variance
     assert a.target_basis == "explainable" and s.surrogate.noise == "pooled"
+    # Eq. 7 over the paper's four KPIs, whatever the screening keeps (Table 2 also has the RSDs)
+    assert s.objective_kpis == ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s",
+                                "mass_lower_box_full_kg")
 
 
 def test_added_parameters_join_the_selection_with_their_bounds():
