@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import signal
 import subprocess
@@ -266,6 +267,36 @@ def test_single_run_points_with_pooled_noise_calibrate_and_compare_with_learned_
                                   seed=0, tol=1e-10)
     x = [result.ga.calibrated[n] for n in result.surrogate.parameters]
     assert _noise_free_objective(result, x) < best.fun + 0.004
+
+
+def test_explainable_stop_counts_against_the_higher_of_the_pooled_and_learned_ceilings(tmp_path):
+    """profile=lab's stop rule through the pipeline: every round records the noise ceiling of the
+    pooled noise and that of the noise a GP learns on the points, the share is taken against the
+    higher one, and the report's JSON and table carry both."""
+    import functools
+
+    base = km.small_settings()
+    adaptive = dataclasses.replace(base.surrogate.adaptive, target_basis="explainable")
+    settings = dataclasses.replace(base, surrogate=dataclasses.replace(base.surrogate, seeds=(0,), noise="pooled",
+                                                                       adaptive=adaptive))
+    store = CampaignStore(tmp_path / "c.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
+    lines = []
+    result = run_calibration(store, InProcessExecutor(functools.partial(km.known_batch), batch_size=6), settings,
+                             km.known_measurement(), tmp_path / "out", km.NOMINAL_DENSITY, echo=lines.append)
+    rounds = result.surrogate.rounds
+    assert all(math.isfinite(r.r2_ceiling) and math.isfinite(r.r2_ceiling_learned) for r in rounds)
+    for r in rounds:
+        assert r.stop_ceiling == max(r.r2_ceiling, r.r2_ceiling_learned)
+        if r.stop_ceiling >= 0.5:
+            assert r.r2_explained == pytest.approx(r.r2_mean / r.stop_ceiling)
+    last = rounds[-1]
+    assert (result.surrogate.stopped_because == "target_r2") == last.reached(adaptive)
+    assert any("(learned noise " in line for line in lines)
+    files = write_calibration_report(result, tmp_path / "report")
+    payload = json.loads(files["json"].read_text())
+    assert [r["r2_ceiling_learned"] for r in payload["surrogate"]["rounds"]] == \
+        pytest.approx([r.r2_ceiling_learned for r in rounds])
+    assert "| noise ceiling | with learned noise | explained share |" in files["md"].read_text()
 
 
 def test_screening_points_project_onto_the_calibrated_parameters():

@@ -68,7 +68,7 @@ from bo.screening.pipeline import (ScreeningReport, ScreenSettings, analyse_and_
                                    run_screening)
 from bo.screening.stepwise import ScreeningResults
 from bo.campaign.store import CampaignStore
-from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2
+from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2, learned_noise_ceiling
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
 
@@ -567,10 +567,15 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                 variants[learned] = cross_validated_r2(X_all[u], yy, bounds, dataclasses.replace(config, kernel=best.kernel),
                                                        y_var=None, objective=objective, n_folds=a.n_folds,
                                                        seeds=a.cv_seeds).mean
+            # the ceiling with the noise a GP learns on these points: the stop counts against the
+            # higher of the two ceilings (RoundRecord.stop_ceiling)
+            learned_ceiling = learned_noise_ceiling(state.X, state.y, bounds, dataclasses.replace(
+                config, kernel=best.kernel), objective=objective) \
+                if state.y_var is not None and a.target_basis == "explainable" else math.nan
             first = best.results[0]
             return json_ready({"kernel": best.kernel, "mean": best.mean, "std": best.std, "per_seed": list(best.per_seed),
                                "actual": first.actual.tolist(), "predicted": first.predicted.tolist(),
-                               "variants": variants})  # NaN as null (strict JSON)
+                               "variants": variants, "learned_ceiling": learned_ceiling})  # NaN as null (strict JSON)
 
         # A round's cross-validation (hundreds of GP fits) is kept in the store, keyed by its data, so
         # a resumed campaign (make run on the shipped store) does not fit them again.
@@ -583,14 +588,15 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                              r2_mean=num(cv["mean"]), r2_std=num(cv["std"]), r2_per_seed=tuple(map(num, cv["per_seed"])),
                              actual=np.array(cv["actual"], dtype=np.float64),
                              predicted=np.array(cv["predicted"], dtype=np.float64),
-                             r2_ceiling=state_ceiling(state, config, objective))
+                             r2_ceiling=state_ceiling(state, config, objective),
+                             r2_ceiling_learned=num(cv.get("learned_ceiling")))
         rounds.append(record)
         r2[config.strategy].append(record.r2_mean)
         for t, value in cv["variants"].items():
             r2[t].append(num(value))
         extra = "".join(f", {t} {r2[t][-1]:.3f}" for t in r2 if t != config.strategy)
-        ceiling = (f"; noise ceiling {record.r2_ceiling:.3f}, {record.r2_explained:.3f} of the explainable"
-                   if math.isfinite(record.r2_ceiling) else "")
+        ceiling = (f"; noise ceiling {record.r2_ceiling:.3f} (learned noise {record.r2_ceiling_learned:.3f}), "
+                   f"{record.r2_explained:.3f} of the explainable" if math.isfinite(record.r2_ceiling) else "")
         echo(f"surrogate round {k}: {X_all.shape[0]} points ({state.n} usable), CV R^2 {record.r2_mean:.3f} "
              f"+/- {record.r2_std:.3f} ({record.kernel}, {config.strategy}{extra}{ceiling})")
         if record.reached(a):

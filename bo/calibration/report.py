@@ -86,7 +86,8 @@ def calibration_payload(result: CalibrationResult) -> dict:
                       "target_basis": s.surrogate.adaptive.target_basis,
                       "rounds": [{"round": r.index, "n_points": r.n_points, "kernel": r.kernel,
                                   "r2_mean": r.r2_mean, "r2_std": r.r2_std, "r2_ceiling": r.r2_ceiling,
-                                  "r2_explained": r.r2_explained} for r in sur.rounds],
+                                  "r2_ceiling_learned": r.r2_ceiling_learned, "r2_explained": r.r2_explained}
+                                 for r in sur.rounds],
                       "strategy_r2": {k: list(v) for k, v in sur.strategy_r2.items()},
                       "strategy_comparison": strategy_comparison(result)},
         "ga": _ga_json(result),
@@ -111,7 +112,7 @@ def strategy_comparison(result: CalibrationResult) -> dict:
     out = {}
     for strategy, values in sur.strategy_r2.items():
         reached = next((rec.n_points for rec, v in zip(sur.rounds, values)
-                        if target_reached(v, rec.r2_ceiling, s.adaptive)), None)
+                        if target_reached(v, rec.stop_ceiling, s.adaptive)), None)
         out[strategy] = {"r2_per_round": list(values), "points_to_target": reached,
                          "dem_runs_to_target": None if reached is None else max(reached - sur.reused_points, 0) * r}
     return out
@@ -223,16 +224,16 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
     strategies = list(sur.strategy_r2)
     # the noise ceiling: the CV R^2 that the DEM noise of the held-out points leaves attainable
     with_ceiling = any(math.isfinite(rec.r2_ceiling) for rec in sur.rounds)
-    extra_head = " | noise ceiling | explained share" if with_ceiling else ""
+    extra_head = " | noise ceiling | with learned noise | explained share" if with_ceiling else ""
     lines += ["", "| round | points | kernel | " + " | ".join(f"CV R^2 {t}" for t in strategies) + extra_head + " |",
-              "| --- | ---: | --- | " + " | ".join("---:" for _ in strategies) + (" | ---: | ---:" if with_ceiling else "")
+              "| --- | ---: | --- | " + " | ".join("---:" for _ in strategies) + (" | ---: | ---: | ---:" if with_ceiling else "")
               + " |"]
     fmt = lambda v: f"{v:.3f}" if math.isfinite(v) else "-"  # noqa: E731
     for i, rec in enumerate(sur.rounds):
         cells = [f"{sur.strategy_r2[t][i]:.3f}" + (f" +- {rec.r2_std:.3f}" if t == s.surrogate.config.strategy else "")
                  for t in strategies]
         if with_ceiling:
-            cells += [fmt(rec.r2_ceiling), fmt(rec.r2_explained)]
+            cells += [fmt(rec.r2_ceiling), fmt(rec.r2_ceiling_learned), fmt(rec.r2_explained)]
         lines.append(f"| {rec.index} | {rec.n_points} | {rec.kernel} | " + " | ".join(cells) + " |")
     comp = payload["surrogate"]["strategy_comparison"]
     basis = s.surrogate.adaptive.target_basis

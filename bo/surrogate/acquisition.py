@@ -64,8 +64,8 @@ from scipy.stats import qmc
 
 from bo.surrogate.objective import ObjectiveSpec
 from bo.surrogate.gp import (KERNELS, DTYPE, CVSummary, Surrogate, SurrogateConfig, as_bounds,
-                          cross_validated_r2, fit_surrogate, objective_noise_variance, r2_ceiling,
-                          _validate_data)
+                          cross_validated_r2, fit_surrogate, learned_noise_ceiling, objective_noise_variance,
+                          r2_ceiling, _validate_data)
 from torchdem.errors import ConfigError, out_of_range
 
 __all__ = [
@@ -327,6 +327,8 @@ class RoundRecord:
             the first CV seed (Fig. 13).
         r2_ceiling: the CV R^2 the points' DEM noise leaves attainable
             (``bo.surrogate.gp.r2_ceiling``); NaN where the noise is not known.
+        r2_ceiling_learned: the same with the noise level a GP learns on the points
+            (``bo.surrogate.gp.learned_noise_ceiling``); NaN where not computed.
     """
 
     index: int
@@ -340,18 +342,27 @@ class RoundRecord:
     actual: np.ndarray
     predicted: np.ndarray
     r2_ceiling: float = math.nan
+    r2_ceiling_learned: float = math.nan
+
+    @property
+    def stop_ceiling(self) -> float:
+        """The ceiling the stop rule counts against: the higher of the two (the smaller noise),
+        so a noise estimate too large for these points cannot stop the rounds early; NaN when
+        neither is known."""
+        known = [c for c in (self.r2_ceiling, self.r2_ceiling_learned) if math.isfinite(c)]
+        return max(known) if known else math.nan
 
     @property
     def r2_explained(self) -> float:
-        """Share of the explainable variance explained, ``r2_mean / r2_ceiling`` (NaN while the
+        """Share of the explainable variance explained, ``r2_mean / stop_ceiling`` (NaN while the
         ceiling is unknown or below ``MIN_CEILING``)."""
-        if not (self.r2_ceiling >= MIN_CEILING):
+        if not (self.stop_ceiling >= MIN_CEILING):
             return math.nan
-        return self.r2_mean / self.r2_ceiling
+        return self.r2_mean / self.stop_ceiling
 
     def reached(self, settings: "AdaptiveSettings") -> bool:
         """Whether this round meets the stop rule of ``settings`` (``target_r2`` on its basis)."""
-        return target_reached(self.r2_mean, self.r2_ceiling, settings)
+        return target_reached(self.r2_mean, self.stop_ceiling, settings)
 
 
 def target_reached(r2_mean: float, ceiling: float, settings: AdaptiveSettings) -> bool:
@@ -436,19 +447,23 @@ def round_record(state: SamplingState, bounds, settings: AdaptiveSettings,
                           f"initial design of {n_initial} points")
     best = best_kernel_cv(state, b, settings, config, objective)
     index, start, stop = _round_bounds(state.n, n_initial, settings.q)
+    learned = math.nan
+    if state.y_var is not None and settings.target_basis == "explainable":
+        learned = learned_noise_ceiling(state.X, state.y, b, dataclasses.replace(config, kernel=best.kernel),
+                                        objective=objective)
     return record_from_cv(best, index, state.n, state.X[start:stop], state.y[start:stop],
-                          ceiling=state_ceiling(state, config, objective))
+                          ceiling=state_ceiling(state, config, objective), learned_ceiling=learned)
 
 
 def record_from_cv(summary: CVSummary, index: int, n_points: int, X, y,
-                   ceiling: float = math.nan) -> RoundRecord:
+                   ceiling: float = math.nan, learned_ceiling: float = math.nan) -> RoundRecord:
     """``RoundRecord`` of round ``index`` (its points ``X``, values ``y``) from a CV summary."""
     first = summary.results[0]
     return RoundRecord(index=index, n_points=n_points, X=np.array(X, copy=True),
                        y=np.array(y, copy=True), kernel=summary.kernel, r2_mean=summary.mean,
                        r2_std=summary.std, r2_per_seed=summary.per_seed,
                        actual=first.actual.copy(), predicted=first.predicted.copy(),
-                       r2_ceiling=float(ceiling))
+                       r2_ceiling=float(ceiling), r2_ceiling_learned=float(learned_ceiling))
 
 
 def next_step(state: SamplingState, bounds, settings: AdaptiveSettings,

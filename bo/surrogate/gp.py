@@ -57,6 +57,11 @@ own DEM noise, which no surrogate can predict, so even the noise-free objective 
 variance of Eq. 7 of ``y + e``, ``e ~ N(0, diag y_var)``, by fixed-seed Monte Carlo (the
 delta method fails where a KPI sits on its measured value, at the kink of ``|.|``).
 ``R^2 / ceiling`` is the share of the explainable variance the surrogate explains.
+``learned_noise_ceiling`` takes the noise instead from a GP that learns one noise level per
+output on the points themselves (``noise * y_std^2``, back from the standardised units): where
+the points' own noise is smaller than the given ``y_var`` (a surrogate's points, gathered where
+the flow is steady, against a screening's corners), the ceiling from ``y_var`` is too low and a
+CV R^2 can exceed it.
 
 Paper: Hadi, Pang, Schott, section 3.4.3, Eqs. 9-15, Tables 7 and A.2.
 """
@@ -105,6 +110,7 @@ __all__ = [
     "select_kernel",
     "objective_noise_variance",
     "r2_ceiling",
+    "learned_noise_ceiling",
 ]
 
 DTYPE = torch.float64
@@ -634,6 +640,18 @@ def r2_ceiling(actual, noise_var) -> float:
     if spread == 0.0:
         raise ConfigError("r2_ceiling: actual values are all equal; R^2 is undefined")
     return 1.0 - float(v.mean()) / spread
+
+
+def learned_noise_ceiling(X, y, bounds, config: SurrogateConfig = SurrogateConfig(), *,
+                          objective: ObjectiveSpec | None = None) -> float:
+    """``r2_ceiling`` of ``y`` (``[n]`` scalar, ``[n, M]`` per_kpi) with the noise a GP with a
+    learned noise level fits to these points (module docstring)."""
+    surrogate = fit_surrogate(X, y, bounds, config, y_var=None, objective=objective)
+    h = surrogate.hyperparameters()
+    per_output = np.asarray(h["noise"], dtype=np.float64) * np.asarray(h["y_std"], dtype=np.float64) ** 2  # [m]
+    yy = np.asarray(y, dtype=np.float64)
+    noise = np.broadcast_to(per_output if yy.ndim == 2 else per_output[0], yy.shape)
+    return r2_ceiling(surrogate.observed_objective(), objective_noise_variance(yy, noise, objective, config.strategy))
 
 
 def select_kernel(X, y, bounds, config: SurrogateConfig = SurrogateConfig(), *,
