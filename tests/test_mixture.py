@@ -131,19 +131,19 @@ def test_a_fill_that_would_overflow_is_rained_denser_and_one_that_fits_is_unchan
     volume = 4 / 3 * np.pi * radius ** 3
     g = DrawDownGeometry(upper_width=0.2, slice_depth=0.04, upper_height=1.0)
     tops = {f: rain_positions(radius, layer, volume, g, seed=3, loose_fraction=f, max_top=10.0).top
-            for f in (0.3, 0.325, 0.35)}
-    assert tops[0.3] > tops[0.325] > tops[0.35]
+            for f in (0.3, 0.325, 0.35, 0.375)}
+    assert tops[0.3] > tops[0.325] > tops[0.35] > tops[0.375]
     fill, used = rain_to_fit(radius, layer, volume, g, 3, 0.3, max_top=10.0)
     assert used == 0.3 and np.array_equal(fill.position, rain_positions(radius, layer, volume, g, 3, 0.3,
                                                                         max_top=10.0).position)
     fill, used = rain_to_fit(radius, layer, volume, g, 3, 0.3, max_top=(tops[0.3] + tops[0.325]) / 2)
     assert used == 0.325 and fill.top == tops[0.325]
-    limit = (tops[0.325] + tops[0.35]) / 2  # only the densest fraction fits
+    limit = (tops[0.35] + tops[0.375]) / 2  # only the densest fraction fits
     fill, used = rain_to_fit(radius, layer, volume, g, 3, 0.3, max_top=limit)
-    assert used == 0.35 and fill.top == tops[0.35] <= limit
+    assert used == 0.375 and fill.top == tops[0.375] <= limit
     p = fill.position
     d = p[:, None, :] - p[None, :, :]
     d[..., 1] -= 0.04 * np.round(d[..., 1] / 0.04)
     assert (np.linalg.norm(d, axis=-1) + np.eye(n) >= radius[:, None] + radius[None, :] - 1e-12).all()
-    with pytest.raises(FillOverflowError, match=r"above the allowed z.*loose fractions 0.3 to 0.35 tried"):
-        rain_to_fit(radius, layer, volume, g, 3, 0.3, max_top=tops[0.35] - 0.001)
+    with pytest.raises(FillOverflowError, match=r"above the allowed z.*loose fractions 0.3 to 0.375 tried"):
+        rain_to_fit(radius, layer, volume, g, 3, 0.3, max_top=tops[0.375] - 0.001)

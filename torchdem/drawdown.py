@@ -81,7 +81,7 @@ class RunSettings:
         dtype: torch dtype name. compile: torch.compile the kernels. guards: blow-up guards.
         metres_per_pixel: render resolution. rsd_component: which component's RSD to report
             ("sinter" or "pellet"). loose_fraction: packing fraction of the rained fill (a member
-            whose loose stack would overflow the fill column is rained denser, up to 0.35:
+            whose loose stack would overflow the fill column is rained denser, up to 0.375:
             :func:`torchdem.fill.rain_to_fit`).
         skin_fraction: Verlet skin as a fraction of the largest sphere radius.
         flow_window: (start, end) s after the gate opens of the mass-flow fit (the lab's
