@@ -650,6 +650,25 @@ def test_a_run_that_blows_up_is_run_again_at_a_shorter_step():
     assert normal.ok and "time_step_s" not in normal.kpis
 
 
+def test_fill_landing_script_shows_the_bed_throwing_bodies_at_a_marginal_step():
+    """scripts/fill_landing.py on the mini box at the Rayleigh step itself: bodies leave the
+    landing bed at far more than the falling fill's speed and the guard fires; at 0.3 of it (the
+    smoke profile's step) nothing moves faster than free fall from the mini column allows
+    (sqrt(2 g 0.3 m) = 2.4 m/s, with margin)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("fill_landing", REPO / "scripts" / "fill_landing.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    model, _ = _dem_model()
+    at_rayleigh = dataclasses.replace(model, settings=dataclasses.replace(model.settings, time_step_fraction=1.0))
+    dt, trace, error = script.landing(at_rayleigh, "50-50", {"mu_s_pp": 0.5}, 0, 1.0, until=0.3)
+    assert error is not None and "max_speed" in error and max(v for _, v, _ in trace) > 10.0
+    dt_short, trace, error = script.landing(at_rayleigh, "50-50", {"mu_s_pp": 0.5}, 0, 0.3, until=0.3)
+    assert error is None and dt_short == pytest.approx(0.3 * dt)
+    assert max(v for _, v, _ in trace) < 3.5
+
+
 def test_a_run_that_blows_up_at_every_retry_names_every_attempt():
     """A guard no run can pass (0.01 m/s: the fill falls faster at once) fails the first attempt
     and each retry; the error lists them in order, with their factors."""
