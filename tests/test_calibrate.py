@@ -299,6 +299,26 @@ def test_explainable_stop_counts_against_the_higher_of_the_pooled_and_learned_ce
     assert "| noise ceiling | with learned noise | explained share |" in files["md"].read_text()
 
 
+def test_screening_limits_stop_the_extension_in_the_calibration(tmp_path):
+    """``screening.limits`` reaches the Table-6 rule of the calibration's screening stage: the
+    known-answer screening moves mu_s_pp to 1.1 and mu_s_ss to 1.3; with sliding friction limited
+    to 1 (profile=lab's limit) both stop at 1.0, marked as limited."""
+    import functools
+
+    from bo.calibration.pipeline import screening_stage
+
+    lab = km.known_measurement().condition("50-50").kpis
+    s = km.small_settings().screening
+    store = CampaignStore(tmp_path / "c.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
+    run = functools.partial(screening_stage, store, InProcessExecutor(functools.partial(km.known_batch), batch_size=6))
+    free = run(s, lab, tmp_path / "free").proposal.proposed_bounds
+    assert free["mu_s_pp"][1] == pytest.approx(1.1) and free["mu_s_ss"][1] == pytest.approx(1.3)
+    limited = run(dataclasses.replace(s, limits={"mu_s_pp": (0.0, 1.0), "mu_s_ss": (0.0, 1.0)}), lab,
+                  tmp_path / "limited").proposal
+    assert limited.proposed_bounds["mu_s_pp"] == (0.3, 1.0) and limited.proposed_bounds["mu_s_ss"] == (0.5, 1.0)
+    assert all(m.limited for m in limited.moves)
+
+
 def test_screening_points_project_onto_the_calibrated_parameters():
     from bo.calibration.pipeline import screening_points
     from bo.screening.stepwise import ScreeningResults

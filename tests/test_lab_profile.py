@@ -52,3 +52,21 @@ def test_added_parameters_join_the_selection_with_their_bounds():
     assert "added by the config" in note
     with pytest.raises(ConfigError, match=r"surrogate: added.density_pellet"):
         calibration_settings_from(_plain("surrogate.added.density_pellet=[-1,3000]"))
+
+
+def test_the_extension_stops_at_the_profiles_limits():
+    """profile=lab's screening.limits: sliding friction at most 1 and the lobe spacing in
+    [0.15, 0.3] whatever the Table-6 rule asks; a limit that does not hold the screened levels,
+    or names a parameter not screened, is an error naming the key."""
+    from bo.cli.common import screen_settings_from
+    from bo.screening.bounds import PhysicalLimit
+
+    s = calibration_settings_from(_plain()).screening
+    assert s.physical_limits()["mu_s_pg"] == PhysicalLimit(0.0, 1.0)
+    assert s.physical_limits()["lobe_spacing_sinter"] == PhysicalLimit(0.15, 0.3)
+    with pytest.raises(ConfigError, match=r"screening: limits.lobe_spacing_sinter = \[0.2, 0.3\].*\[0.15, 0.3\]"):
+        screen_settings_from(_plain("screening.limits.lobe_spacing_sinter=[0.2,0.3]"))
+    with pytest.raises(ConfigError, match=r"limits.coh_pp .*limits of screened parameters"):
+        screen_settings_from(_plain("+screening.limits.coh_pp=[0,1]"))
+    with pytest.raises(ConfigError, match=r"limits.mu_s_pp .*low < high"):
+        screen_settings_from(_plain("screening.limits.mu_s_pp=[1,0.5]"))

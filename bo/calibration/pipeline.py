@@ -418,6 +418,7 @@ def screening_stage(store: CampaignStore, executor: Executor, s: ScreenSettings,
                               selection_fraction=s.selection_fraction,
                               stochastic_threshold=s.stochastic_threshold,
                               extension_factor=s.extension_factor, extension_mode=s.extension_mode,
+                              limits=s.physical_limits(),
                               title=f"Screening of {s.table.k} parameters, condition {s.condition}")
 
 

@@ -270,6 +270,22 @@ def screen_settings_from(plain: Mapping[str, Any]):
         factor = float("nan")
     if not factor > 0 or factor == float("inf"):
         raise out_of_range("extension_factor", cfg.get("extension_factor"), "a number > 0", where)
+    limits = cfg.get("limits") or {}
+    if not isinstance(limits, Mapping):
+        raise out_of_range("limits", limits, "a mapping {screened parameter: [low, high]} or null", where)
+    checked = {}
+    for name, pair in limits.items():
+        if name not in table.names:
+            raise out_of_range(f"limits.{name}", pair, f"limits of screened parameters {list(table.names)}", where)
+        if isinstance(pair, (str, bytes, Mapping)) or not isinstance(pair, (list, tuple)) or len(pair) != 2 or any(
+                isinstance(v, bool) or not isinstance(v, (int, float)) for v in pair) or not pair[0] < pair[1]:
+            raise out_of_range(f"limits.{name}", pair, "[low, high] with low < high", where)
+        lo, hi = (float(v) for v in pair)
+        i = table.names.index(name)
+        if not lo <= table.low[i] <= table.high[i] <= hi:
+            raise out_of_range(f"limits.{name}", pair, f"an interval holding the screened levels [{table.low[i]:g}, "
+                               f"{table.high[i]:g}]", where)
+        checked[str(name)] = (lo, hi)
     return ScreenSettings(
         table=table, n_fake=n_fake, seeds=tuple(seeds), condition=str(plain.get("condition")),
         kpis=check_kpis(cfg.get("kpis"), where),
@@ -278,4 +294,4 @@ def screen_settings_from(plain: Mapping[str, Any]):
                                      "a fraction in (0, 1], e.g. 0.8", include_one=True),
         stochastic_threshold=_fraction(cfg.get("stochastic_threshold"), "stochastic_threshold", where,
                                        "a share in (0, 1), e.g. 0.5"),
-        extension_factor=factor, extension_mode=mode)
+        extension_factor=factor, extension_mode=mode, limits=checked)

@@ -51,6 +51,7 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -90,6 +91,9 @@ class ScreenSettings:
         kpis: DEM KPI names analysed. p_threshold, selection_fraction: stepwise regression and
             Table-5 selection. stochastic_threshold: exclude a KPI whose stochastic share S is
             above it. extension_factor, extension_mode: the Table-6 extension rule.
+        limits: screened parameter -> (low, high), the closed interval the extension may not
+            leave (replacing the parameter's physical range, e.g. sliding friction at most 1 as the
+            paper's Table 6 keeps it); see :meth:`physical_limits`.
     """
 
     table: ParameterTable
@@ -102,6 +106,11 @@ class ScreenSettings:
     stochastic_threshold: float
     extension_factor: float
     extension_mode: str
+    limits: Mapping[str, tuple[float, float]] = dataclass_field(default_factory=dict)
+
+    def physical_limits(self) -> dict[str, PhysicalLimit]:
+        """``limits`` as the extension rule's :class:`PhysicalLimit` (closed intervals)."""
+        return {n: PhysicalLimit(float(lo), float(hi)) for n, (lo, hi) in self.limits.items()}
 
 
 # --------------------------------------------------------------------------------------------
