@@ -6,7 +6,7 @@ key path (``mixture.materials.sinter.sieve[2].d_max_mm``) and the allowed range.
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 from torchdem.drawdown import RunSettings
 from torchdem.errors import ConfigError, out_of_range
@@ -190,16 +190,13 @@ def run_settings_from(sim: Mapping[str, Any], run: Mapping[str, Any]) -> RunSett
         reorder_every=int(_number(sim, "reorder_every", "sim", 0.0, default=0,
                                   allowed="an int >= 0 (neighbour rebuilds between spatial reorders; 0: never)")),
         fill_packing=str(run.get("fill_packing", "bounding")),
-        retry_time_steps=_factors(sim.get("retry_time_steps", []), "sim.retry_time_steps"),
+        retry_time_steps=_tuple(sim.get("retry_time_steps", [])),
     ).validate("sim/run")
 
 
-def _factors(value: Any, where: str) -> tuple[float, ...]:
-    """A list of numbers from the config as a tuple of floats (the range is checked by the settings)."""
-    if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, Sequence) \
-            or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
-        raise out_of_range(where, value, "a list of numbers, e.g. [0.8, 0.6], or []", "config")
-    return tuple(float(v) for v in value)
+def _tuple(value: Any) -> Any:
+    """A config list as a tuple (anything else as given, for the settings' check to name)."""
+    return tuple(value) if isinstance(value, (list, tuple)) else value
 
 
 def extension_from(cfg: Mapping[str, Any] | None, where: str = "extension") -> tuple[str | None, dict[str, float]]:

@@ -59,7 +59,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from bo.surrogate.acquisition import (AdaptiveSettings, RoundRecord, SamplingState, best_kernel_cv, latin_hypercube,
-                                      propose_batch, state_ceiling)
+                                      propose_batch, state_ceiling, state_learned_ceiling)
 from torchdem.model import DENSITY_PREFIX
 from bo.campaign.executor import Executor, run_pending
 from bo.surrogate.ga import GASettings, GASummary, repeated_ga
@@ -68,7 +68,7 @@ from bo.screening.pipeline import (ScreeningReport, ScreenSettings, analyse_and_
                                    run_screening)
 from bo.screening.stepwise import ScreeningResults
 from bo.campaign.store import CampaignStore
-from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2, learned_noise_ceiling
+from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
 
@@ -570,9 +570,8 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                                                        seeds=a.cv_seeds).mean
             # the ceiling with the noise a GP learns on these points: the stop counts against the
             # higher of the two ceilings (RoundRecord.stop_ceiling)
-            learned_ceiling = learned_noise_ceiling(state.X, state.y, bounds, dataclasses.replace(
-                config, kernel=best.kernel), objective=objective) \
-                if state.y_var is not None and a.target_basis == "explainable" else math.nan
+            learned_ceiling = state_learned_ceiling(state, bounds, a, dataclasses.replace(config, kernel=best.kernel),
+                                                    objective)
             first = best.results[0]
             return json_ready({"kernel": best.kernel, "mean": best.mean, "std": best.std, "per_seed": list(best.per_seed),
                                "actual": first.actual.tolist(), "predicted": first.predicted.tolist(),

@@ -23,8 +23,8 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (requeue_failed, MODEL_KEYS, _int, check_kpis, config_hash, executor_settings_from, plain_config,
-                           replicate_seeds, store_path_from)
+from bo.cli.common import (MODEL_KEYS, _int, check_kpis, config_hash, executor_settings_from, plain_config,
+                           replicate_seeds, requeue_failed, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 

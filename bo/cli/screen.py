@@ -26,8 +26,9 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (requeue_failed, checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
-                           measured_kpis_from, model_from, plain_config, screen_settings_from, store_path_from)
+from bo.cli.common import (checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
+                           measured_kpis_from, model_from, plain_config, requeue_failed, screen_settings_from,
+                           store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 
 

@@ -24,8 +24,9 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (requeue_failed, _int, check_kpis, checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
-                           measured_kpis_from, model_from, plain_config, replicate_seeds, store_path_from)
+from bo.cli.common import (_int, check_kpis, checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
+                           measured_kpis_from, model_from, plain_config, replicate_seeds, requeue_failed,
+                           store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 

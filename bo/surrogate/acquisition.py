@@ -85,6 +85,7 @@ __all__ = [
     "plot_actual_vs_predicted",
     "target_reached",
     "state_ceiling",
+    "state_learned_ceiling",
     "TARGET_BASES",
     "MIN_CEILING",
 ]
@@ -373,6 +374,15 @@ def target_reached(r2_mean: float, ceiling: float, settings: AdaptiveSettings) -
     return bool(ceiling >= MIN_CEILING and r2_mean / ceiling >= settings.target_r2)
 
 
+def state_learned_ceiling(state: "SamplingState", bounds, settings: "AdaptiveSettings", config: SurrogateConfig,
+                          objective: ObjectiveSpec | None = None) -> float:
+    """``learned_noise_ceiling`` of the points of ``state`` where the stop rule uses it (basis
+    ``"explainable"``, the points' noise known); NaN otherwise."""
+    if state.y_var is None or settings.target_basis != "explainable" or state.n < 2:
+        return math.nan
+    return learned_noise_ceiling(state.X, state.y, bounds, config, objective=objective)
+
+
 def state_ceiling(state: "SamplingState", config: SurrogateConfig,
                   objective: ObjectiveSpec | None = None) -> float:
     """``r2_ceiling`` of the objective values of ``state`` (NaN without ``y_var``)."""
@@ -447,12 +457,10 @@ def round_record(state: SamplingState, bounds, settings: AdaptiveSettings,
                           f"initial design of {n_initial} points")
     best = best_kernel_cv(state, b, settings, config, objective)
     index, start, stop = _round_bounds(state.n, n_initial, settings.q)
-    learned = math.nan
-    if state.y_var is not None and settings.target_basis == "explainable":
-        learned = learned_noise_ceiling(state.X, state.y, b, dataclasses.replace(config, kernel=best.kernel),
-                                        objective=objective)
     return record_from_cv(best, index, state.n, state.X[start:stop], state.y[start:stop],
-                          ceiling=state_ceiling(state, config, objective), learned_ceiling=learned)
+                          ceiling=state_ceiling(state, config, objective),
+                          learned_ceiling=state_learned_ceiling(state, b, settings,
+                                                                dataclasses.replace(config, kernel=best.kernel), objective))
 
 
 def record_from_cv(summary: CVSummary, index: int, n_points: int, X, y,
