@@ -89,3 +89,20 @@ def test_bench_reorder_refuses_cases_without_a_baseline_or_steps(monkeypatch, ca
     with pytest.raises(SystemExit):
         module.main()
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--fractions", "0.25", "0.25"], "distinct values in (0, 2]"),
+    (["--fractions", "0.25", "0"], "distinct values in (0, 2]"),
+    (["--rounds", "0"], "--chunk and --rounds must be >= 1"),
+])
+def test_bench_skin_refuses_bad_skins_or_steps(monkeypatch, capsys, argv, message):
+    """scripts/bench_skin.py names a bad --fractions or step count before it builds anything."""
+    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_skin.py"
+    spec = importlib.util.spec_from_file_location("bench_skin", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    monkeypatch.setattr(sys, "argv", ["bench_skin.py", *argv])
+    with pytest.raises(SystemExit):
+        module.main()
+    assert message in capsys.readouterr().err
