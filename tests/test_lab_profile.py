@@ -70,3 +70,40 @@ def test_the_extension_stops_at_the_profiles_limits():
         screen_settings_from(_plain("+screening.limits.coh_pp=[0,1]"))
     with pytest.raises(ConfigError, match=r"limits.mu_s_pp .*low < high"):
         screen_settings_from(_plain("screening.limits.mu_s_pp=[1,0.5]"))
+
+
+def test_the_lab_screening_has_the_second_stage(tmp_path):
+    """profile=lab analyses its screening with the stepwise's second stage: on the shipped store's
+    66 runs the pellet friction, masked main effects only by the lobe spacing's curvature and its
+    interaction with mu_s_ss, is selected beside them (significant in both replicates of the shear
+    angle and the lower-box mass). A bad value is an error naming the key."""
+    import shutil
+    from pathlib import Path
+
+    from bo.campaign.executor import InProcessExecutor
+    from bo.campaign.store import CampaignStore
+    from bo.cli.common import MODEL_KEYS, config_hash, screen_settings_from
+    from bo.screening.pipeline import run_screening
+    from bo.screening.stepwise import analyse_screening
+
+    plain = _plain()
+    s = calibration_settings_from(plain).screening
+    assert s.second_order
+    shipped = Path(__file__).resolve().parents[1] / "campaigns" / "table2" / "lab.sqlite"
+    shutil.copy(shipped, tmp_path / "lab.sqlite")  # the shipped file is never opened for writing
+    store = CampaignStore(tmp_path / "lab.sqlite", config_hash(plain, MODEL_KEYS + ("measured",)))  # as calibrate
+    assert store.counts("screening")["done"] == 66
+    def nothing_runs(tasks):
+        raise AssertionError(f"the shipped screening is complete; {len(tasks)} task(s) were sent to the DEM")
+
+    results = run_screening(store, InProcessExecutor(nothing_runs, 1), s.table, n_fake=s.n_fake, seeds=list(s.seeds), condition=s.condition,
+                            kpis=list(s.kpis), stage="screening")
+    kpis = ["angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg"]
+    plain_table = analyse_screening(results, s.p_threshold, s.selection_fraction, kpis=kpis).table
+    second = analyse_screening(results, s.p_threshold, s.selection_fraction, kpis=kpis, second_order=True).table
+    assert plain_table.selected_parameters == ("e_pp", "mu_s_ss", "lobe_spacing_sinter")  # design order
+    assert second.selected_parameters == ("mu_s_pp", "e_pp", "mu_s_ss", "lobe_spacing_sinter")
+    assert second.cell("mu_s_pp", "shear_angle_deg") == "+2/2"
+    assert second.cell("mu_s_pp", "mass_lower_box_full_kg") == "-2/2"
+    with pytest.raises(ConfigError, match=r"screening: second_order = 'maybe' is not allowed; expected true or false"):
+        screen_settings_from(_plain("screening.second_order=maybe"))

@@ -514,3 +514,46 @@ def test_retry_failed_puts_failed_runs_back_only_when_asked(tmp_path):
     assert said == [f"retry_failed: 1 failed run(s) of {store.path} back in the queue"]
     with pytest.raises(ConfigError, match=r"retry_failed = 'yes'.*true or false"):
         requeue_failed({"retry_failed": "yes"}, store)
+
+
+def test_a_batch_key_runs_one_design_of_a_stage_and_leaves_the_other_pending(tmp_path):
+    """The surrogate's initial design changes when the screening's selection does: the stage then
+    holds the old design's pending runs beside the new one. Claimed by batch key, only the design
+    asked for runs; the old one stays pending (nothing lost) and runs if the campaign asks for it
+    again. A key without its stage is refused."""
+    store = new_store(tmp_path)
+    fill(store, key="old", points=POINTS[:2], seeds=(0,))
+    fill(store, key="new", points=POINTS[2:], seeds=(0, 1))
+    ran = []
+
+    def evaluate(tasks):
+        ran.extend(tasks)
+        return [EvalOutcome.success({"angle_of_repose": 30.0}, 0.1) for _ in tasks]
+
+    summary = run_pending(store, InProcessExecutor(evaluate, batch_size=1), "initial", batch_key="new")
+    assert summary.n_done == 2 and {tuple(sorted(t.params.items())) for t in ran} == {
+        tuple(sorted(POINTS[2].items()))}
+    assert store.counts("initial", batch_key="new") == {"pending": 0, "running": 0, "done": 2, "failed": 0}
+    assert store.counts("initial", batch_key="old")["pending"] == 2
+    assert store.claim(10, stage="initial", batch_key="new") == []
+    run_pending(store, InProcessExecutor(evaluate, batch_size=1), "initial", batch_key="old")
+    assert store.counts("initial")["done"] == 4
+    with pytest.raises(ConfigError, match="batch_key = 'old' is not allowed; expected a key together with its stage"):
+        store.claim(1, batch_key="old")
+
+
+def test_a_batch_with_nothing_computed_can_be_discarded_and_one_with_results_cannot(tmp_path):
+    store = new_store(tmp_path)
+    fill(store, key="old", points=POINTS[:2], seeds=(0,))
+    fill(store, key="new", points=POINTS[2:], seeds=(0,))
+    store.claim(1, stage="initial", batch_key="old")  # a live lease of this process
+    with pytest.raises(ConfigError, match=r"holds \{'running \(live lease\)': 1\} task\(s\)"):
+        store.discard_batch("initial", "old")
+    store.release([r.task_id for r in store.records("initial", status="running")])
+    assert store.discard_batch("initial", "old") == 2
+    assert store.batch_keys("initial") == [("initial", "new")] and len(store.records("initial")) == 1
+    finish(store, store.claim(1, stage="initial", batch_key="new"))
+    with pytest.raises(ConfigError, match=r"holds \{'done': 1\}"):
+        store.discard_batch("initial", "new")
+    with pytest.raises(ConfigError, match=r"no such batch; stored: \['new'\]"):
+        store.discard_batch("initial", "old")

@@ -327,8 +327,11 @@ def _replicates(store: CampaignStore, stage: str, key: str, n_points: int, seeds
 def _run_batch(store: CampaignStore, executor: Executor, stage: str, key: str,
                make_points: Callable[[], Sequence[Mapping[str, float]]], seeds: Sequence[int],
                conditions: Sequence[str], share: bool = True) -> list[dict[str, float]]:
+    """The points of batch ``(stage, key)``, all its runs done. Only that batch's runs are claimed:
+    another batch of the stage is a design the campaign asked for before (the screening's
+    selection changed), never run unless the campaign comes back to it."""
     points = store.batch(stage, key, make_points, seeds=list(seeds), conditions=list(conditions), share=share)
-    run_pending(store, executor, stage)
+    run_pending(store, executor, stage, batch_key=key)
     return points
 
 
@@ -418,7 +421,7 @@ def screening_stage(store: CampaignStore, executor: Executor, s: ScreenSettings,
                               selection_fraction=s.selection_fraction,
                               stochastic_threshold=s.stochastic_threshold,
                               extension_factor=s.extension_factor, extension_mode=s.extension_mode,
-                              limits=s.physical_limits(),
+                              limits=s.physical_limits(), second_order=s.second_order,
                               title=f"Screening of {s.table.k} parameters, condition {s.condition}")
 
 

@@ -491,8 +491,9 @@ class _LeaseKeeper:
 
 
 def run_pending(store: CampaignStore, executor: Executor, stage: str | None = None, *,
-                wait: bool = True, poll_seconds: float = 2.0) -> RunSummary:
-    """Run every pending task of ``stage`` (all stages if None) and store each outcome.
+                wait: bool = True, poll_seconds: float = 2.0, batch_key: str | None = None) -> RunSummary:
+    """Run every pending task of ``stage`` (all stages if None; ``batch_key``: of that batch of
+    ``stage`` only) and store each outcome.
 
     Claims one batch at a time (``executor.batch_size`` tasks of one condition,
     :meth:`CampaignStore.claim`) whenever the executor has a free worker (``run_stream``: the
@@ -517,7 +518,7 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
             def feed():  # one claim at a time, drawn as a worker frees up
                 while True:
                     tasks = store.claim(executor.batch_size, stage=stage, batch_size=executor.batch_size,
-                                        affinity=executor.affinity)
+                                        affinity=executor.affinity, batch_key=batch_key)
                     if not tasks:
                         return
                     keeper.hold(t.task_id for t in tasks)
@@ -537,7 +538,7 @@ def run_pending(store: CampaignStore, executor: Executor, stage: str | None = No
                 store.release(keeper.held)
                 raise
             if not claimed:
-                if not wait or store.counts(stage).get("running", 0) == 0:
+                if not wait or store.counts(stage, batch_key=batch_key).get("running", 0) == 0:
                     break
                 time.sleep(poll_seconds)  # others are still running tasks; theirs may go stale
                 continue

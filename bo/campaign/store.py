@@ -71,6 +71,7 @@ The store remembers the config hash it was created with; opening it with another
 """
 from __future__ import annotations
 
+import collections
 import functools
 import json
 import math
@@ -554,7 +555,8 @@ class CampaignStore:
     # -- claiming and recording --------------------------------------------------------------
 
     def claim(self, limit: int, stage: str | None = None, batch_size: int = 1,
-              affinity: Callable[[Mapping[str, float]], tuple] | None = None) -> list[EvalTask]:
+              affinity: Callable[[Mapping[str, float]], tuple] | None = None,
+              batch_key: str | None = None) -> list[EvalTask]:
         """Lease up to ``limit`` claimable tasks to this process, grouped by condition: the
         claimable tasks of the condition of the oldest one first, then those of the condition of
         the oldest remaining one, and so on (task order kept within a condition). A later
@@ -568,12 +570,22 @@ class CampaignStore:
         in one ensemble all run at the smallest one's time step). Each batch then starts with the
         oldest task left and is filled with the tasks of equal affinity, in task order, then of
         the nearest (summed relative difference of the values); the tasks come back batch by
-        batch, so ``make_batches`` cuts them where the claim did."""
+        batch, so ``make_batches`` cuts them where the claim did.
+
+        ``batch_key`` (optional): claim only the tasks of that batch of ``stage``. A stage that
+        holds one design (the surrogate's initial design, each round) claims so, and a design the
+        campaign no longer asks for (the screening's selection changed) is never run; it is run
+        again if the campaign comes back to it."""
         if isinstance(limit, bool) or not isinstance(limit, Integral) or limit < 1:
             raise out_of_range("limit", limit, "an int >= 1", "CampaignStore.claim")
         if isinstance(batch_size, bool) or not isinstance(batch_size, Integral) or batch_size < 1:
             raise out_of_range("batch_size", batch_size, "an int >= 1", "CampaignStore.claim")
         where_stage, args = ("", []) if stage is None else (" AND stage = ?", [self.check_stage(stage)])
+        if batch_key is not None:
+            if stage is None:
+                raise out_of_range("batch_key", batch_key, "a key together with its stage", "CampaignStore.claim")
+            where_stage += " AND batch_key = ?"
+            args.append(_check_name(batch_key, "batch key", "CampaignStore.claim"))
         owner, now = _owner(), time.time()
         with self._write() as conn:
             owners = [row[0] for row in conn.execute(
@@ -665,6 +677,35 @@ class CampaignStore:
             "UPDATE evaluations SET status = 'pending', claimed_by = NULL, claimed_at = NULL",
             task_ids)
 
+    def discard_batch(self, stage: str, key: str) -> int:
+        """Delete batch ``(stage, key)`` and its tasks when none of them has a result: a design the
+        campaign no longer asks for (the surrogate's initial design from before the screening's
+        selection changed), so that it does not count as work left. Refused while any of its tasks
+        is done, failed, or running under a live lease (nothing computed is ever deleted); returns
+        how many tasks went."""
+        source = f"CampaignStore.discard_batch({stage!r}, {key!r})"
+        self.check_stage(stage, source)
+        with self._write() as conn:
+            if self._stored_batch(stage, key, conn) is None:
+                raise ConfigError(f"{self.path}: {source}: no such batch; stored: "
+                                  f"{[k for s, k in self.batch_keys(stage)]}")
+            now = time.time()
+            kept = []
+            for status, claimed_by, claimed_at in conn.execute(
+                    "SELECT status, claimed_by, claimed_at FROM evaluations WHERE stage = ? AND batch_key = ?",
+                    (stage, key)):
+                live = status == "running" and claimed_at is not None and claimed_at >= now - self.lease_seconds \
+                    and not _owner_is_gone(claimed_by)
+                if status in ("done", "failed") or live:
+                    kept.append(status if not live else "running (live lease)")
+            if kept:
+                counted = collections.Counter(kept)
+                raise ConfigError(f"{self.path}: {source} holds {dict(counted)} task(s); only a batch with "
+                                  "nothing computed or running can be discarded")
+            n = conn.execute("DELETE FROM evaluations WHERE stage = ? AND batch_key = ?", (stage, key)).rowcount
+            conn.execute("DELETE FROM batches WHERE stage = ? AND batch_key = ?", (stage, key))
+        return n
+
     def reset_failed(self, stage: str | None = None) -> int:
         """Put failed tasks (of ``stage``, or all) back to pending; returns how many."""
         where_stage, args = ("", []) if stage is None else (" AND stage = ?", [self.check_stage(stage)])
@@ -676,10 +717,17 @@ class CampaignStore:
 
     # -- queries -----------------------------------------------------------------------------
 
-    def counts(self, stage: str | None = None, *, computed_only: bool = False) -> dict[str, int]:
+    def counts(self, stage: str | None = None, *, computed_only: bool = False,
+               batch_key: str | None = None) -> dict[str, int]:
         """Number of tasks per status (all four statuses present); ``computed_only`` leaves out
-        the rows that took another run's result (see "Shared runs")."""
+        the rows that took another run's result (see "Shared runs"); ``batch_key`` counts one
+        batch of ``stage``."""
         where_stage, args = ("", []) if stage is None else (" WHERE stage = ?", [self.check_stage(stage)])
+        if batch_key is not None:
+            if stage is None:
+                raise out_of_range("batch_key", batch_key, "a key together with its stage", "CampaignStore.counts")
+            where_stage += " AND batch_key = ?"
+            args.append(batch_key)
         if computed_only:
             where_stage += (" AND" if where_stage else " WHERE") + " COALESCE(claimed_by, '') NOT LIKE 'reused:%'"
         out = dict.fromkeys(STATUSES, 0)

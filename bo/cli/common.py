@@ -35,6 +35,12 @@ class ExecutorSettings:
     max_in_flight: int | None = None
 
 
+def _second_order(value, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise out_of_range("second_order", value, "true or false", where)
+    return value
+
+
 def _int(value, key: str, where: str, low: int, allowed: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
         raise out_of_range(key, value, allowed, where)
@@ -294,4 +300,5 @@ def screen_settings_from(plain: Mapping[str, Any]):
                                      "a fraction in (0, 1], e.g. 0.8", include_one=True),
         stochastic_threshold=_fraction(cfg.get("stochastic_threshold"), "stochastic_threshold", where,
                                        "a share in (0, 1), e.g. 0.5"),
-        extension_factor=factor, extension_mode=mode, limits=checked)
+        extension_factor=factor, extension_mode=mode, limits=checked,
+        second_order=_second_order(cfg.get("second_order", False), where))

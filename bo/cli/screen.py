@@ -59,6 +59,7 @@ def screen(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
                                 stochastic_threshold=settings.stochastic_threshold,
                                 extension_factor=settings.extension_factor,
                                 extension_mode=settings.extension_mode, limits=settings.physical_limits(),
+                                second_order=settings.second_order,
                                 title=f"Screening of {settings.table.k} parameters, condition {settings.condition}")
     echo(report.text)
     summary = {"store": str(path), "design_runs": results.n_runs, "replicates": results.n_replicates,

@@ -89,7 +89,8 @@ class ScreenSettings:
         table: levels of the screened parameters. n_fake: fake factors of the DSD.
         seeds: one replicate of the design per seed. condition: measured condition screened.
         kpis: DEM KPI names analysed. p_threshold, selection_fraction: stepwise regression and
-            Table-5 selection. stochastic_threshold: exclude a KPI whose stochastic share S is
+            Table-5 selection. second_order: the stepwise's second stage (squares and
+            interactions of the active factors, as JMP's definitive screening platform). stochastic_threshold: exclude a KPI whose stochastic share S is
             above it. extension_factor, extension_mode: the Table-6 extension rule.
         limits: screened parameter -> (low, high), the closed interval the extension may not
             leave (replacing the parameter's physical range, e.g. sliding friction at most 1 as the
@@ -107,6 +108,7 @@ class ScreenSettings:
     extension_factor: float
     extension_mode: str
     limits: Mapping[str, tuple[float, float]] = dataclass_field(default_factory=dict)
+    second_order: bool = False
 
     def physical_limits(self) -> dict[str, PhysicalLimit]:
         """``limits`` as the extension rule's :class:`PhysicalLimit` (closed intervals)."""
@@ -263,6 +265,7 @@ def analyse_and_report(results: ScreeningResults, measured: Mapping, out_dir, *,
                        stochastic_threshold: float = 0.5, extension_factor: float = 1.0,
                        extension_mode: str = "extend",
                        limits: Mapping[str, PhysicalLimit] | None = None,
+                       second_order: bool = False,
                        title: str = "Screening") -> ScreeningReport:
     """Table 5, variance shares, extension, Fig. 10/11; see the module docstring.
 
@@ -286,7 +289,8 @@ def analyse_and_report(results: ScreeningResults, measured: Mapping, out_dir, *,
     calibration = variance.calibration_kpis if variance is not None else ()
     analysis = None
     if calibration:
-        analysis = analyse_screening(results, p_threshold, selection_fraction, kpis=calibration)
+        analysis = analyse_screening(results, p_threshold, selection_fraction, kpis=calibration,
+                                     second_order=second_order)
     no_table = (f"No Table 5: every KPI {list(results.kpi_names)} is excluded (stochasticity dominates, "
                 f"no variance, or not measurable); see the variance decomposition.")
     files["table5_md"] = out / "table5.md"
@@ -345,6 +349,7 @@ def analyse_and_report(results: ScreeningResults, measured: Mapping, out_dir, *,
                      for k in lab},
         "extension": proposal.to_dict() if proposal is not None else None,
         "settings": {"p_threshold": p_threshold, "selection_fraction": selection_fraction,
+                     "second_order": bool(second_order),
                      "stochastic_threshold": stochastic_threshold,
                      "extension_factor": extension_factor, "extension_mode": extension_mode},
     }
