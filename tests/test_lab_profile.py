@@ -107,3 +107,33 @@ def test_the_lab_screening_has_the_second_stage(tmp_path):
     assert second.cell("mu_s_pp", "mass_lower_box_full_kg") == "-2/2"
     with pytest.raises(ConfigError, match=r"screening: second_order = 'maybe' is not allowed; expected true or false"):
         screen_settings_from(_plain("screening.second_order=maybe"))
+
+
+def test_surrogate_limits_keep_the_trilobe_in_one_piece():
+    """profile=lab screens the lobe spacing up to 0.3, where a trilobe's lobes have parted, but
+    calibrates it only up to where they touch (1 / (2 + sqrt 3)); surrogate.limits cuts the
+    screened range, names the cut in the note, and a limit that leaves nothing is an error."""
+    import math
+
+    from torchdem.mixture import trilobe_template
+
+    touch = 1 / (2 + math.sqrt(3))
+    for s, parted in ((0.2679, False), (0.3, True)):
+        t = trilobe_template(s)
+        gap = np.linalg.norm(t.offsets[0] - t.offsets[1]) - 2 * t.radii[0]
+        assert (gap > 0) == parted
+    s = calibration_settings_from(_plain()).surrogate
+    assert s.limits["lobe_spacing_sinter"][1] == pytest.approx(touch, abs=1e-4)
+    screening = SimpleNamespace(
+        results=SimpleNamespace(levels=lambda: {"mu_s_ss": (0.525, 0.875), "lobe_spacing_sinter": (0.15, 0.3)},
+                                parameter_names=("mu_s_ss", "lobe_spacing_sinter")),
+        analysis=SimpleNamespace(selected_parameters=("mu_s_ss", "lobe_spacing_sinter")), proposal=None)
+    names, bounds, note = choose_parameters(screening, s)
+    assert names[:2] == ("mu_s_ss", "lobe_spacing_sinter")
+    np.testing.assert_allclose(bounds[:, :2], [[0.525, 0.15], [0.875, 0.2679]])
+    assert "cut by surrogate.limits: lobe_spacing_sinter [0.15, 0.3] -> [0.15, 0.2679]" in note
+    far = calibration_settings_from(_plain("surrogate.limits.lobe_spacing_sinter=[0.31,0.4]")).surrogate
+    with pytest.raises(ConfigError, match=r"surrogate.limits.lobe_spacing_sinter = \[0.31, 0.4\] leaves nothing"):
+        choose_parameters(screening, far)
+    with pytest.raises(ConfigError, match=r"surrogate: limits.lobe_spacing_sinter = \[0.3, 0.2\]"):
+        calibration_settings_from(_plain("surrogate.limits.lobe_spacing_sinter=[0.3,0.2]"))

@@ -542,18 +542,24 @@ def test_a_batch_key_runs_one_design_of_a_stage_and_leaves_the_other_pending(tmp
         store.claim(1, batch_key="old")
 
 
-def test_a_batch_with_nothing_computed_can_be_discarded_and_one_with_results_cannot(tmp_path):
+def test_a_withdrawn_batch_keeps_its_results_and_gets_its_runs_back_when_asked_again(tmp_path):
+    """withdraw_batch takes a design's unfinished runs away (they no longer count as work left) and
+    keeps what was computed; asked for again, the batch has every run back, pending, the computed
+    ones still done. A batch with nothing computed goes whole; a live lease refuses."""
     store = new_store(tmp_path)
-    fill(store, key="old", points=POINTS[:2], seeds=(0,))
-    fill(store, key="new", points=POINTS[2:], seeds=(0,))
+    fill(store, key="old", points=POINTS, seeds=(0,))
+    fill(store, key="gone", points=POINTS[2:], seeds=(1,))
+    finish(store, store.claim(1, stage="initial", batch_key="old"))
     store.claim(1, stage="initial", batch_key="old")  # a live lease of this process
-    with pytest.raises(ConfigError, match=r"holds \{'running \(live lease\)': 1\} task\(s\)"):
-        store.discard_batch("initial", "old")
+    with pytest.raises(ConfigError, match=r"running under a live lease; stop the campaign"):
+        store.withdraw_batch("initial", "old")
     store.release([r.task_id for r in store.records("initial", status="running")])
-    assert store.discard_batch("initial", "old") == 2
-    assert store.batch_keys("initial") == [("initial", "new")] and len(store.records("initial")) == 1
-    finish(store, store.claim(1, stage="initial", batch_key="new"))
-    with pytest.raises(ConfigError, match=r"holds \{'done': 1\}"):
-        store.discard_batch("initial", "new")
-    with pytest.raises(ConfigError, match=r"no such batch; stored: \['new'\]"):
-        store.discard_batch("initial", "old")
+    assert store.withdraw_batch("initial", "old") == 2
+    assert store.counts("initial", batch_key="old") == {"pending": 0, "running": 0, "done": 1, "failed": 0}
+    assert store.withdraw_batch("initial", "gone") == 1
+    assert [k for _, k in store.batch_keys("initial")] == ["old"]
+    with pytest.raises(ConfigError, match=r"no such batch; stored: \['old'\]"):
+        store.withdraw_batch("initial", "gone")
+    assert fill(store, key="old", points=POINTS, seeds=(0,)) == POINTS
+    assert store.counts("initial", batch_key="old") == {"pending": 2, "running": 0, "done": 1, "failed": 0}
+    assert sorted(r.point_index for r in store.records("initial", batch_key="old")) == [0, 1, 2]

@@ -47,7 +47,9 @@ def trilobe_template(lobe_spacing: float) -> ClumpTemplate:
     """The trilobe family of :data:`SINTER_TRILOBE`: three equal spheres on an equilateral
     triangle of circumradius ``lobe_spacing`` (units of the sieve diameter d), each of radius
     ``0.5 - lobe_spacing`` so the clump just fits a sphere of diameter d. 0 is a sphere, 0.15
-    the default sinter, larger values are flatter and more angular; allowed (0, 0.3]."""
+    the default sinter, larger values are flatter and more angular; allowed (0, 0.3]. The lobes
+    (centres ``sqrt(3) lobe_spacing`` apart) touch at ``1 / (2 + sqrt 3)`` = 0.2679 and part
+    beyond it: at 0.3 the clump is three separate spheres 0.12 d apart."""
     if not 0 < lobe_spacing <= 0.3:
         raise out_of_range("lobe_spacing", lobe_spacing, "(0, 0.3] of the sieve diameter", "trilobe_template")
     a = (0.0, 2 * math.pi / 3, 4 * math.pi / 3)

@@ -123,6 +123,10 @@ class SurrogateStageSettings:
         reuse_screening: the screening's design points enter the surrogate's data as points already
             run (:func:`screening_points`), and the initial Latin hypercube shrinks by as many
             points, to no less than half its size.
+        limits: name -> (low, high) the calibrated range of that parameter may not leave: a
+            bound from the Table-6 proposal or the screened range beyond it is moved onto it, so
+            a screening may look past where the model stays physical (a trilobe's lobes part
+            above a lobe spacing of 1 / (2 + sqrt 3)) while the calibration does not.
     """
 
     parameters: tuple[str, ...] | None
@@ -134,6 +138,7 @@ class SurrogateStageSettings:
     added: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     noise: str = "learned"
     reuse_screening: bool = False
+    limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -460,8 +465,20 @@ def choose_parameters(screening: ScreeningReport, s: SurrogateStageSettings
             raise ConfigError(f"surrogate.parameters: {n!r} was not screened, so it needs surrogate.bounds")
     where = "the config" if s.bounds is not None else (
         "the Table-6 proposal" if proposed else "the screened ranges (no extension was proposed)")
+    cut = []
+    for i, n in enumerate(names):
+        if n not in s.limits:
+            continue
+        lo, hi = s.limits[n]
+        new = (max(rows[i][0], lo), min(rows[i][1], hi))
+        if not new[0] < new[1]:
+            raise ConfigError(f"surrogate.limits.{n} = {list(s.limits[n])} leaves nothing of its range "
+                              f"[{rows[i][0]:g}, {rows[i][1]:g}] from {where}")
+        if new != tuple(rows[i]):
+            cut.append(f"{n} [{rows[i][0]:g}, {rows[i][1]:g}] -> [{new[0]:g}, {new[1]:g}]")
+            rows[i] = new
     bounds = as_bounds(np.array(rows, dtype=np.float64).T, "surrogate.bounds")
-    return names, bounds, f"{note}; bounds from {where}"
+    return names, bounds, f"{note}; bounds from {where}" + (f", cut by surrogate.limits: {', '.join(cut)}" if cut else "")
 
 
 def screening_points(results: ScreeningResults, names: Sequence[str], bounds: np.ndarray, kpis: Sequence[str],

@@ -71,7 +71,6 @@ The store remembers the config hash it was created with; opening it with another
 """
 from __future__ import annotations
 
-import collections
 import functools
 import json
 import math
@@ -484,7 +483,30 @@ class CampaignStore:
                 f"{self.path}: {source} is stored with seeds={stored_seeds} and "
                 f"conditions={stored_conditions}, but seeds={seeds} and conditions={conditions} "
                 "were asked for; use a new batch key for a different design")
+        self._restore_withdrawn(stage, key, points, seeds, conditions)
         return points
+
+    def _restore_withdrawn(self, stage, key, points, seeds, conditions) -> None:
+        """Pending tasks again for the runs of a batch that :meth:`withdraw_batch` took away."""
+        conn = self._connect()
+        try:
+            have = conn.execute("SELECT COUNT(*) FROM evaluations WHERE stage = ? AND batch_key = ?",
+                                (stage, key)).fetchone()[0]
+        finally:
+            conn.close()
+        if have == len(points) * len(seeds) * len(conditions):
+            return
+        with self._write() as conn:
+            present = {(i, seed, condition) for i, seed, condition in conn.execute(
+                "SELECT point_index, seed, condition FROM evaluations WHERE stage = ? AND batch_key = ?", (stage, key))}
+            now = time.time()
+            conn.executemany(
+                "INSERT INTO evaluations (stage, batch_key, point_index, params, seed, condition, "
+                "config_hash, status, code_version, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?)",
+                [(stage, key, i, _dumps(point), seed, condition, self.config_hash, self.code_version, now)
+                 for condition in conditions for i, point in enumerate(points) for seed in seeds
+                 if (i, seed, condition) not in present])
+            self._take_shared(conn, stage, key, now)
 
     def _stored_batch(self, stage: str, key: str, conn: sqlite3.Connection | None = None):
         own = conn is None
@@ -511,8 +533,12 @@ class CampaignStore:
             "VALUES (?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?)",
             [(stage, key, i, _dumps(point), seed, condition, self.config_hash, self.code_version, now)
              for condition in conditions for i, point in enumerate(points) for seed in seeds])
-        if not share:
-            return
+        if share:
+            self._take_shared(conn, stage, key, now)
+
+    @staticmethod
+    def _take_shared(conn, stage: str, key: str, now: float) -> None:
+        """The batch's pending runs that are done elsewhere take that result (see "Shared runs")."""
         conn.execute(
             "UPDATE evaluations SET (status, kpis, error, wall_time, code_version, claimed_by, finished_at) = "
             f"(SELECT 'done', d.kpis, NULL, NULL, d.code_version, '{REUSED}' || d.task_id, ? {_SAME_RUN_DONE} "
@@ -677,33 +703,33 @@ class CampaignStore:
             "UPDATE evaluations SET status = 'pending', claimed_by = NULL, claimed_at = NULL",
             task_ids)
 
-    def discard_batch(self, stage: str, key: str) -> int:
-        """Delete batch ``(stage, key)`` and its tasks when none of them has a result: a design the
-        campaign no longer asks for (the surrogate's initial design from before the screening's
-        selection changed), so that it does not count as work left. Refused while any of its tasks
-        is done, failed, or running under a live lease (nothing computed is ever deleted); returns
-        how many tasks went."""
-        source = f"CampaignStore.discard_batch({stage!r}, {key!r})"
+    def withdraw_batch(self, stage: str, key: str) -> int:
+        """Withdraw the unfinished tasks of batch ``(stage, key)``: a design the campaign no longer
+        asks for (the surrogate's initial design from before its parameters or bounds changed), so
+        that its pending runs do not count as work left. Done and failed tasks stay (a later batch
+        that asks for the same run takes its result); with none of them, the batch goes too.
+        Refused while a task of it is running under a live lease. Asked for again, the batch gets
+        its withdrawn tasks back (:meth:`batch`). Returns how many tasks were withdrawn."""
+        source = f"CampaignStore.withdraw_batch({stage!r}, {key!r})"
         self.check_stage(stage, source)
         with self._write() as conn:
             if self._stored_batch(stage, key, conn) is None:
                 raise ConfigError(f"{self.path}: {source}: no such batch; stored: "
                                   f"{[k for s, k in self.batch_keys(stage)]}")
             now = time.time()
-            kept = []
-            for status, claimed_by, claimed_at in conn.execute(
-                    "SELECT status, claimed_by, claimed_at FROM evaluations WHERE stage = ? AND batch_key = ?",
-                    (stage, key)):
-                live = status == "running" and claimed_at is not None and claimed_at >= now - self.lease_seconds \
-                    and not _owner_is_gone(claimed_by)
-                if status in ("done", "failed") or live:
-                    kept.append(status if not live else "running (live lease)")
-            if kept:
-                counted = collections.Counter(kept)
-                raise ConfigError(f"{self.path}: {source} holds {dict(counted)} task(s); only a batch with "
-                                  "nothing computed or running can be discarded")
-            n = conn.execute("DELETE FROM evaluations WHERE stage = ? AND batch_key = ?", (stage, key)).rowcount
-            conn.execute("DELETE FROM batches WHERE stage = ? AND batch_key = ?", (stage, key))
+            live = [task for task, claimed_by, claimed_at in conn.execute(
+                "SELECT task_id, claimed_by, claimed_at FROM evaluations WHERE stage = ? AND batch_key = ? "
+                "AND status = 'running'", (stage, key))
+                if claimed_at is not None and claimed_at >= now - self.lease_seconds and not _owner_is_gone(claimed_by)]
+            if live:
+                raise ConfigError(f"{self.path}: {source}: task(s) {live} are running under a live lease; "
+                                  "stop the campaign that runs them first")
+            n = conn.execute("DELETE FROM evaluations WHERE stage = ? AND batch_key = ? "
+                             "AND status IN ('pending', 'running')", (stage, key)).rowcount
+            left = conn.execute("SELECT COUNT(*) FROM evaluations WHERE stage = ? AND batch_key = ?",
+                                (stage, key)).fetchone()[0]
+            if not left:
+                conn.execute("DELETE FROM batches WHERE stage = ? AND batch_key = ?", (stage, key))
         return n
 
     def reset_failed(self, stage: str | None = None) -> int:

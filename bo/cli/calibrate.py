@@ -155,13 +155,22 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     if adaptive.target_basis == "explainable" and noise == "learned" and len(seeds) < 2:
         raise out_of_range("target_basis", adaptive.target_basis, "'total' when points run once with learned noise "
                            "('explainable' needs each point's noise: replicates >= 2 or noise: pooled)", where)
+    limits = cfg.get("limits") or {}
+    if not isinstance(limits, Mapping):
+        raise out_of_range("limits", limits, "a mapping name -> [low, high] or null", where)
+    checked_limits = {}
+    for n, b in limits.items():
+        lo_hi = _floats(b, f"limits.{n}", where, "[low, high] with low < high")
+        if len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
+            raise out_of_range(f"limits.{n}", list(b), "[low, high] with low < high", where)
+        checked_limits[str(n)] = lo_hi
     reuse = cfg.get("reuse_screening", False)
     if not isinstance(reuse, bool):
         raise out_of_range("reuse_screening", reuse, "true or false (the screening's points as surrogate data)", where)
     return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=seeds,
                                   adaptive=adaptive, config=config,
                                   compare_strategies=bool(cfg.get("compare_strategies")), added=checked_added,
-                                  noise=noise, reuse_screening=reuse)
+                                  noise=noise, reuse_screening=reuse, limits=checked_limits)
 
 
 def calibration_settings_from(plain: Mapping[str, Any]):
