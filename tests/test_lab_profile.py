@@ -72,41 +72,77 @@ def test_the_extension_stops_at_the_profiles_limits():
         screen_settings_from(_plain("screening.limits.mu_s_pp=[1,0.5]"))
 
 
-def test_the_lab_screening_has_the_second_stage(tmp_path):
-    """profile=lab analyses its screening with the stepwise's second stage: on the shipped store's
-    66 runs the pellet friction, masked main effects only by the lobe spacing's curvature and its
-    interaction with mu_s_ss, is selected beside them (significant in both replicates of the shear
-    angle and the lower-box mass). A bad value is an error naming the key."""
+def _shipped_screening(tmp_path):
+    """The lab profile's settings and its screening results read from a copy of the shipped store
+    (the shipped file is never opened for writing); nothing is sent to the DEM."""
     import shutil
     from pathlib import Path
 
     from bo.campaign.executor import InProcessExecutor
     from bo.campaign.store import CampaignStore
-    from bo.cli.common import MODEL_KEYS, config_hash, screen_settings_from
+    from bo.cli.common import MODEL_KEYS, config_hash
     from bo.screening.pipeline import run_screening
-    from bo.screening.stepwise import analyse_screening
 
     plain = _plain()
-    s = calibration_settings_from(plain).screening
-    assert s.second_order
+    settings = calibration_settings_from(plain)
+    s = settings.screening
     shipped = Path(__file__).resolve().parents[1] / "campaigns" / "table2" / "lab.sqlite"
-    shutil.copy(shipped, tmp_path / "lab.sqlite")  # the shipped file is never opened for writing
+    shutil.copy(shipped, tmp_path / "lab.sqlite")
     store = CampaignStore(tmp_path / "lab.sqlite", config_hash(plain, MODEL_KEYS + ("measured",)))  # as calibrate
     assert store.counts("screening")["done"] == 66
+
     def nothing_runs(tasks):
         raise AssertionError(f"the shipped screening is complete; {len(tasks)} task(s) were sent to the DEM")
 
-    results = run_screening(store, InProcessExecutor(nothing_runs, 1), s.table, n_fake=s.n_fake, seeds=list(s.seeds), condition=s.condition,
-                            kpis=list(s.kpis), stage="screening")
-    kpis = ["angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg"]
-    plain_table = analyse_screening(results, s.p_threshold, s.selection_fraction, kpis=kpis).table
-    second = analyse_screening(results, s.p_threshold, s.selection_fraction, kpis=kpis, second_order=True).table
+    results = run_screening(store, InProcessExecutor(nothing_runs, 1), s.table, n_fake=s.n_fake, seeds=list(s.seeds),
+                            condition=s.condition, kpis=list(s.kpis), stage="screening")
+    return settings, results
+
+
+KPIS4 = ["angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg"]
+
+
+def test_the_lab_screening_has_the_second_stage(tmp_path):
+    """profile=lab analyses its screening with the stepwise's second stage: on the shipped store's
+    66 runs the pellet friction, masked main effects only by the lobe spacing's curvature and its
+    interaction with mu_s_ss, is selected beside them (significant in both replicates of the shear
+    angle and the lower-box mass). A bad value is an error naming the key."""
+    from bo.cli.common import screen_settings_from
+    from bo.screening.stepwise import analyse_screening
+
+    settings, results = _shipped_screening(tmp_path)
+    s = settings.screening
+    assert s.second_order
+    plain_table = analyse_screening(results, s.p_threshold, s.selection_fraction, kpis=KPIS4).table
+    second = analyse_screening(results, s.p_threshold, s.selection_fraction, kpis=KPIS4, second_order=True).table
     assert plain_table.selected_parameters == ("e_pp", "mu_s_ss", "lobe_spacing_sinter")  # design order
     assert second.selected_parameters == ("mu_s_pp", "e_pp", "mu_s_ss", "lobe_spacing_sinter")
     assert second.cell("mu_s_pp", "shear_angle_deg") == "+2/2"
     assert second.cell("mu_s_pp", "mass_lower_box_full_kg") == "-2/2"
     with pytest.raises(ConfigError, match=r"screening: second_order = 'maybe' is not allowed; expected true or false"):
         screen_settings_from(_plain("screening.second_order=maybe"))
+
+
+def test_the_pooled_noise_comes_from_the_screening_points_inside_the_bounds(tmp_path):
+    """The GP's fixed noise is the replicate scatter of the screening points the calibration keeps
+    (18 of 33 inside the lobe-spacing limit): on the shipped runs the parted trilobes at 0.3 scatter
+    more in the shear angle (pair sd 1.79 deg against 1.22) and the lower box (0.26 against 0.12 kg)."""
+    from bo.calibration.pipeline import pooled_replicate_covariance, screening_points_inside
+
+    settings, results = _shipped_screening(tmp_path)
+    names = ("lobe_spacing_sinter", "mu_s_ss")
+    bounds = np.array([[0.15, 0.525], [0.2679, 0.875]])
+    inside = screening_points_inside(results, names, bounds)
+    assert inside.sum() == 18
+    s = results.physical[:, results.parameter_names.index("lobe_spacing_sinter")]
+    assert (s[~inside] > 0.29).all() and (s[inside] < 0.23).all()
+    reps = results.kpi_values[:, :, [results.kpi_index(k) for k in KPIS4]]
+    kept, dof = pooled_replicate_covariance(reps[inside])
+    every, _ = pooled_replicate_covariance(reps)
+    assert dof == 18
+    sd, sd_all = np.sqrt(np.diag(kept)), np.sqrt(np.diag(every))
+    np.testing.assert_allclose(sd, [0.501, 1.223, 0.219, 0.120], atol=2e-3)
+    assert sd[1] < 0.85 * sd_all[1] and sd[3] < 0.7 * sd_all[3]
 
 
 def test_surrogate_limits_keep_the_trilobe_in_one_piece():

@@ -359,6 +359,23 @@ def agreement(replicates: np.ndarray, kpis: Sequence[str], measured: Mapping) ->
     return tuple(out)
 
 
+#: Fewest screening points inside the surrogate's bounds whose replicates the pooled noise is taken
+#: from; with fewer it is pooled over every screening point.
+MIN_POOLED_POINTS = 8
+
+
+def screening_points_inside(results: ScreeningResults, names: Sequence[str], bounds: np.ndarray) -> np.ndarray:
+    """``[runs]`` bool: the screening's design points whose values of the screened parameters among
+    ``names`` lie inside ``bounds [2, d]`` (parameters the screening did not vary do not count)."""
+    inside = np.ones(results.n_runs, dtype=bool)
+    for j, n in enumerate(names):
+        if n in results.parameter_names:
+            col = results.physical[:, results.parameter_names.index(n)]
+            tol = 1e-9 * max(1.0, abs(float(bounds[1, j])))
+            inside &= (col >= bounds[0, j] - tol) & (col <= bounds[1, j] + tol)
+    return inside
+
+
 def pooled_replicate_covariance(kpi_reps: np.ndarray) -> tuple[np.ndarray, int]:
     """``([M, M] covariance, degrees of freedom)`` of single DEM runs about their point's mean,
     pooled over every point of ``[n, r, M]`` replicates with two or more runs whose M KPIs are
@@ -802,8 +819,14 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     if settings.surrogate.noise == "pooled":
         table = screening.results
         reps = table.kpi_values[:, :, [table.kpi_index(k) for k in objective.kpi_names]]
+        inside = screening_points_inside(table, names, bounds)
+        where = "the screening's replicates"
+        if not inside.all() and inside.sum() >= MIN_POOLED_POINTS:
+            # the noise of the region calibrated: outside it (a shape the calibration excludes) the
+            # scatter can differ
+            reps, where = reps[inside], f"the replicates of the {int(inside.sum())} screening points inside the bounds"
         pooled, dof = pooled_replicate_covariance(reps)
-        echo(f"      GP noise of single runs pooled from the screening's replicates ({dof} degrees of freedom): "
+        echo(f"      GP noise of single runs pooled from {where} ({dof} degrees of freedom): "
              + ", ".join(f"{k} sd {math.sqrt(pooled[j, j]):.3g}" for j, k in enumerate(objective.kpi_names)))
     prior = None
     if settings.surrogate.reuse_screening:
