@@ -56,16 +56,18 @@ def test_added_parameters_join_the_selection_with_their_bounds():
 
 def test_the_extension_stops_at_the_profiles_limits():
     """profile=lab's screening.limits: sliding friction at most 1 and the lobe spacing in
-    [0.15, 0.3] whatever the Table-6 rule asks; a limit that does not hold the screened levels,
-    or names a parameter not screened, is an error naming the key."""
+    [0.15, 0.2679] (where a trilobe's lobes still touch) whatever the Table-6 rule asks; a limit
+    that holds fewer than two screened levels, or names a parameter not screened, is an error
+    naming the key."""
     from bo.cli.common import screen_settings_from
     from bo.screening.bounds import PhysicalLimit
 
     s = calibration_settings_from(_plain()).screening
     assert s.physical_limits()["mu_s_pg"] == PhysicalLimit(0.0, 1.0)
-    assert s.physical_limits()["lobe_spacing_sinter"] == PhysicalLimit(0.15, 0.3)
-    with pytest.raises(ConfigError, match=r"screening: limits.lobe_spacing_sinter = \[0.2, 0.3\].*\[0.15, 0.3\]"):
-        screen_settings_from(_plain("screening.limits.lobe_spacing_sinter=[0.2,0.3]"))
+    assert s.physical_limits()["lobe_spacing_sinter"] == PhysicalLimit(0.15, 0.2679)
+    with pytest.raises(ConfigError, match=r"screening: limits.lobe_spacing_sinter = \[0.25, 0.3\].*at least two of "
+                                          r"the screened levels \[0.15, 0.225, 0.3\]"):
+        screen_settings_from(_plain("screening.limits.lobe_spacing_sinter=[0.25,0.3]"))
     with pytest.raises(ConfigError, match=r"limits.coh_pp .*limits of screened parameters"):
         screen_settings_from(_plain("+screening.limits.coh_pp=[0,1]"))
     with pytest.raises(ConfigError, match=r"limits.mu_s_pp .*low < high"):
@@ -145,21 +147,20 @@ def test_the_pooled_noise_comes_from_the_screening_points_inside_the_bounds(tmp_
     assert sd[1] < 0.85 * sd_all[1] and sd[3] < 0.7 * sd_all[3]
 
 
-def test_surrogate_limits_keep_the_trilobe_in_one_piece():
-    """profile=lab screens the lobe spacing up to 0.3, where a trilobe's lobes have parted, but
-    calibrates it only up to where they touch (1 / (2 + sqrt 3)); surrogate.limits cuts the
-    screened range, names the cut in the note, and a limit that leaves nothing is an error."""
+def test_surrogate_limits_cut_a_calibrated_range():
+    """surrogate.limits cuts a calibrated range wherever the proposal or the screened range passes
+    it (a trilobe's lobes touch at 1 / (2 + sqrt 3) and have parted at 0.3), names the cut in the
+    note, and a limit that leaves nothing is an error naming the key."""
     import math
 
     from torchdem.mixture import trilobe_template
 
-    touch = 1 / (2 + math.sqrt(3))
     for s, parted in ((0.2679, False), (0.3, True)):
         t = trilobe_template(s)
         gap = np.linalg.norm(t.offsets[0] - t.offsets[1]) - 2 * t.radii[0]
         assert (gap > 0) == parted
-    s = calibration_settings_from(_plain()).surrogate
-    assert s.limits["lobe_spacing_sinter"][1] == pytest.approx(touch, abs=1e-4)
+    assert 1 / (2 + math.sqrt(3)) == pytest.approx(0.2679, abs=1e-4)
+    s = calibration_settings_from(_plain("+surrogate.limits.lobe_spacing_sinter=[0.15,0.2679]")).surrogate
     screening = SimpleNamespace(
         results=SimpleNamespace(levels=lambda: {"mu_s_ss": (0.525, 0.875), "lobe_spacing_sinter": (0.15, 0.3)},
                                 parameter_names=("mu_s_ss", "lobe_spacing_sinter")),
@@ -168,8 +169,38 @@ def test_surrogate_limits_keep_the_trilobe_in_one_piece():
     assert names[:2] == ("mu_s_ss", "lobe_spacing_sinter")
     np.testing.assert_allclose(bounds[:, :2], [[0.525, 0.15], [0.875, 0.2679]])
     assert "cut by surrogate.limits: lobe_spacing_sinter [0.15, 0.3] -> [0.15, 0.2679]" in note
-    far = calibration_settings_from(_plain("surrogate.limits.lobe_spacing_sinter=[0.31,0.4]")).surrogate
+    far = calibration_settings_from(_plain("+surrogate.limits.lobe_spacing_sinter=[0.31,0.4]")).surrogate
     with pytest.raises(ConfigError, match=r"surrogate.limits.lobe_spacing_sinter = \[0.31, 0.4\] leaves nothing"):
         choose_parameters(screening, far)
     with pytest.raises(ConfigError, match=r"surrogate: limits.lobe_spacing_sinter = \[0.3, 0.2\]"):
-        calibration_settings_from(_plain("surrogate.limits.lobe_spacing_sinter=[0.3,0.2]"))
+        calibration_settings_from(_plain("+surrogate.limits.lobe_spacing_sinter=[0.3,0.2]"))
+
+
+def test_the_lab_proposal_compares_only_the_runs_where_trilobes_are_whole(tmp_path):
+    """On the shipped screening, the Table-6 rule leaves the 15 runs at lobe spacing 0.3 (parted
+    lobes) out: inside, the shear angle's run means stop at 30.2 deg (lab 42.5) and the lower box's
+    start at 34.1 kg (lab 32.3), so the rule raises the high bounds of the lobe spacing (capped at
+    0.2679), mu_s_ss (capped at 1) and mu_s_pp; with every run, all four KPIs were inside."""
+    from bo.screening.bounds import propose_extension
+    from bo.screening.pipeline import measured_for
+    from bo.screening.stepwise import analyse_screening
+
+    settings, results = _shipped_screening(tmp_path)
+    s = settings.screening
+    table = analyse_screening(results, s.p_threshold, s.selection_fraction, kpis=KPIS4, second_order=True).table
+    lab = measured_for(results.kpi_names, load_measured().condition("50-50").kpis)
+    everything = propose_extension(results, table, lab, kpis=KPIS4,
+                                   limits={k: v for k, v in s.physical_limits().items() if k != "lobe_spacing_sinter"})
+    assert all(c.position == "inside" for c in everything.comparisons)
+    whole = propose_extension(results, table, lab, kpis=KPIS4, limits=s.physical_limits())
+    assert whole.reasoning[0].startswith("15 of the screening's 33 runs lie outside the limits (lobe_spacing_sinter "
+                                         "[0.15, 0.2679])")
+    position = {c.kpi: c.position for c in whole.comparisons}
+    # the lab's shear angle lies above the range, its lower-box mass below
+    assert position == {"angle_of_repose_deg": "inside", "shear_angle_deg": "above",
+                        "mass_flow_rate_full_kg_s": "inside", "mass_lower_box_full_kg": "below"}
+    bounds = dict(whole.proposed_bounds)
+    assert bounds["lobe_spacing_sinter"] == pytest.approx((0.15, 0.2679))
+    assert bounds["mu_s_ss"] == pytest.approx((0.525, 1.0))
+    assert bounds["mu_s_pp"] == pytest.approx((0.368, 0.858))  # one screened range (0.245) up
+    assert bounds["e_pp"] == pytest.approx(whole.screened_bounds["e_pp"])

@@ -288,9 +288,11 @@ def screen_settings_from(plain: Mapping[str, Any]):
             raise out_of_range(f"limits.{name}", pair, "[low, high] with low < high", where)
         lo, hi = (float(v) for v in pair)
         i = table.names.index(name)
-        if not lo <= table.low[i] <= table.high[i] <= hi:
-            raise out_of_range(f"limits.{name}", pair, f"an interval holding the screened levels [{table.low[i]:g}, "
-                               f"{table.high[i]:g}]", where)
+        levels = (table.low[i], table.mid[i], table.high[i])
+        if sum(lo <= v <= hi for v in levels) < 2:
+            raise out_of_range(f"limits.{name}", pair, "an interval holding at least two of the screened levels "
+                               f"{[float(f'{v:g}') for v in levels]} (the runs outside are left out of the "
+                               "Table-6 comparison)", where)
         checked[str(name)] = (lo, hi)
     return ScreenSettings(
         table=table, n_fake=n_fake, seeds=tuple(seeds), condition=str(plain.get("condition")),

@@ -33,6 +33,12 @@ the limit and the old bound. A parameter whose name matches no default and that 
 needs an entry in ``limits`` (the error names it). A bound already at its limit stays and the
 reasoning says the range cannot grow that way.
 
+A limit may also cut the screened range: a screening may look past where the model is physical
+(a trilobe's lobes part above a lobe spacing of 0.2679; the lab screening's high level is 0.3).
+The runs outside the limits are then left out of the comparison, since a calibration will not
+go there: the screening range of each KPI is that of the runs inside, and a limited parameter's
+screened bounds are its levels inside. The reasoning says how many runs were left out.
+
 The result, ``ExtensionProposal``, carries the comparisons, the moves, the proposed bounds and
 human-readable reasoning lines; ``print(proposal)`` shows them, ``to_dict()`` is JSON-ready.
 
@@ -309,12 +315,32 @@ def propose_extension(results: ScreeningResults, significance: SignificanceTable
     if not_screened:
         raise ConfigError(f"{source}: KPIs {not_screened} are not in the significance table; "
                           f"expected a subset of {list(significance.kpi_names)}")
+    inside = np.ones(results.n_runs, dtype=bool)
+    cutting = []
+    for p, limit in limits.items():
+        column = results.physical[:, results.parameter_names.index(p)]
+        within = np.array([limit.contains(float(v)) for v in column])
+        if not within.all():
+            cutting.append(f"{p} {limit.describe()}")
+        inside &= within
+    n_runs = results.n_runs
+    if not inside.all():
+        try:
+            results = ScreeningResults(parameter_names=results.parameter_names, coded=results.coded[inside],
+                                       physical=results.physical[inside], seeds=results.seeds,
+                                       kpi_names=results.kpi_names, kpi_values=results.kpi_values[inside],
+                                       source=f"{results.source}, inside the limits")
+        except ConfigError as err:
+            raise ConfigError(f"{source}: the limits {', '.join(cutting)} leave {int(inside.sum())} of the "
+                              f"screening's {n_runs} runs, too few to compare ranges ({err})") from None
     comparisons = compare_ranges(results, measured, chosen, source)
 
     selected = significance.selected_parameters
     screened = results.levels()
     requests: dict[str, dict[str, list[str]]] = {p: {"low": [], "high": []} for p in selected}
-    reasoning: list[str] = []
+    reasoning: list[str] = ([f"{n_runs - results.n_runs} of the screening's {n_runs} runs lie outside the limits "
+                             f"({'; '.join(cutting)}) and are left out of the ranges compared"]
+                            if results.n_runs < n_runs else [])
     if not selected:
         reasoning.append("No parameter was selected by the screening; nothing to extend.")
     for comp in comparisons:
