@@ -103,3 +103,23 @@ def test_bad_bounds():
         ga_bounds([[0.0, 0.95], [1.0, 1.0]], GASettings(restricted=True))
     with pytest.raises(ConfigError, match="fitness returned shape"):
         minimise_surrogate(lambda X: X, BOX, SMALL)
+
+
+def test_restricted_mode_caps_the_coefficients_only():
+    """The paper keeps friction and restitution below 0.9 (restricted mode). Given the names, a
+    density or a lobe spacing beside them keeps its bounds (a density's lower bound of 3240 kg/m^3
+    made restricted mode refuse the whole box before); without names every parameter is capped."""
+    bounds = np.array([[0.37, 0.525, 0.15, 3240.0], [0.86, 1.0, 0.2679, 3960.0]])
+    names = ["mu_s_pp", "e_pp", "lobe_spacing_sinter", "density_pellet"]
+    b = ga_bounds(bounds, GASettings(restricted=True), names)
+    np.testing.assert_allclose(b, [[0.37, 0.525, 0.15, 3240.0], [0.86, 0.9, 0.2679, 3960.0]])
+    np.testing.assert_allclose(ga_bounds(bounds, GASettings(restricted=False), names), bounds)
+    with pytest.raises(ConfigError, match=r"parameter 3 has lower bound 3240.0, which is not below"):
+        ga_bounds(bounds, GASettings(restricted=True))
+    with pytest.raises(ConfigError, match=r"parameter 'e_pp' has lower bound 0.95"):
+        ga_bounds(np.array([[0.1, 0.95], [0.5, 1.0]]), GASettings(restricted=True), ["mu_s_pp", "e_pp"])
+    with pytest.raises(ConfigError, match=r"2 names \['mu_s_pp', 'e_pp'\] for 4 parameters"):
+        ga_bounds(bounds, GASettings(restricted=True), ["mu_s_pp", "e_pp"])
+    res = minimise_surrogate(lambda X: ((X[:, 1] - 0.99) ** 2 + ((X[:, 3] - 3900.0) / 1000) ** 2), bounds,
+                             GASettings(pop_size=60, n_generations=60, restricted=True), seed=0, names=names)
+    assert res.x[1] <= 0.9 + 1e-12 and res.x[3] > 3600.0

@@ -697,7 +697,8 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
             try:
                 summaries[mode] = repeated_ga(st.X, st.y, surrogate.bounds, config,
                                               n_repetitions=settings.ga_repetitions, settings=ga,
-                                              seed=settings.seed, y_var=st.y_var, objective=objective)
+                                              seed=settings.seed, y_var=st.y_var, objective=objective,
+                                              names=surrogate.parameters)
             except ConfigError as exc:  # e.g. a lower bound above the restriction limit
                 summaries[mode] = None
                 notes[mode] = str(exc)

@@ -15,10 +15,12 @@ over each of ``stall_generations`` (50, MATLAB's default MaxStallGenerations) co
 generations, or at the generation limit. Tournament selection and fitness survival are
 pymoo's defaults.
 
-Restricted optimisation (``restricted=True``): the upper bound of every parameter becomes
-``min(upper, restriction_limit)`` with ``restriction_limit = 0.9`` (the paper keeps friction and
-restitution below 0.9); a parameter whose lower bound is not below the limit is an error.
-Unrestricted: the whole box.
+Restricted optimisation (``restricted=True``): the upper bound of every friction and restitution
+coefficient becomes ``min(upper, restriction_limit)`` with ``restriction_limit = 0.9`` (the paper
+keeps friction and restitution below 0.9); a restricted parameter whose lower bound is not below
+the limit is an error. Given the parameter names (``names=``), only the coefficients (``mu_*``,
+``e_*``) are restricted, not a density or a clump's lobe spacing; without names every parameter
+is. Unrestricted: the whole box.
 
 ``repeated_ga(X, y, bounds, config, n_repetitions=10)`` trains the surrogate ``n_repetitions``
 times (training seeds ``seed + i``, see ``fit_surrogate``) and runs the GA on each (GA seed
@@ -169,20 +171,32 @@ class GASummary:
         return "\n".join(lines)
 
 
-def ga_bounds(bounds, settings: GASettings = GASettings()) -> np.ndarray:
-    """The box the GA searches: ``bounds``, with upper bounds capped at the restriction limit
-    when ``settings.restricted``."""
+def restricted_columns(names: Sequence[str] | None, d: int) -> np.ndarray:
+    """``[d]`` bool: the parameters restricted optimisation caps, the friction and restitution
+    coefficients (``mu_*``, ``e_*``) among ``names``; every one when ``names`` is None."""
+    if names is None:
+        return np.ones(d, dtype=bool)
+    if len(names) != d:
+        raise ConfigError(f"ga_bounds: {len(names)} names {list(names)} for {d} parameters; expected one per parameter")
+    return np.array([n.startswith(("mu_", "e_")) for n in names], dtype=bool)
+
+
+def ga_bounds(bounds, settings: GASettings = GASettings(), names: Sequence[str] | None = None) -> np.ndarray:
+    """The box the GA searches: ``bounds``, with the upper bounds of the restricted parameters
+    (:func:`restricted_columns`) capped at the restriction limit when ``settings.restricted``."""
     src = "ga_bounds"
     b = as_bounds(bounds, src)
     if settings.restricted:
         limit = settings.restriction_limit
-        bad = np.flatnonzero(b[0] >= limit)
+        capped = restricted_columns(names, b.shape[1])
+        bad = np.flatnonzero(capped & (b[0] >= limit))
         if bad.size:
             j = int(bad[0])
-            raise ConfigError(f"{src}: parameter {j} has lower bound {float(b[0, j])!r}, which "
+            label = f"parameter {j}" if names is None else f"parameter {names[j]!r}"
+            raise ConfigError(f"{src}: {label} has lower bound {float(b[0, j])!r}, which "
                               f"is not below the restriction limit {limit!r}; expected lower < "
                               f"{limit} for restricted optimisation")
-        b[1] = np.minimum(b[1], limit)
+        b[1] = np.where(capped, np.minimum(b[1], limit), b[1])
     return b
 
 
@@ -204,10 +218,12 @@ class _FitnessProblem(Problem):
 
 
 def minimise_surrogate(fitness: Surrogate | Callable[[np.ndarray], np.ndarray], bounds,
-                       settings: GASettings = GASettings(), seed: int = 0) -> GAResult:
-    """GA minimum of the surrogate mean (or a vectorised ``[n, d] -> [n]`` callable)."""
+                       settings: GASettings = GASettings(), seed: int = 0,
+                       names: Sequence[str] | None = None) -> GAResult:
+    """GA minimum of the surrogate mean (or a vectorised ``[n, d] -> [n]`` callable); ``names``
+    decide which parameters restricted optimisation caps (:func:`ga_bounds`)."""
     src = "minimise_surrogate"
-    b = ga_bounds(bounds, settings)
+    b = ga_bounds(bounds, settings, names)
     if isinstance(fitness, Surrogate):
         if fitness.d != b.shape[1]:
             raise ConfigError(f"{src}: bounds have {b.shape[1]} parameters but the surrogate "
@@ -237,14 +253,15 @@ def minimise_surrogate(fitness: Surrogate | Callable[[np.ndarray], np.ndarray], 
 
 def repeated_ga(X, y, bounds, config: SurrogateConfig = SurrogateConfig(), *,
                 n_repetitions: int = 10, settings: GASettings = GASettings(), seed: int = 0,
-                y_var=None, objective: ObjectiveSpec | None = None) -> GASummary:
+                y_var=None, objective: ObjectiveSpec | None = None,
+                names: Sequence[str] | None = None) -> GASummary:
     """Table 9: ``n_repetitions`` surrogate trainings, a GA on each, lowest fitness wins."""
     _require_int("n_repetitions", n_repetitions, 1, "repeated_ga")
     reps = []
     for i in range(n_repetitions):
         surrogate = fit_surrogate(X, y, bounds, config, y_var=y_var, objective=objective,
                                   seed=seed + i)
-        res = minimise_surrogate(surrogate, bounds, settings, seed=seed + i)
+        res = minimise_surrogate(surrogate, bounds, settings, seed=seed + i, names=names)
         reps.append(GARepetition(index=i, seed=seed + i, x=res.x, fitness=res.fitness,
                                  n_generations=res.n_generations))
     best = int(np.argmin([r.fitness for r in reps]))
