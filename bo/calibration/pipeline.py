@@ -22,7 +22,7 @@ and the GA result is kept as a store artifact.
    ``reuse_screening`` the screening's design points are data too (:func:`screening_points`) and
    the Latin hypercube shrinks by as many points, to no less than half its size.
 3. ``ga`` (artifact): the GA on the surrogate mean over ``ga_repetitions`` surrogate trainings
-   (Table 9), restricted (parameters <= 0.9) and unrestricted (Table 8); the lowest fitness of
+   (Table 9), restricted (friction and restitution <= 0.9) and unrestricted (Table 8); the lowest fitness of
    the chosen mode is the calibrated set.
 4. ``verification`` (stage ``verification``): the calibrated set with the verification seeds;
    relative error per KPI (Fig. 14, Table A.4). With ``fresh_verification`` the same runs are
