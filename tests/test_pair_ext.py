@@ -574,3 +574,21 @@ def _recycle_checks(extension):
         assert torch.equal(a, b)
     assert torch.equal(view, view_copy)
     assert again[0].shape == (N, 3) and again[0].is_contiguous()
+
+
+def test_every_checkout_has_a_build_of_its_own(tmp_path, monkeypatch):
+    """The extension's name hashes the sources' directory too: torch's build file names the
+    sources by path, so two checkouts of the same sources under one name rebuilt each other's
+    objects (and a build killed in one left a lock the other waited on)."""
+    import importlib.util
+    import shutil
+
+    from torchdem import _ext
+
+    copy = tmp_path / "other_checkout" / "_ext"
+    shutil.copytree(Path(_ext.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    spec = importlib.util.spec_from_file_location("torchdem_ext_copy", copy / "__init__.py")
+    other = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(other)
+    assert other._module_name() != _ext._module_name()
+    assert other._module_name().startswith("torchdem_cpu_") and _ext._module_name() == _ext._module_name()

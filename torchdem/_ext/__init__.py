@@ -14,8 +14,10 @@ Contract:
   torch caches the build under ``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``)
   and rebuilds only when the source changes, so later processes load it in well under a second.
 - The build is tuned for the CPU it runs on (``-march=native``); its name carries a hash of
-  the CPU's instruction-set flags and of the sources, so builds of different source versions
-  (two checkouts sharing the cache) live side by side.
+  the CPU's instruction-set flags, of the sources and of their directory, so every checkout
+  sharing the cache has a build of its own. torch's build file names the sources by path: two
+  checkouts of the same sources under one name rebuilt each other's objects, and a build killed
+  in one left its lock for the other to wait on.
 - A failed build warns once per process (naming the cause) and is not retried; callers
   then use the torch kernels.
 - ``TORCHDEM_NO_EXTENSION=1`` in the environment disables the extension (same as a
@@ -78,11 +80,11 @@ def build_error() -> str | None:
 
 
 def _module_name() -> str:
-    """Extension name tagged with this CPU's instruction sets, the build flags and the sources' contents: a build
-    cache shared between machines (a network home directory) never loads code built for another
-    CPU, and two checkouts with different sources (two branches, two versions) never overwrite
-    each other's build and load the other's operators."""
-    signature = platform.machine() + " ".join(CFLAGS + LDFLAGS)
+    """Extension name tagged with this CPU's instruction sets, the build flags, the sources' contents and their
+    directory: a build cache shared between machines (a network home directory) never loads code
+    built for another CPU, two checkouts with different sources (two branches, two versions) never
+    load the other's operators, and two checkouts never rebuild, or wait on, each other's build."""
+    signature = platform.machine() + " ".join(CFLAGS + LDFLAGS) + str(Path(__file__).resolve().parent)
     signature += "".join(hashlib.sha256(p.read_bytes()).hexdigest() for p in SOURCES + HEADERS)
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
