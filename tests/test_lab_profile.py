@@ -47,8 +47,8 @@ def test_added_parameters_join_the_selection_with_their_bounds():
     screening = SimpleNamespace(results=SimpleNamespace(levels=lambda: {"mu_s_pp": (0.3, 0.9)}, parameter_names=("mu_s_pp",)),
                                 analysis=SimpleNamespace(selected_parameters=("mu_s_pp",)), proposal=None)
     names, bounds, note = choose_parameters(screening, s)
-    assert names == ("mu_s_pp", "density_pellet", "density_sinter")
-    np.testing.assert_allclose(bounds[:, 1:], [[3240.0, 3100.0], [3960.0, 3800.0]])
+    assert names == ("mu_s_pp", "density_pellet", "density_sinter", "mu_s_pg")
+    np.testing.assert_allclose(bounds[:, 1:], [[3240.0, 3100.0, 0.285], [3960.0, 3800.0, 0.9]])
     assert "added by the config" in note
     with pytest.raises(ConfigError, match=r"surrogate: added.density_pellet"):
         calibration_settings_from(_plain("surrogate.added.density_pellet=[-1,3000]"))
@@ -204,3 +204,25 @@ def test_the_lab_proposal_compares_only_the_runs_where_trilobes_are_whole(tmp_pa
     assert bounds["mu_s_ss"] == pytest.approx((0.525, 1.0))
     assert bounds["mu_s_pp"] == pytest.approx((0.368, 0.858))  # one screened range (0.245) up
     assert bounds["e_pp"] == pytest.approx(whole.screened_bounds["e_pp"])
+
+
+def test_the_pellet_wall_friction_is_calibrated_on_the_evidence_of_both_replicates(tmp_path):
+    """profile=lab adds mu_s_pg to the calibration: per replicate it is significant in 1 of 2 (Table 5's
+    rule asks 2 of 2), but one regression on both replicates with the second stage's terms finds it on
+    the shear angle and the lower box at p < 1e-3, with no effect on the flow."""
+    import statsmodels.api as sm
+
+    settings, results = _shipped_screening(tmp_path)
+    assert settings.surrogate.added["mu_s_pg"] == (0.285, 0.9)
+    names = list(results.parameter_names)
+    coded = np.vstack([results.coded] * results.n_replicates)
+    s, ss = coded[:, names.index("lobe_spacing_sinter")], coded[:, names.index("mu_s_ss")]
+    design = np.column_stack([np.ones(len(coded)), coded, s * s, s * ss])
+    j = 1 + names.index("mu_s_pg")
+    fits = {}
+    for kpi in KPIS4[1:]:
+        y = np.concatenate([results.kpi_values[:, r, results.kpi_index(kpi)] for r in range(results.n_replicates)])
+        fits[kpi] = sm.OLS(y, design).fit()
+    assert fits["shear_angle_deg"].params[j] > 0.5 and fits["shear_angle_deg"].pvalues[j] < 1e-3
+    assert fits["mass_lower_box_full_kg"].params[j] < 0 and fits["mass_lower_box_full_kg"].pvalues[j] < 1e-3
+    assert fits["mass_flow_rate_full_kg_s"].pvalues[j] > 0.5
