@@ -74,6 +74,18 @@ def test_a_device_torch_does_not_know_is_named():
         bench.main(["--device", "gpu0", "--no-liggghts", "--quick"])
 
 
+def _script_refuses(monkeypatch, capsys, script: str, argv: list[str], message: str) -> None:
+    """scripts/<script>.py exits on ``argv`` before building anything, naming ``message``."""
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{script}.py"
+    spec = importlib.util.spec_from_file_location(script, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *argv])
+    with pytest.raises(SystemExit):
+        module.main()
+    assert message in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--every", "3", "10"], "--every must include 0"),
     (["--every", "0", "-2"], "distinct ints >= 0"),
@@ -81,14 +93,7 @@ def test_a_device_torch_does_not_know_is_named():
 ])
 def test_bench_reorder_refuses_cases_without_a_baseline_or_steps(monkeypatch, capsys, argv, message):
     """scripts/bench_reorder.py compares every case with build order: it needs the baseline and steps."""
-    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_reorder.py"
-    spec = importlib.util.spec_from_file_location("bench_reorder", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    monkeypatch.setattr(sys, "argv", ["bench_reorder.py", *argv])
-    with pytest.raises(SystemExit):
-        module.main()
-    assert message in capsys.readouterr().err
+    _script_refuses(monkeypatch, capsys, "bench_reorder", argv, message)
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -98,11 +103,4 @@ def test_bench_reorder_refuses_cases_without_a_baseline_or_steps(monkeypatch, ca
 ])
 def test_bench_skin_refuses_bad_skins_or_steps(monkeypatch, capsys, argv, message):
     """scripts/bench_skin.py names a bad --fractions or step count before it builds anything."""
-    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_skin.py"
-    spec = importlib.util.spec_from_file_location("bench_skin", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    monkeypatch.setattr(sys, "argv", ["bench_skin.py", *argv])
-    with pytest.raises(SystemExit):
-        module.main()
-    assert message in capsys.readouterr().err
+    _script_refuses(monkeypatch, capsys, "bench_skin", argv, message)

@@ -364,15 +364,21 @@ def agreement(replicates: np.ndarray, kpis: Sequence[str], measured: Mapping) ->
 MIN_POOLED_POINTS = 8
 
 
-def screening_points_inside(results: ScreeningResults, names: Sequence[str], bounds: np.ndarray) -> np.ndarray:
-    """``[runs]`` bool: the screening's design points whose values of the screened parameters among
-    ``names`` lie inside ``bounds [2, d]`` (parameters the screening did not vary do not count)."""
+def screening_points_inside(results: ScreeningResults, names: Sequence[str], bounds: np.ndarray,
+                            nominal: Mapping[str, float] | None = None) -> np.ndarray:
+    """``[runs]`` bool: the screening's design points inside ``bounds [2, d]`` of ``names``: a
+    screened parameter by its value at the point, another by ``nominal[name]`` (the value every
+    screening run had) where given; a parameter neither screened nor in ``nominal`` does not count."""
     inside = np.ones(results.n_runs, dtype=bool)
+    tol = 1e-9 * (bounds[1] - bounds[0])
     for j, n in enumerate(names):
         if n in results.parameter_names:
-            col = results.physical[:, results.parameter_names.index(n)]
-            tol = 1e-9 * max(1.0, abs(float(bounds[1, j])))
-            inside &= (col >= bounds[0, j] - tol) & (col <= bounds[1, j] + tol)
+            value = results.physical[:, results.parameter_names.index(n)]
+        elif nominal is not None and n in nominal:
+            value = float(nominal[n])
+        else:
+            continue
+        inside &= (value >= bounds[0, j] - tol[j]) & (value <= bounds[1, j] + tol[j])
     return inside
 
 
@@ -522,8 +528,7 @@ def screening_points(results: ScreeningResults, names: Sequence[str], bounds: np
                               f"{screened}) and has no nominal value (known: {sorted(nominal)}), so the screening's "
                               f"points do not say where they lie in it; set surrogate.reuse_screening=false")
     X = np.stack(cols, axis=1).astype(np.float64).reshape(results.n_runs, len(names))
-    tol = 1e-9 * (bounds[1] - bounds[0])
-    inside = ((X >= bounds[0] - tol) & (X <= bounds[1] + tol)).all(axis=1)
+    inside = screening_points_inside(results, names, bounds, nominal)
     reps = results.kpi_values[:, :, [results.kpi_index(k) for k in kpis]]
     varied = [n for n in screened if n not in names]
     note = (f"{int(inside.sum())} of the screening's {results.n_runs} design points reused as surrogate data "

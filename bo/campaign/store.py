@@ -500,12 +500,7 @@ class CampaignStore:
             present = {(i, seed, condition) for i, seed, condition in conn.execute(
                 "SELECT point_index, seed, condition FROM evaluations WHERE stage = ? AND batch_key = ?", (stage, key))}
             now = time.time()
-            conn.executemany(
-                "INSERT INTO evaluations (stage, batch_key, point_index, params, seed, condition, "
-                "config_hash, status, code_version, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?)",
-                [(stage, key, i, _dumps(point), seed, condition, self.config_hash, self.code_version, now)
-                 for condition in conditions for i, point in enumerate(points) for seed in seeds
-                 if (i, seed, condition) not in present])
+            self._insert_tasks(conn, stage, key, points, seeds, conditions, now, skip=present)
             self._take_shared(conn, stage, key, now)
 
     def _stored_batch(self, stage: str, key: str, conn: sqlite3.Connection | None = None):
@@ -527,14 +522,20 @@ class CampaignStore:
                      "code_version, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                      (stage, key, json.dumps(points, separators=(",", ":"), allow_nan=False),
                       _dumps(seeds), _dumps(conditions), self.config_hash, self.code_version, now))
+        self._insert_tasks(conn, stage, key, points, seeds, conditions, now)
+        if share:
+            self._take_shared(conn, stage, key, now)
+
+    def _insert_tasks(self, conn, stage, key, points, seeds, conditions, now: float, skip=frozenset()) -> None:
+        """One pending task per point x seed x condition of the batch, but those in ``skip``
+        (``(point_index, seed, condition)``)."""
         conn.executemany(
             "INSERT INTO evaluations (stage, batch_key, point_index, params, seed, condition, "
             "config_hash, status, code_version, created_at) "
             "VALUES (?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?)",
             [(stage, key, i, _dumps(point), seed, condition, self.config_hash, self.code_version, now)
-             for condition in conditions for i, point in enumerate(points) for seed in seeds])
-        if share:
-            self._take_shared(conn, stage, key, now)
+             for condition in conditions for i, point in enumerate(points) for seed in seeds
+             if (i, seed, condition) not in skip])
 
     @staticmethod
     def _take_shared(conn, stage: str, key: str, now: float) -> None:

@@ -30,7 +30,7 @@ import hydra
 from omegaconf import DictConfig
 
 from bo.cli.common import (MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, config_hash, executor_from,
-                           executor_settings_from, plain_config, replicate_seeds, requeue_failed, screen_settings_from,
+                           executor_settings_from, flag, plain_config, replicate_seeds, requeue_failed, screen_settings_from,
                            store_path_from)
 from torchdem.config import parameter_range
 from torchdem.cli import CONF_DIR, one_line_errors
@@ -52,10 +52,15 @@ def _floats(value, key: str, where: str, allowed: str) -> tuple[float, ...]:
     return out
 
 
-def _flag(value, key: str, where: str) -> bool:
-    if not isinstance(value, bool):
-        raise out_of_range(key, value, "true or false", where)
-    return value
+def _intervals(mapping: Mapping, key: str, where: str) -> dict[str, tuple[float, ...]]:
+    """``{name: (low, high)}`` from a config mapping of ``[low, high]`` pairs with low < high."""
+    checked = {}
+    for n, b in mapping.items():
+        lo_hi = _floats(b, f"{key}.{n}", where, "[low, high] with low < high")
+        if len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
+            raise out_of_range(f"{key}.{n}", list(b), "[low, high] with low < high", where)
+        checked[str(n)] = lo_hi
+    return checked
 
 
 def seed_store(plain: Mapping[str, Any], path: Path) -> Path | None:
@@ -109,13 +114,7 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     if bounds is not None:
         if not isinstance(bounds, Mapping) or not bounds:
             raise out_of_range("bounds", bounds, "a mapping name -> [low, high] or null (Table 6 proposal)", where)
-        checked = {}
-        for n, b in bounds.items():
-            lo_hi = _floats(b, f"bounds.{n}", where, "[low, high] with low < high")
-            if len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
-                raise out_of_range(f"bounds.{n}", list(b), "[low, high] with low < high", where)
-            checked[str(n)] = lo_hi
-        bounds = checked
+        bounds = _intervals(bounds, "bounds", where)
         if names is not None and [n for n in names if n not in bounds]:
             raise out_of_range("bounds", dict(bounds), f"bounds for every parameter {list(names)}", where)
     added = cfg.get("added") or {}
@@ -158,12 +157,7 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     limits = cfg.get("limits") or {}
     if not isinstance(limits, Mapping):
         raise out_of_range("limits", limits, "a mapping name -> [low, high] or null", where)
-    checked_limits = {}
-    for n, b in limits.items():
-        lo_hi = _floats(b, f"limits.{n}", where, "[low, high] with low < high")
-        if len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
-            raise out_of_range(f"limits.{n}", list(b), "[low, high] with low < high", where)
-        checked_limits[str(n)] = lo_hi
+    checked_limits = _intervals(limits, "limits", where)
     reuse = cfg.get("reuse_screening", False)
     if not isinstance(reuse, bool):
         raise out_of_range("reuse_screening", reuse, "true or false (the screening's points as surrogate data)", where)
@@ -217,7 +211,7 @@ def calibration_settings_from(plain: Mapping[str, Any]):
         density_recalibration=bool((plain.get("density") or {}).get("recalibrate", True)),
         validation_conditions=conditions, validation_seeds=_seeds(val, "validation", base),
         validate_with_density=bool(val.get("with_density", True)), seed=base,
-        fresh_verification=_flag(ver.get("fresh", False), "fresh", "verification"))
+        fresh_verification=flag(ver.get("fresh", False), "fresh", "verification"))
     return _wrap("", settings.validate)
 
 

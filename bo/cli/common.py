@@ -35,9 +35,10 @@ class ExecutorSettings:
     max_in_flight: int | None = None
 
 
-def _second_order(value, where: str) -> bool:
+def flag(value, key: str, where: str) -> bool:
+    """A config value that must be true or false."""
     if not isinstance(value, bool):
-        raise out_of_range("second_order", value, "true or false", where)
+        raise out_of_range(key, value, "true or false", where)
     return value
 
 
@@ -303,4 +304,4 @@ def screen_settings_from(plain: Mapping[str, Any]):
         stochastic_threshold=_fraction(cfg.get("stochastic_threshold"), "stochastic_threshold", where,
                                        "a share in (0, 1), e.g. 0.5"),
         extension_factor=factor, extension_mode=mode, limits=checked,
-        second_order=_second_order(cfg.get("second_order", False), where))
+        second_order=flag(cfg.get("second_order", False), "second_order", where))
