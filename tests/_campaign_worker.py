@@ -70,6 +70,20 @@ def analytic_batch(tasks: list[EvalTask], *, log_path: str | None = None,
     return [EvalOutcome.success(k, wall) for k in kpis]
 
 
+def threads_seen_batch(tasks: list[EvalTask], *, core_share, seconds: dict[float, float],
+                       every: float = 0.05) -> list[EvalOutcome]:
+    """evaluate_batch that runs ``seconds[mu_s_pp]`` s and samples ``core_share.threads()`` every
+    ``every`` s: KPIs ``first``, ``low``, ``high`` (the thread counts it was allowed) and the pid."""
+    start = time.perf_counter()
+    duration = max(seconds.get(t.params["mu_s_pp"], 0.0) for t in tasks)
+    seen = [core_share.threads()]
+    while time.perf_counter() - start < duration:
+        time.sleep(every)
+        seen.append(core_share.threads())
+    kpis = {"first": float(seen[0]), "low": float(min(seen)), "high": float(max(seen)), "pid": float(os.getpid())}
+    return [EvalOutcome.success(kpis, time.perf_counter() - start) for _ in tasks]
+
+
 def _log_proposal(path: str, stage: str, points: list[dict]) -> None:
     with open(path, "a") as f:
         f.write(json.dumps({"stage": stage, "points": points}) + "\n")

@@ -9,7 +9,8 @@ import time
 
 import pytest
 
-from _campaign_worker import analytic_batch, analytic_kpis, task_key
+from _campaign_worker import analytic_batch, analytic_kpis, task_key, threads_seen_batch
+from bo.campaign.cores import CoreShare
 from bo.campaign.executor import (DaskExecutor, EvalOutcome, EvalTask, InProcessExecutor, evaluate_checked,
                          make_batches, run_pending)
 from bo.campaign.store import CampaignStore
@@ -190,6 +191,23 @@ def test_dask_executor_matches_in_process(tmp_path):
         run_pending(streamed, slow)
         finished = {round(r.params["mu_s_pp"], 6): r.finished_at for r in streamed.records()}
         assert finished[0.1] > max(finished[v] for v in (0.3, 0.4, 0.5)), finished
+
+        # the workers share the cluster's cores: while two batches are in flight each may use one
+        # thread; the last one of a stage, once the other worker has nothing left, both
+        share = CoreShare.create(2, directory=str(tmp_path))
+        sharing = DaskExecutor(functools.partial(threads_seen_batch, core_share=share,
+                                                 seconds={0.1: 0.4, 0.2: 3.0, 0.3: 0.4}), 1,
+                               client=executor.client, core_share=share)
+        shared = CampaignStore(tmp_path / "share.sqlite", "cfg", code_version="test")
+        shared.batch("initial", "a", lambda: [{"mu_s_pp": 0.1}, {"mu_s_pp": 0.2}, {"mu_s_pp": 0.3}], seeds=[0],
+                     conditions=["x"])
+        run_pending(shared, sharing)
+        seen = {round(r.params["mu_s_pp"], 6): r.kpis for r in shared.records()}
+        assert seen[0.1]["high"] == seen[0.3]["high"] == 1, seen       # each beside a running batch
+        assert (seen[0.2]["first"], seen[0.2]["high"]) == (1, 2), seen  # the tail takes the freed core
+        assert share.busy() == 0
+        sharing.close()
+        assert not os.path.exists(share.path)
 
         # a given client or scheduler address: failures per batch, the cluster stays up
         failing = DaskExecutor(functools.partial(analytic_batch, fail_condition="70-30"), 4,

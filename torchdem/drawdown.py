@@ -393,9 +393,22 @@ class DrawDownTest:
     def run_members(self, members: Sequence[tuple[int, int, int]], device="cpu",
                     progress: Callable[[float, float], None] | None = None,
                     vtk: tuple[str | Path, float] | None = None, checkpoint: str | Path | None = None,
-                    checkpoint_every: float = 0.5) -> DrawDownResult:
+                    checkpoint_every: float = 0.5, threads: Callable[[], int] | None = None) -> DrawDownResult:
         """Run arbitrary members ``(parameter-set index, replicate index, seed)`` as one ensemble
-        (what a calibration batch needs: each candidate with its own seeds); see :meth:`run`."""
+        (what a calibration batch needs: each candidate with its own seeds); see :meth:`run`.
+        ``threads``: asked at the start and at every load-cell sample how many torch threads the
+        run may use now (a campaign worker takes the cores its idle neighbours left,
+        :class:`bo.campaign.cores.CoreShare`); the results do not depend on it, and the thread
+        count the caller had is restored at the end."""
+        threads_before = torch.get_num_threads()
+        try:
+            if threads is not None:
+                _use_threads(threads())
+            return self._run_members(members, device, progress, vtk, checkpoint, checkpoint_every, threads)
+        finally:
+            _use_threads(threads_before)
+
+    def _run_members(self, members, device, progress, vtk, checkpoint, checkpoint_every, threads) -> DrawDownResult:
         members = [(int(p), int(r), int(seed)) for p, r, seed in members]
         if not members:
             raise ConfigError("DrawDownTest.run_members: no members given")
@@ -457,6 +470,8 @@ class DrawDownTest:
                 masses.append(self._upper_mass(simulation).cpu().numpy())
             if k % every == 0 and progress is not None:
                 progress(simulation.time, wall_before + time.perf_counter() - started)
+            if k % every == 0 and threads is not None:
+                _use_threads(threads())
             if ckpt is not None and k % ckpt_steps == 0:
                 save_checkpoint(simulation)
 
@@ -561,6 +576,14 @@ class DrawDownTest:
                                  "lost_bodies": int(state.lost[m]), "total_kg": float(total[m]),
                                  "fill_kg": fill_mass})
         return DrawDownResult(kpis, loadcells, images, members, wall, state.step, counts, conservation, errors)
+
+
+def _use_threads(n: int) -> None:
+    """Let torch (and the C++ kernels, which share its thread pool) use ``n`` threads from now on."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise out_of_range("threads", n, "an int >= 1", "DrawDownTest.run_members(threads=...)")
+    if n != torch.get_num_threads():
+        torch.set_num_threads(n)
 
 
 def _lobes(templates: Sequence[ClumpTemplate], material: np.ndarray, diameter: np.ndarray

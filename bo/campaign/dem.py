@@ -29,6 +29,9 @@ Contract:
   that moment alone (a lab run at lobe spacing 0.15 threw bodies off the landing bed at 20-32 m/s
   in float32 and float64, with and without reordering; at 0.8 of the step the fastest body moved
   at 5.0 m/s), so a shorter step recovers the run instead of leaving a hole in a design.
+- With ``core_share`` (:class:`bo.campaign.cores.CoreShare`, what a local dask cluster's executor
+  publishes) a batch follows the cores its idle neighbours leave: it asks the share at every
+  load-cell sample and sets torch's threads to match (same KPIs on any number of threads).
 - ``functools.partial(evaluate_batch, model)`` is picklable, so it ships to dask workers.
 """
 from __future__ import annotations
@@ -42,6 +45,7 @@ from typing import Sequence
 
 import numpy as np
 
+from bo.campaign.cores import CoreShare, ThreadFollower
 from bo.campaign.executor import EvalOutcome, EvalTask
 from torchdem.drawdown import KPI_UNITS
 from torchdem.errors import BlowUpError, ConfigError
@@ -61,11 +65,14 @@ def checkpoint_path(checkpoint_dir: str | Path, model: DrawDownModel, tasks: Seq
     return Path(checkpoint_dir) / f"batch-{hashlib.sha256(text.encode()).hexdigest()[:20]}.pt"
 
 
-def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: str | None = None) -> list[EvalOutcome]:
+def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: str | None = None,
+                   core_share: CoreShare | None = None) -> list[EvalOutcome]:
     """Run the tasks (one condition) as one ensemble; one outcome per task, in order.
     ``checkpoint_dir``: where the batch checkpoints and resumes. A run that blows up is retried
-    at ``model.settings.retry_time_steps`` (module docstring)."""
-    out = _evaluate(model, tasks, checkpoint_dir, 1.0)
+    at ``model.settings.retry_time_steps`` (module docstring). ``core_share``: the batch takes the
+    threads the share allows, as they change."""
+    threads = None if core_share is None else ThreadFollower(core_share)
+    out = _evaluate(model, tasks, checkpoint_dir, 1.0, threads)
     attempts: dict[int, list[str]] = {}  # task -> the errors of its attempts, in order
     for scale in model.settings.retry_time_steps:
         blown = [r for r, o in enumerate(out) if not o.ok and o.error.startswith("BlowUpError")]
@@ -73,7 +80,7 @@ def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: 
             break
         for r in blown:
             attempts.setdefault(r, [out[r].error])
-        again = _evaluate(model, [tasks[r] for r in blown], checkpoint_dir, scale)
+        again = _evaluate(model, [tasks[r] for r in blown], checkpoint_dir, scale, threads)
         for r, o in zip(blown, again):
             wall = out[r].wall_time + o.wall_time
             if o.ok:
@@ -87,7 +94,7 @@ def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: 
 
 
 def _evaluate(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: str | None,
-              time_step_scale: float) -> list[EvalOutcome]:
+              time_step_scale: float, threads=None) -> list[EvalOutcome]:
     """One attempt of :func:`evaluate_batch` at ``time_step_scale`` of the time step (a run at a
     scale other than 1 reports its step as ``time_step_s``)."""
     started = time.perf_counter()
@@ -111,12 +118,12 @@ def _evaluate(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: str |
         if checkpoint_dir is not None:
             Path(checkpoint_dir).mkdir(parents=True, exist_ok=True)
             checkpoint = checkpoint_path(checkpoint_dir, model, tasks, time_step_scale)
-        result = test.run_members(members, device=model.device, checkpoint=checkpoint)
+        result = test.run_members(members, device=model.device, checkpoint=checkpoint, threads=threads)
     except (BlowUpError, ConfigError) as exc:
         own = _members_that_fail_alone(model, tasks) if isinstance(exc, ConfigError) and len(sets) > 1 else {}
         if own:  # each failed member keeps its own error; the others run without them
             rest = iter(_evaluate(model, [t for r, t in enumerate(tasks) if r not in own], checkpoint_dir,
-                                  time_step_scale))
+                                  time_step_scale, threads))
             wall = time.perf_counter() - started
             return [EvalOutcome.failure(own[r], wall) if r in own else next(rest) for r in range(len(tasks))]
         wall = time.perf_counter() - started

@@ -39,6 +39,10 @@ tasks are grouped by condition in first-seen order and cut into chunks of at mos
   or ``PYTHONPATH``).
   A batch whose worker dies (``KilledWorker``, lost connection) is reported as failed with
   the dask error; ``CampaignStore.reset_failed`` puts such tasks back in the queue.
+  Given ``core_share`` (:class:`bo.campaign.cores.CoreShare`, for workers on this machine) it
+  publishes the number of batches in flight each time it changes, after drawing the next batch,
+  so that a stage's last batches take the cores of the workers that have none left
+  (``bo.campaign.dem.evaluate_batch(core_share=...)``); it removes the share's file in ``close()``.
 * ``run_pending(store, executor, stage=None)``: claims pending tasks from a
   ``bo.campaign.store.CampaignStore`` (one batch of one condition at a time, whenever a worker
   is free, under a lease that a background thread renews), runs them and writes
@@ -91,6 +95,7 @@ from typing import TYPE_CHECKING
 from torchdem.errors import ConfigError, out_of_range
 
 if TYPE_CHECKING:  # bo.campaign.store imports this module; the glue only needs the type.
+    from bo.campaign.cores import CoreShare
     from bo.campaign.store import CampaignStore
 
 __all__ = [
@@ -349,13 +354,17 @@ class DaskExecutor(Executor):
             threads at construction (at least 1).
         cluster_kwargs: extra ``LocalCluster`` arguments (e.g. ``dashboard_address=":8787"``,
             ``memory_limit="8GB"``).
+        core_share: where to publish the batches in flight for the workers (module docstring);
+            its file is removed in ``close()``.
     """
 
     def __init__(self, evaluate_batch: EvaluateBatch, batch_size: int, *, client=None,
                  address: str | None = None, n_workers: int | None = None,
                  max_in_flight: int | None = None, cluster_kwargs: Mapping | None = None,
-                 affinity: Callable[[Mapping[str, float]], tuple] | None = None):
+                 affinity: Callable[[Mapping[str, float]], tuple] | None = None,
+                 core_share: CoreShare | None = None):
         super().__init__(evaluate_batch, batch_size, affinity)
+        self.core_share = core_share
         from dask.distributed import Client  # optional at import time
 
         if client is not None and address is not None:
@@ -413,8 +422,14 @@ class DaskExecutor(Executor):
                 in_flight[future.key] = (future, list(batch))
                 running.add(future)
 
+        def publish(busy: int) -> None:
+            if self.core_share is not None:
+                self.core_share.publish(busy)
+
+        publish(max_in_flight)  # a first batch must not take the cores of those still being drawn
         for _ in range(max_in_flight):
             submit_next()
+        publish(len(in_flight))
         try:
             for future in running:
                 _, batch = in_flight.pop(future.key)
@@ -426,12 +441,15 @@ class DaskExecutor(Executor):
                 future.release()
                 yield list(zip(batch, outcomes))
                 submit_next()
+                publish(len(in_flight))
         finally:
             left = [f for f, _ in in_flight.values() if not f.done()]
             if left:
                 self.client.cancel(left)
 
     def close(self) -> None:
+        if self.core_share is not None:
+            self.core_share.remove()
         if self._own_client:
             self.client.close()
             if self._cluster is not None:

@@ -8,6 +8,7 @@ import contextlib
 import functools
 import hashlib
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -33,6 +34,7 @@ class ExecutorSettings:
     n_workers: int | None = None
     address: str | None = None
     max_in_flight: int | None = None
+    share_cores: bool = True
 
 
 def flag(value, key: str, where: str) -> bool:
@@ -66,7 +68,8 @@ def executor_settings_from(cfg: Mapping[str, Any], where: str = "executor") -> E
     return ExecutorSettings(kind=kind, batch_size=_int(cfg.get("batch_size"), "batch_size", where, 1,
                                                        "an int >= 1 (ensemble members per DEM batch)"),
                             n_workers=opt("n_workers"), max_in_flight=opt("max_in_flight"),
-                            address=None if cfg.get("address") is None else str(cfg["address"]))
+                            address=None if cfg.get("address") is None else str(cfg["address"]),
+                            share_cores=flag(cfg.get("share_cores", True), "share_cores", where))
 
 
 def replicate_seeds(plain: Mapping[str, Any]) -> list[int]:
@@ -144,21 +147,31 @@ def executor_from(settings: ExecutorSettings, model, client=None, checkpoints: P
     """The executor running ``bo.campaign.dem.evaluate_batch`` on ``model`` (dask: on ``client``
     when given, see :func:`executor_factory`); ``checkpoints``: the directory where its batches
     checkpoint and resume (:func:`checkpoint_dir_for`)."""
+    from bo.campaign.cores import CoreShare
     from bo.campaign.dem import evaluate_batch
     from bo.campaign.executor import DaskExecutor, InProcessExecutor
 
     from torchdem.model import mixture_parameters
 
-    evaluate = functools.partial(evaluate_batch, model,
-                                 checkpoint_dir=None if checkpoints is None else str(checkpoints))
+    checkpoint_dir = None if checkpoints is None else str(checkpoints)
     if settings.kind == "inprocess":
-        return InProcessExecutor(evaluate, settings.batch_size, affinity=mixture_parameters)
-    if client is not None:
-        return DaskExecutor(evaluate, settings.batch_size, client=client, max_in_flight=settings.max_in_flight,
-                            affinity=mixture_parameters)
-    return DaskExecutor(evaluate, settings.batch_size, address=settings.address,
-                        n_workers=settings.n_workers, max_in_flight=settings.max_in_flight,
-                        affinity=mixture_parameters)
+        return InProcessExecutor(functools.partial(evaluate_batch, model, checkpoint_dir=checkpoint_dir),
+                                 settings.batch_size, affinity=mixture_parameters)
+    # A local cluster (ours, or executor_factory's) runs on this machine: its workers share its cores.
+    share = (CoreShare.create(settings.n_workers or os.cpu_count() or 1)
+             if settings.share_cores and settings.address is None else None)
+    evaluate = functools.partial(evaluate_batch, model, checkpoint_dir=checkpoint_dir, core_share=share)
+    try:
+        if client is not None:
+            return DaskExecutor(evaluate, settings.batch_size, client=client, max_in_flight=settings.max_in_flight,
+                                affinity=mixture_parameters, core_share=share)
+        return DaskExecutor(evaluate, settings.batch_size, address=settings.address,
+                            n_workers=settings.n_workers, max_in_flight=settings.max_in_flight,
+                            affinity=mixture_parameters, core_share=share)
+    except BaseException:
+        if share is not None:
+            share.remove()
+        raise
 
 
 @contextlib.contextmanager
