@@ -8,7 +8,8 @@ any Hydra overrides given after ``--``, then times ``DrawDownTest.run`` for B = 
 batch of B = ``--batch`` replicates (one ensemble). With ``--workers W`` (> 1) the batch is
 split into W worker processes (spawned, ``torch.set_num_threads(cores // W)`` each), each running
 its share of the replicates (its own seeds) as one ensemble: the same split as
-``executor=dask executor.n_workers=W``. Its wall time runs from the first submission to the
+``executor=dask executor.n_workers=W``; with ``--ensemble K`` in ensembles of at most K members one
+after the other (``--ensemble 1``: the split of ``executor.batch_size=1``, the lab campaign's). Its wall time runs from the first submission to the
 last result, process start-up and extension loading included. For each it prints the bodies and spheres
 per member, steps, time step, wall time split into fill (particle placement) and simulation,
 particle-steps per second, and the CPU other processes used meanwhile (figures taken with
@@ -20,7 +21,7 @@ Issue target on the 2-core reference machine: one run within 2 minutes, a batch 
 On a GPU: ``sim.device=cuda`` (or ``sim=gpu``, the paper's unreduced model) runs each case as
 one ensemble on the GPU (use ``--workers 1``); the fill is placed on the CPU.
 
-Usage: ``python scripts/bench_drawdown.py [--batch 10] [--workers 2] [--json] [--skip-single | --skip-batch]
+Usage: ``python scripts/bench_drawdown.py [--batch 10] [--workers 2] [--ensemble 1] [--json] [--skip-single | --skip-batch]
 [-- sim.compile=true ...]``
 """
 from __future__ import annotations
@@ -69,15 +70,24 @@ def time_run(test: DrawDownTest, members: int, device: torch.device) -> dict:
     return {**_figures(result, members), "other_cores": cpu.other_cores}
 
 
-def _worker_run(overrides: list[str], seeds: list[int], threads: int) -> dict:
-    """One worker of ``--workers``: its replicates (``seeds``) as one ensemble on ``threads`` threads."""
+def _worker_run(overrides: list[str], seeds: list[int], threads: int, ensemble: int | None = None) -> dict:
+    """One worker of ``--workers``: its replicates (``seeds``) on ``threads`` threads, as one ensemble,
+    or one after the other in ensembles of at most ``ensemble`` members."""
     torch.set_num_threads(threads)
     test, device = make_test(overrides)
-    return _figures(test.run(replicates=len(seeds), seeds=seeds, device=device), len(seeds))
+    size = ensemble or len(seeds)
+    parts = [_figures(test.run(replicates=len(chunk), seeds=chunk, device=device), len(chunk))
+             for chunk in (seeds[i:i + size] for i in range(0, len(seeds), size))]
+    first = parts[0]
+    return {**first, "members": len(seeds), "wall_s": sum(p["wall_s"] for p in parts),
+            "fill_s": sum(p["fill_s"] for p in parts), "simulation_s": sum(p["simulation_s"] for p in parts),
+            "particle_steps_per_s": sum(p["members"] * p["spheres_per_member"] * p["steps"] for p in parts)
+            / max(sum(p["simulation_s"] for p in parts), 1e-9)}
 
 
-def time_workers(overrides: list[str], members: int, workers: int) -> dict:
-    """The batch split over ``workers`` processes (see the module docstring)."""
+def time_workers(overrides: list[str], members: int, workers: int, ensemble: int | None = None) -> dict:
+    """The batch split over ``workers`` processes (see the module docstring); ``ensemble``: members
+    per ensemble inside a worker (None: all of its share at once)."""
     cores = os.cpu_count() or 1
     threads = max(1, cores // workers)
     seeds = list(range(members))
@@ -86,11 +96,13 @@ def time_workers(overrides: list[str], members: int, workers: int) -> dict:
     with CpuMonitor() as cpu:
         started = time.perf_counter()
         with concurrent.futures.ProcessPoolExecutor(len(shares), mp_context=context) as pool:
-            parts = list(pool.map(_worker_run, [overrides] * len(shares), shares, [threads] * len(shares)))
+            parts = list(pool.map(_worker_run, [overrides] * len(shares), shares, [threads] * len(shares),
+                                  [ensemble] * len(shares)))
         wall = time.perf_counter() - started
     first = parts[0]
     work = sum(p["members"] * p["spheres_per_member"] * p["steps"] for p in parts)
     return {"members": members, "workers": len(shares), "threads_per_worker": threads,
+            "ensemble": ensemble or max(len(share) for share in shares),
             "bodies_per_member": first["bodies_per_member"], "spheres_per_member": first["spheres_per_member"],
             "steps": first["steps"], "dt_s": first["dt_s"], "wall_s": wall,
             "fill_s": max(p["fill_s"] for p in parts), "simulation_s": max(p["wall_s"] - p["fill_s"] for p in parts),
@@ -109,10 +121,17 @@ def main(argv=None) -> None:
     parser.add_argument("--skip-batch", action="store_true")
     parser.add_argument("--workers", type=int, default=1,
                         help="split the batch over this many processes (threads: cores // workers each)")
+    parser.add_argument("--ensemble", type=int, default=None,
+                        help="members per ensemble inside a worker (default: all of its share at once; "
+                             "1: one run after the other, as a campaign with executor.batch_size=1)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. sim.compile=true")
     args = parser.parse_args(argv)
     if args.workers < 1 or args.workers > args.batch:
         parser.error(f"--workers {args.workers}: expected 1 .. --batch ({args.batch})")
+    if args.ensemble is not None and args.ensemble < 1:
+        parser.error(f"--ensemble {args.ensemble}: expected an int >= 1")
+    if args.ensemble is not None and args.workers < 2:
+        parser.error("--ensemble splits the runs of worker processes: give --workers 2 or more")
     test, device = make_test(args.overrides)
     log = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
     gpu = f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
@@ -123,9 +142,11 @@ def main(argv=None) -> None:
         if (name == "single" and args.skip_single) or (name == "batch" and args.skip_batch):
             continue
         split = name == "batch" and args.workers > 1
-        r = time_workers(args.overrides, members, args.workers) if split else time_run(test, members, device)
+        r = (time_workers(args.overrides, members, args.workers, args.ensemble) if split
+             else time_run(test, members, device))
         figures[name] = r = {**r, "device": str(device)}  # both modes run on sim.device
-        how = f" in {r['workers']} processes x {r['threads_per_worker']} threads" if split else ""
+        how = (f" in {r['workers']} processes x {r['threads_per_worker']} threads, ensembles of {r['ensemble']}"
+               if split else "")
         log(f"{name:6s} B={members:3d}{how}: {r['spheres_per_member']} spheres/member, {r['steps']} steps of "
             f"{r['dt_s']:.3g} s; wall {r['wall_s']:.1f} s (fill {r['fill_s']:.1f} s, simulation "
             f"{r['simulation_s']:.1f} s); {r['particle_steps_per_s']:.3g} particle-steps/s; other cores "

@@ -104,3 +104,14 @@ def test_bench_reorder_refuses_cases_without_a_baseline_or_steps(monkeypatch, ca
 def test_bench_skin_refuses_bad_skins_or_steps(monkeypatch, capsys, argv, message):
     """scripts/bench_skin.py names a bad --fractions or step count before it builds anything."""
     _script_refuses(monkeypatch, capsys, "bench_skin", argv, message)
+
+
+@pytest.mark.parametrize("script, argv, message", [
+    ("bench_drawdown", ["--workers", "2", "--ensemble", "0"], "--ensemble 0: expected an int >= 1"),
+    ("bench_drawdown", ["--ensemble", "1"], "--ensemble splits the runs of worker processes"),
+    ("bench_core_share", ["--runs", "0"], "each must be >= 1"),
+    ("bench_core_share", ["--pairs", "0"], "each must be >= 1"),
+])
+def test_the_batch_benches_refuse_empty_splits(monkeypatch, capsys, script, argv, message):
+    """scripts/bench_drawdown.py and bench_core_share.py name a split that runs nothing."""
+    _script_refuses(monkeypatch, capsys, script, argv, message)
