@@ -7,9 +7,12 @@ CPU profile: ``geometry=drawdown_slice``, ``mixture=pellet_sinter_50_50``, ``sim
 any Hydra overrides given after ``--``, then times ``DrawDownTest.run`` for B = 1 and for a
 batch of B = ``--batch`` replicates (one ensemble). With ``--workers W`` (> 1) the batch is
 split into W worker processes (spawned, ``torch.set_num_threads(cores // W)`` each), each running
-its share of the replicates (its own seeds) as one ensemble: the same split as
-``executor=dask executor.n_workers=W``; with ``--ensemble K`` in ensembles of at most K members one
-after the other (``--ensemble 1``: the split of ``executor.batch_size=1``, the lab campaign's). Its wall time runs from the first submission to the
+its share of the replicates (its own seeds) one run after the other (``--ensemble 1``, the default:
+what ``executor=dask executor.n_workers=W executor.batch_size=1`` does, the lab campaign's split),
+or in ensembles of at most ``--ensemble K`` members (``--ensemble 5`` with ``--batch 10 --workers
+2``: the split the figures before 2026-11-27 used). On 2 cores a slice run alone in its process
+is faster than a member of a five-member ensemble: 274 s against 311 s for the batch of 10
+(docs/performance.md). Its wall time runs from the first submission to the
 last result, process start-up and extension loading included. For each it prints the bodies and spheres
 per member, steps, time step, wall time split into fill (particle placement) and simulation,
 particle-steps per second, and the CPU other processes used meanwhile (figures taken with
@@ -121,17 +124,15 @@ def main(argv=None) -> None:
     parser.add_argument("--skip-batch", action="store_true")
     parser.add_argument("--workers", type=int, default=1,
                         help="split the batch over this many processes (threads: cores // workers each)")
-    parser.add_argument("--ensemble", type=int, default=None,
-                        help="members per ensemble inside a worker (default: all of its share at once; "
-                             "1: one run after the other, as a campaign with executor.batch_size=1)")
+    parser.add_argument("--ensemble", type=int, default=1,
+                        help="members per ensemble inside a worker (default 1: one run after the other, as a "
+                             "campaign with executor.batch_size=1; 5 with --batch 10 --workers 2: the older split)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. sim.compile=true")
     args = parser.parse_args(argv)
     if args.workers < 1 or args.workers > args.batch:
         parser.error(f"--workers {args.workers}: expected 1 .. --batch ({args.batch})")
-    if args.ensemble is not None and args.ensemble < 1:
+    if args.ensemble < 1:
         parser.error(f"--ensemble {args.ensemble}: expected an int >= 1")
-    if args.ensemble is not None and args.workers < 2:
-        parser.error("--ensemble splits the runs of worker processes: give --workers 2 or more")
     test, device = make_test(args.overrides)
     log = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
     gpu = f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
