@@ -68,11 +68,16 @@ class _Clock:
         self.busy += (own_cores + other_cores) * seconds
 
 
+def _follower(tmp_path, cores: int) -> tuple[CoreShare, ThreadFollower]:
+    """A share of ``cores`` with one batch in flight, and a follower on a machine of as many cores."""
+    share = CoreShare.create(cores, directory=str(tmp_path))
+    share.publish(1)
+    return share, ThreadFollower(share, period_s=1.0, machine_cores=cores)
+
+
 def test_the_follower_takes_the_share_where_the_cores_are_idle(tmp_path, monkeypatch):
     clock = _Clock(monkeypatch)
-    share = CoreShare.create(2, directory=str(tmp_path))
-    share.publish(1)
-    follow = ThreadFollower(share, period_s=1.0, machine_cores=2)
+    share, follow = _follower(tmp_path, 2)
     assert follow() == 1                            # nothing measured yet
     clock.advance(0.5, own_cores=1.0, other_cores=0.0)
     assert follow() == 1                            # decided at most once a period
@@ -86,9 +91,7 @@ def test_the_follower_takes_the_share_where_the_cores_are_idle(tmp_path, monkeyp
 def test_the_follower_leaves_cores_that_other_processes_use(tmp_path, monkeypatch):
     """A test suite or another campaign beside the workers: the share says 2, the machine says 1."""
     clock = _Clock(monkeypatch)
-    share = CoreShare.create(2, directory=str(tmp_path))
-    share.publish(1)
-    follow = ThreadFollower(share, period_s=1.0, machine_cores=2)
+    _, follow = _follower(tmp_path, 2)
     follow()
     clock.advance(1.0, own_cores=1.0, other_cores=0.9)
     assert follow() == 1
@@ -97,9 +100,7 @@ def test_the_follower_leaves_cores_that_other_processes_use(tmp_path, monkeypatc
     clock.advance(1.0, own_cores=2.0, other_cores=1.0)   # it came back
     assert follow() == 1
     # on 16 cores with 8 taken by others, a share of 16 is capped at the 8 left
-    big = CoreShare.create(16, directory=str(tmp_path))
-    big.publish(1)
-    wide = ThreadFollower(big, period_s=1.0, machine_cores=16)
+    _, wide = _follower(tmp_path, 16)
     wide()
     clock.advance(1.0, own_cores=1.0, other_cores=8.0)
     assert wide() == 8

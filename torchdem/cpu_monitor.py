@@ -20,23 +20,14 @@ class CpuMonitor:
     def __enter__(self) -> "CpuMonitor":
         self.other_cores: float | None = None
         self.wall_s: float = 0.0
-        self._busy0, self._own0, self._t0 = self._busy(), self._own(), time.perf_counter()
+        self._busy0, self._own0, self._t0 = machine_busy_seconds(), own_cpu_seconds(True), time.perf_counter()
         return self
 
     def __exit__(self, *exc) -> None:
-        busy1, own1 = self._busy(), self._own()
+        busy1, own1 = machine_busy_seconds(), own_cpu_seconds(True)
         self.wall_s = time.perf_counter() - self._t0
         if self._busy0 is not None and busy1 is not None and self.wall_s > 0:
             self.other_cores = max(0.0, (busy1 - self._busy0 - (own1 - self._own0)) / self.wall_s)
-
-    @staticmethod
-    def _busy() -> float | None:
-        return machine_busy_seconds()
-
-    @staticmethod
-    def _own() -> float:
-        r = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
-        return sum(u.ru_utime + u.ru_stime for u in r)
 
 
 def machine_busy_seconds() -> float | None:
@@ -48,3 +39,10 @@ def machine_busy_seconds() -> float | None:
     except (OSError, ValueError, IndexError):
         return None
     return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
+def own_cpu_seconds(children: bool = False) -> float:
+    """CPU seconds this process has used (all its threads), and with ``children`` those of the
+    child processes it has waited for."""
+    who = (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN) if children else (resource.RUSAGE_SELF,)
+    return sum(u.ru_utime + u.ru_stime for u in map(resource.getrusage, who))

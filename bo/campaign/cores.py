@@ -25,13 +25,12 @@ stage's tail on two threads goes back to one when the next stage fills the clust
 from __future__ import annotations
 
 import os
-import resource
 import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchdem.cpu_monitor import machine_busy_seconds
+from torchdem.cpu_monitor import machine_busy_seconds, own_cpu_seconds
 from torchdem.errors import out_of_range
 
 __all__ = ["CoreShare", "ThreadFollower"]
@@ -88,12 +87,6 @@ class CoreShare:
     def remove(self) -> None:
         """Delete the file (the executor that created it closes)."""
         Path(self.path).unlink(missing_ok=True)
-
-
-def own_cpu_seconds() -> float:
-    """CPU seconds this process has used (all its threads)."""
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
 
 
 @dataclass
