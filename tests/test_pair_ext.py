@@ -469,6 +469,49 @@ def test_cpp_drift_equals_torch_drift(extension, dtype, rel):
         Kernels(backend="cpp").drift(*args[:9], sphere_body, *args[10:], False)
 
 
+@pytest.mark.parametrize("dtype, rel", [(F64, 1e-12), (torch.float32, 1e-5)])
+def test_cpp_drift_lanes_fast_spin_and_threads(extension, dtype, rel):
+    """The C++ drift runs bodies in blocks of 16 lanes and hands a body turning by 0.2 rad or more
+    in one step (beyond its rotation series) to the scalar path: spheres and clumps spinning that
+    fast, beside slow ones in the same blocks, still equal :func:`drift_kernel`; and every output
+    is bitwise the same on 1 and 2 threads (the blocks are fixed by body index)."""
+    from torchdem.integrate import drift_kernel
+
+    system, state = _system(dtype=dtype, B=3, N=61, seed=21)  # 183 bodies: a last block of 7
+    b = state.bodies
+    dt = torch.tensor(system.dt, dtype=dtype)
+    L = b.angular_momentum.clone()
+    fast = torch.zeros(L.shape[:2], dtype=torch.bool)
+    fast[0, 3:40:4] = fast[2, -5:] = True  # in blocks of slow bodies, and in the last block
+    inertia = system.inertia.reshape(L.shape)
+    # |omega| dt of 0.3-1.2 rad: omega ~ L / I
+    turn = (0.3 + 0.9 * torch.rand(L.shape[:2], generator=torch.Generator().manual_seed(3), dtype=F64)).to(dtype)
+    direction = L / L.norm(dim=-1, keepdim=True)
+    L = torch.where(fast[..., None], direction * inertia.min(dim=-1, keepdim=True).values * (turn / dt)[..., None], L)
+    force = torch.zeros_like(b.force)
+    torque = torch.zeros_like(b.torque)
+    xs = sphere_positions(system, b)
+    args = (b.position, b.velocity, L, b.orientation, force, torque, system.mass, system.inertia, b.active,
+            system.sphere_body_flat, system.sphere_offset.reshape(-1, 3), xs, dt)
+    ref = drift_kernel(*args, False)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = Kernels(backend="cpp").drift(*args, False)
+        torch.set_num_threads(2)
+        two = Kernels(backend="cpp").drift(*args, False)
+    finally:
+        torch.set_num_threads(threads)
+    names = ("x", "v", "L", "q", "xs", "omega", "displacement")
+    for name, a, c, e in zip(names, one, two, ref):
+        assert torch.equal(a, c), name
+        scale = float(e.abs().max())
+        assert float((a - e).abs().max()) <= rel * scale, name
+    q_new = one[3]
+    angle = 2 * torch.acos((q_new * b.orientation).sum(-1).abs().clamp(max=1))
+    assert float(angle[fast].min()) > 0.2 and float(angle[~fast].max()) < 0.05  # the fast bodies did turn fast
+
+
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_cpp_kick_equals_torch_kick(extension, dtype):
     """The C++ kick (gravity, inactive bodies masked, second half kick) equals :func:`kick_kernel`

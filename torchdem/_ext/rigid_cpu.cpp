@@ -75,19 +75,28 @@ template <typename T> inline V3<T> angular_velocity(Quat<T> q, V3<T> L, V3<T> in
 // there the Taylor series of cos(h) and sin(h) / (2 h) (h = angle / 2, to h^8) are exact to
 // double rounding (the first omitted terms are below 3e-17): no libm call, which made the
 // drift of a few thousand clumps cost 0.4 ms per step (sin and cos twice per body).
-template <typename T> inline __attribute__((always_inline)) Quat<T> from_rotation_vector(V3<T> rv) {
-  const T a2 = rv.x * rv.x + rv.y * rv.y + rv.z * rv.z;
-  T c, s;
-  if (a2 < T(0.04)) {
-    const T h2 = T(0.25) * a2;
-    c = T(1) + h2 * (T(-1.0 / 2) + h2 * (T(1.0 / 24) + h2 * (T(-1.0 / 720) + h2 * T(1.0 / 40320))));
-    s = T(0.5) * (T(1) + h2 * (T(-1.0 / 6) + h2 * (T(1.0 / 120) + h2 * (T(-1.0 / 5040) + h2 * T(1.0 / 362880)))));
-  } else {
-    const T angle = std::sqrt(a2);
-    c = std::cos(T(0.5) * angle);
-    s = std::sin(T(0.5) * angle) / angle;
-  }
+// `from_small_rotation` is the series alone (a2 = |rv|^2 < 0.04), branch-free so that the
+// vectorised body pass can run it on every lane.
+template <typename T> inline __attribute__((always_inline)) Quat<T> from_small_rotation(V3<T> rv, T a2) {
+  const T h2 = T(0.25) * a2;
+  const T c = T(1) + h2 * (T(-1.0 / 2) + h2 * (T(1.0 / 24) + h2 * (T(-1.0 / 720) + h2 * T(1.0 / 40320))));
+  const T s = T(0.5) * (T(1) + h2 * (T(-1.0 / 6) + h2 * (T(1.0 / 120) + h2 * (T(-1.0 / 5040) + h2 * T(1.0 / 362880)))));
   return {c, rv.x * s, rv.y * s, rv.z * s};
+}
+
+template <typename T> inline __attribute__((always_inline)) T norm2(V3<T> v) { return v.x * v.x + v.y * v.y + v.z * v.z; }
+
+template <typename T> inline __attribute__((always_inline)) Quat<T> from_rotation_vector(V3<T> rv) {
+  const T a2 = norm2(rv);
+  if (a2 < T(0.04)) return from_small_rotation(rv, a2);
+  const T angle = std::sqrt(a2);
+  const T s = std::sin(T(0.5) * angle) / angle;
+  return {std::cos(T(0.5) * angle), rv.x * s, rv.y * s, rv.z * s};
+}
+
+template <typename T> inline __attribute__((always_inline)) Quat<T> normalised(Quat<T> n) {
+  const T inv_len = T(1) / std::sqrt(n.w * n.w + n.x * n.x + n.y * n.y + n.z * n.z);
+  return {n.w * inv_len, n.x * inv_len, n.y * inv_len, n.z * inv_len};
 }
 
 // rigid.advance_orientation (midpoint rule at fixed world angular momentum), renormalised.
@@ -96,9 +105,7 @@ template <typename T> inline Quat<T> advance(Quat<T> q, V3<T> L, V3<T> inv_I, T 
   const T h = T(0.5) * dt;
   const Quat<T> q_half = mul(from_rotation_vector(V3<T>{h * w0.x, h * w0.y, h * w0.z}), q);
   const V3<T> wh = angular_velocity(q_half, L, inv_I);
-  const Quat<T> n = mul(from_rotation_vector(V3<T>{dt * wh.x, dt * wh.y, dt * wh.z}), q);
-  const T inv_len = T(1) / std::sqrt(n.w * n.w + n.x * n.x + n.y * n.y + n.z * n.z);
-  return {n.w * inv_len, n.x * inv_len, n.y * inv_len, n.z * inv_len};
+  return normalised(mul(from_rotation_vector(V3<T>{dt * wh.x, dt * wh.y, dt * wh.z}), q));
 }
 
 void check(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t rows, int64_t cols) {
@@ -106,6 +113,137 @@ void check(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t 
   TORCH_CHECK(t.scalar_type() == dtype, "drift: ", name, " has dtype ", t.scalar_type(), "; expected ", dtype);
   TORCH_CHECK(t.numel() == rows * std::max<int64_t>(cols, 1), "drift: ", name, " has shape ", t.sizes(),
               "; expected ", rows, " rows of ", std::max<int64_t>(cols, 1));
+}
+
+// One body of the drift, scalar: half kick, drift, rotation (isotropic bodies by dt L / I, the
+// others by the midpoint rule; inactive bodies keep their orientation), angular velocity.
+template <typename T>
+inline void drift_body(int64_t b, const T* x0, const T* v0, const T* L0, const T* q0, const T* F, const T* tau,
+                       const T* m, const T* I, const bool* active, T* x, T* v, T* L, T* q, T* w, T dt,
+                       bool spheres_only) {
+  const T h = T(0.5) * dt;
+  const T act = active[b] ? T(1) : T(0);
+  for (int c = 0; c < 3; ++c) {
+    const int64_t k = 3 * b + c;
+    v[k] = v0[k] + h * F[k] / m[b];
+    L[k] = L0[k] + h * tau[k];
+    x[k] = x0[k] + dt * v[k] * act;
+  }
+  const V3<T> Lb{L[3 * b], L[3 * b + 1], L[3 * b + 2]};
+  const V3<T> Ib{I[3 * b], I[3 * b + 1], I[3 * b + 2]};
+  Quat<T> qb{q0[4 * b], q0[4 * b + 1], q0[4 * b + 2], q0[4 * b + 3]};
+  V3<T> wb;
+  if (spheres_only) {
+    wb = {Lb.x / Ib.x, Lb.y / Ib.y, Lb.z / Ib.z};
+  } else if (Ib.x == Ib.y && Ib.y == Ib.z) {
+    // An isotropic body (a single sphere among clumps): omega = L / I in every orientation,
+    // so both angular velocities of the midpoint rule are L / I and the rotation is the one
+    // by dt L / I. The general path below gives the same up to rounding, at 4x the work.
+    const T inv = T(1) / Ib.x;
+    wb = {Lb.x * inv, Lb.y * inv, Lb.z * inv};
+    if (active[b]) qb = normalised(mul(from_rotation_vector(V3<T>{dt * wb.x, dt * wb.y, dt * wb.z}), qb));
+  } else {
+    const V3<T> inv_I{T(1) / Ib.x, T(1) / Ib.y, T(1) / Ib.z};
+    if (active[b]) qb = advance(qb, Lb, inv_I, dt);
+    wb = angular_velocity(qb, Lb, inv_I);
+  }
+  q[4 * b] = qb.w;
+  q[4 * b + 1] = qb.x;
+  q[4 * b + 2] = qb.y;
+  q[4 * b + 3] = qb.z;
+  w[3 * b] = wb.x;
+  w[3 * b + 1] = wb.y;
+  w[3 * b + 2] = wb.z;
+}
+
+constexpr int64_t kLanes = 16;  // bodies per block of the vectorised drift (a 512-bit register of float32)
+
+// One block of the drift's body pass (see drift_impl): bodies base .. base + count - 1 (count <= kLanes).
+template <typename T>
+void drift_block(int64_t base, int64_t count, const T* __restrict x0, const T* __restrict v0,
+                 const T* __restrict L0, const T* __restrict q0, const T* __restrict F, const T* __restrict tau,
+                 const T* __restrict m, const T* __restrict I, const bool* __restrict active, T* __restrict x,
+                 T* __restrict v, T* __restrict L, T* __restrict q, T* __restrict w, T dt) {
+  const T h = T(0.5) * dt;
+  // the operands, lane by lane (lanes past the end repeat the last body)
+  alignas(64) T ix[3][kLanes], iv[3][kLanes], iL[3][kLanes], iq[4][kLanes], iF[3][kLanes], it[3][kLanes],
+      im[kLanes], iI[3][kLanes], iact[kLanes];
+  for (int64_t l = 0; l < kLanes; ++l) {
+    const int64_t b = base + (l < count ? l : count - 1);
+    for (int c = 0; c < 3; ++c) {
+      ix[c][l] = x0[3 * b + c];
+      iv[c][l] = v0[3 * b + c];
+      iL[c][l] = L0[3 * b + c];
+      iF[c][l] = F[3 * b + c];
+      it[c][l] = tau[3 * b + c];
+      iI[c][l] = I[3 * b + c];
+    }
+    for (int c = 0; c < 4; ++c) iq[c][l] = q0[4 * b + c];
+    im[l] = m[b];
+    iact[l] = active[b] ? T(1) : T(0);
+  }
+  alignas(64) T ox[3][kLanes], ov[3][kLanes], oL[3][kLanes], oq[4][kLanes], ow[3][kLanes], slow[kLanes];
+  for (int64_t l = 0; l < kLanes; ++l) {
+    const T act = iact[l];
+    const T vx = iv[0][l] + h * iF[0][l] / im[l], vy = iv[1][l] + h * iF[1][l] / im[l],
+            vz = iv[2][l] + h * iF[2][l] / im[l];
+    const V3<T> Lb{iL[0][l] + h * it[0][l], iL[1][l] + h * it[1][l], iL[2][l] + h * it[2][l]};
+    ov[0][l] = vx;
+    ov[1][l] = vy;
+    ov[2][l] = vz;
+    ox[0][l] = ix[0][l] + dt * vx * act;
+    ox[1][l] = ix[1][l] + dt * vy * act;
+    ox[2][l] = ix[2][l] + dt * vz * act;
+    oL[0][l] = Lb.x;
+    oL[1][l] = Lb.y;
+    oL[2][l] = Lb.z;
+    const Quat<T> q_old{iq[0][l], iq[1][l], iq[2][l], iq[3][l]};
+    const V3<T> Ib{iI[0][l], iI[1][l], iI[2][l]};
+    const bool iso = Ib.x == Ib.y && Ib.y == Ib.z;
+    // isotropic (a sphere among clumps): the rotation by dt L / I
+    const T inv = T(1) / Ib.x;
+    const V3<T> wi{Lb.x * inv, Lb.y * inv, Lb.z * inv};
+    const V3<T> ri{dt * wi.x, dt * wi.y, dt * wi.z};
+    const T ai = norm2(ri);
+    const Quat<T> qi = normalised(mul(from_small_rotation(ri, ai), q_old));
+    // general: the midpoint rule (advance)
+    const V3<T> inv_I{T(1) / Ib.x, T(1) / Ib.y, T(1) / Ib.z};
+    const V3<T> w0 = angular_velocity(q_old, Lb, inv_I);
+    const V3<T> r0{h * w0.x, h * w0.y, h * w0.z};
+    const T a0 = norm2(r0);
+    const Quat<T> q_half = mul(from_small_rotation(r0, a0), q_old);
+    const V3<T> wh = angular_velocity(q_half, Lb, inv_I);
+    const V3<T> r1{dt * wh.x, dt * wh.y, dt * wh.z};
+    const T a1 = norm2(r1);
+    const Quat<T> qg = normalised(mul(from_small_rotation(r1, a1), q_old));
+    const bool turns = act != T(0);
+    const Quat<T> qn{turns ? (iso ? qi.w : qg.w) : q_old.w, turns ? (iso ? qi.x : qg.x) : q_old.x,
+                     turns ? (iso ? qi.y : qg.y) : q_old.y, turns ? (iso ? qi.z : qg.z) : q_old.z};
+    const V3<T> wg = angular_velocity(qn, Lb, inv_I);
+    oq[0][l] = qn.w;
+    oq[1][l] = qn.x;
+    oq[2][l] = qn.y;
+    oq[3][l] = qn.z;
+    ow[0][l] = iso ? wi.x : wg.x;
+    ow[1][l] = iso ? wi.y : wg.y;
+    ow[2][l] = iso ? wi.z : wg.z;
+    const T a_max = iso ? ai : std::max(a0, a1);
+    slow[l] = a_max < T(0.04) ? T(0) : T(1);  // NaN too
+  }
+  for (int64_t l = 0; l < count; ++l) {
+    const int64_t b = base + l;
+    if (slow[l] != T(0)) {
+      drift_body(b, x0, v0, L0, q0, F, tau, m, I, active, x, v, L, q, w, dt, false);
+      continue;
+    }
+    for (int c = 0; c < 3; ++c) {
+      x[3 * b + c] = ox[c][l];
+      v[3 * b + c] = ov[c][l];
+      L[3 * b + c] = oL[c][l];
+      w[3 * b + c] = ow[c][l];
+    }
+    for (int c = 0; c < 4; ++c) q[4 * b + c] = oq[c][l];
+  }
 }
 
 template <typename T>
@@ -118,45 +256,20 @@ void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out,
   const T *off = in[10].data_ptr<T>(), *ref = in[11].data_ptr<T>();
   T *x = out[0].data_ptr<T>(), *v = out[1].data_ptr<T>(), *L = out[2].data_ptr<T>(), *q = out[3].data_ptr<T>(),
     *xs = out[4].data_ptr<T>(), *w = out[5].data_ptr<T>();
-  const T h = T(0.5) * dt;
-  at::parallel_for(0, NB, 512, [&](int64_t b0, int64_t b1) {
-    for (int64_t b = b0; b < b1; ++b) {
-      const T act = active[b] ? T(1) : T(0);
-      for (int c = 0; c < 3; ++c) {
-        const int64_t k = 3 * b + c;
-        v[k] = v0[k] + h * F[k] / m[b];
-        L[k] = L0[k] + h * tau[k];
-        x[k] = x0[k] + dt * v[k] * act;
-      }
-      const V3<T> Lb{L[3 * b], L[3 * b + 1], L[3 * b + 2]};
-      const V3<T> Ib{I[3 * b], I[3 * b + 1], I[3 * b + 2]};
-      Quat<T> qb{q0[4 * b], q0[4 * b + 1], q0[4 * b + 2], q0[4 * b + 3]};
-      V3<T> wb;
+  // Bodies in blocks of kLanes, fixed by index (so a body's bits never depend on the threads):
+  // each block runs branch-free across its lanes, both rotation paths computed and one kept,
+  // which the compiler vectorises; a lane whose body turns by 0.2 rad or more in a step (the
+  // series' range, never met in a settled or flowing bed) or has a non-finite rotation is done
+  // again by the scalar path. Spheres only: the scalar path (a few operations per body).
+  const int64_t blocks = (NB + kLanes - 1) / kLanes;
+  at::parallel_for(0, blocks, 32, [&](int64_t k0, int64_t k1) {
+    for (int64_t k = k0; k < k1; ++k) {
+      const int64_t base = k * kLanes, count = std::min<int64_t>(kLanes, NB - base);
       if (spheres_only) {
-        wb = {Lb.x / Ib.x, Lb.y / Ib.y, Lb.z / Ib.z};
-      } else if (Ib.x == Ib.y && Ib.y == Ib.z) {
-        // An isotropic body (a single sphere among clumps): omega = L / I in every orientation,
-        // so both angular velocities of the midpoint rule are L / I and the rotation is the one
-        // by dt L / I. The general path below gives the same up to rounding, at 4x the work.
-        const T inv = T(1) / Ib.x;
-        wb = {Lb.x * inv, Lb.y * inv, Lb.z * inv};
-        if (active[b]) {
-          const Quat<T> n = mul(from_rotation_vector(V3<T>{dt * wb.x, dt * wb.y, dt * wb.z}), qb);
-          const T inv_len = T(1) / std::sqrt(n.w * n.w + n.x * n.x + n.y * n.y + n.z * n.z);
-          qb = {n.w * inv_len, n.x * inv_len, n.y * inv_len, n.z * inv_len};
-        }
-      } else {
-        const V3<T> inv_I{T(1) / Ib.x, T(1) / Ib.y, T(1) / Ib.z};
-        if (active[b]) qb = advance(qb, Lb, inv_I, dt);
-        wb = angular_velocity(qb, Lb, inv_I);
+        for (int64_t b = base; b < base + count; ++b) drift_body(b, x0, v0, L0, q0, F, tau, m, I, active, x, v, L, q, w, dt, true);
+        continue;
       }
-      q[4 * b] = qb.w;
-      q[4 * b + 1] = qb.x;
-      q[4 * b + 2] = qb.y;
-      q[4 * b + 3] = qb.z;
-      w[3 * b] = wb.x;
-      w[3 * b + 1] = wb.y;
-      w[3 * b + 2] = wb.z;
+      drift_block(base, count, x0, v0, L0, q0, F, tau, m, I, active, x, v, L, q, w, dt);
     }
   });
   // Chunks of spheres within each member: per chunk the displacement box (lowest x, y, z,
