@@ -352,6 +352,81 @@ def test_no_candidates_measures_the_discrepancy_only(tmp_path):
     assert result.evaluations == {"discrepancy": 9, "total": 9}  # 3 conditions x 3 replicates, nothing else
 
 
+def _calibration_store(path, calibrated_subset: dict) -> CampaignStore:
+    """A torchdem-calibrate-like store of the known model: verification of the calibrated set (its
+    own parameters only, as the calibration stores them) on 50-50 with 5 seeds, validation on 75-25
+    with 3, and a design point elsewhere on 25-75."""
+    from bo.campaign.executor import run_pending
+    store = CampaignStore(path, "calibration")
+    store.batch("verification", "v", lambda: [dict(calibrated_subset)], seeds=[10, 11, 12, 13, 14],
+                conditions=["50-50"])
+    store.batch("validation", "w", lambda: [dict(calibrated_subset)], seeds=[20, 21, 22], conditions=["75-25"])
+    store.batch("screening", "s", lambda: [{**calibrated_subset, "mu_s_pp": 0.3}], seeds=[0, 1, 2],
+                conditions=["25-75"])
+    run_pending(store, InProcessExecutor(functools.partial(km.known_batch), batch_size=12))
+    return store
+
+
+def test_the_calibrations_runs_of_the_set_are_the_discrepancys_runs(tmp_path):
+    """discovery.baseline_store: conditions with runs of the calibrated set in the calibration's store
+    take them (imported, not computed, the same KPIs); the others run ``seeds``; runs elsewhere in the
+    parameter space, or not done, are not taken."""
+    from bo.discovery.pipeline import runs_of_set
+    calibration = _calibration_store(tmp_path / "c.sqlite", km.TRUE)
+    calibrated = {**_known_model().fixed, **km.TRUE}
+    records = calibration.records("verification") + calibration.records("validation") + calibration.records("screening")
+    given = runs_of_set(records, calibrated, ["50-50", "75-25", "25-75"])
+    assert {c: sorted(r.seed for r in v) for c, v in given.items()} == {
+        "50-50": [10, 11, 12, 13, 14], "75-25": [20, 21, 22], "25-75": []}
+    assert runs_of_set(records, {**calibrated, "mu_s_pp": 0.61}, ["50-50"]) == {"50-50": []}
+
+    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1), candidates=())
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    executor_for = lambda model: InProcessExecutor(functools.partial(km.known_batch), batch_size=12)  # noqa: E731
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    result = run_discovery(store, executor_for, _known_model(), calibrated, lab, settings, echo=lambda s: None,
+                           baseline=(str(calibration.path), given))
+    cells = {(c.condition, c.kpi): c for c in result.discrepancy.cells}
+    for condition, seeds in (("50-50", range(10, 15)), ("75-25", range(20, 23))):
+        stored = [r.kpis["shear_angle_deg"] for r in records if r.condition == condition]
+        assert cells[(condition, "shear_angle_deg")].n == len(seeds)
+        assert cells[(condition, "shear_angle_deg")].dem_mean == pytest.approx(np.mean(stored), rel=1e-12)
+    expected = np.mean([km.known_kpis(calibrated, s, "25-75")["shear_angle_deg"] for s in (0, 1, 2)])
+    assert cells[("25-75", "shear_angle_deg")].dem_mean == pytest.approx(expected, rel=1e-12)
+    assert store.counts("discrepancy")["done"] == 11 and store.counts("discrepancy", computed_only=True)["done"] == 3
+    imported = [r for r in store.records("discrepancy") if (r.claimed_by or "").startswith("imported:")]
+    assert len(imported) == 8 and all(r.wall_time is None for r in imported)
+    # resumed: nothing is run or imported twice
+    again = run_discovery(store, executor_for, _known_model(), calibrated, lab, settings, echo=lambda s: None,
+                          baseline=(str(calibration.path), given))
+    assert again.discrepancy.chi2 == pytest.approx(result.discrepancy.chi2) and len(store.records("discrepancy")) == 11
+
+
+def test_adopt_refuses_runs_that_are_not_the_batchs(tmp_path):
+    calibration = _calibration_store(tmp_path / "c.sqlite", km.TRUE)
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    store.batch("discrepancy", "k", lambda: [dict(km.TRUE)], seeds=[10, 11], conditions=["50-50"])
+    runs = calibration.records("verification")
+    with pytest.raises(ConfigError, match="seed 12"):
+        store.adopt("discrepancy", "k", runs, "c.sqlite")
+    assert store.adopt("discrepancy", "k", runs[:2], "c.sqlite") == 2
+    assert store.adopt("discrepancy", "k", runs[:2], "c.sqlite") == 0  # done already
+    pending = dataclasses.replace(runs[0], status="pending", kpis=None)
+    with pytest.raises(ConfigError, match="done runs"):
+        store.adopt("discrepancy", "k", [pending], "c.sqlite")
+
+
+def test_a_baseline_store_of_another_model_is_refused(tmp_path):
+    from bo.cli.discover import baseline_runs
+    CampaignStore(tmp_path / "c.sqlite", "another model")
+    plain = _plain([f"discovery.baseline_store={tmp_path / 'c.sqlite'}"])
+    with pytest.raises(ConfigError, match="another model"):
+        baseline_runs(plain, None, {}, ["50-50"])
+    missing = {**plain, "discovery": {**plain["discovery"], "baseline_store": str(tmp_path / "none.sqlite")}}
+    with pytest.raises(ConfigError, match="baseline_store"):
+        baseline_runs(missing, None, {}, ["50-50"])
+
+
 def test_failed_runs_are_reported_as_failures_not_as_missing_kpis(tmp_path):
     """Every discrepancy run raising (a wrong build, a blow-up) names the runs and their error."""
     def broken(*args, **kwargs):

@@ -44,7 +44,9 @@ cost nothing), and when a task finishes, the pending tasks of the same run in it
 completed with it. So a seed list that grows, or a design run again for another twin, costs no
 DEM time (a stage must therefore always evaluate one model); ``EvaluationRecord.reused_from``
 names the run a row took its result from,
-and ``counts(..., computed_only=True)`` counts only evaluations that ran.
+and ``counts(..., computed_only=True)`` counts only evaluations that ran. ``adopt`` completes a
+batch's tasks with runs of another store (the calibration's verification runs of the set a discovery
+starts from): ``claimed_by = "imported:<store>#<task id>"``, no wall time, not counted as computed.
 
 Claiming: ``claim(limit, stage)`` marks up to ``limit`` claimable tasks ``running`` under a
 lease (``claimed_by``, ``claimed_at``) inside one IMMEDIATE transaction, so two processes
@@ -106,6 +108,8 @@ _ROUND = re.compile(r"round-[1-9][0-9]*")
 STATUSES = ("pending", "running", "done", "failed")
 #: ``claimed_by`` prefix of a row completed with another row's result (see "Shared runs").
 REUSED = "reused:"
+#: ``claimed_by`` prefix of a row completed with a run of another store (:meth:`CampaignStore.adopt`).
+IMPORTED = "imported:"
 #: The done original of the same run as ``evaluations`` (correlated sub-query, see "Shared runs").
 _SAME_RUN_DONE = ("FROM evaluations d WHERE d.status = 'done' AND d.stage = evaluations.stage "
                   "AND d.params = evaluations.params "
@@ -733,6 +737,37 @@ class CampaignStore:
                 conn.execute("DELETE FROM batches WHERE stage = ? AND batch_key = ?", (stage, key))
         return n
 
+    def adopt(self, stage: str, key: str, runs: Sequence["EvaluationRecord"], source: str) -> int:
+        """Complete pending tasks of batch ``(stage, key)`` with ``runs``, done evaluations of the same
+        model in another store (``source``, its path; the caller vouches that they ran this batch's
+        point): each run fills the task of its seed and condition (of point 0). Their KPIs are taken,
+        ``claimed_by`` becomes ``imported:<source>#<task id>`` and the wall time is left empty (the
+        run cost nothing here). Tasks already finished are left alone; returns how many were
+        completed. Raises ``ConfigError`` for a run that is not done or has no task in the batch."""
+        where = f"CampaignStore.adopt({stage!r}, {key!r})"
+        self.check_stage(stage, where)
+        stored = self._stored_batch(stage, key)
+        if stored is None:
+            raise ConfigError(f"{self.path}: {where}: no such batch; create it with batch() first")
+        _, seeds, conditions = stored
+        for run in runs:
+            if run.status != "done" or run.kpis is None:
+                raise out_of_range("run", f"task {run.task_id} of {source} ({run.status})", "done runs with KPIs",
+                                   where)
+            if run.seed not in seeds or run.condition not in conditions:
+                raise out_of_range("run", f"task {run.task_id} of {source} (seed {run.seed}, {run.condition})",
+                                   f"runs of the batch's seeds {seeds} and conditions {conditions}", where)
+        now, written = time.time(), 0
+        with self._write() as conn:
+            for run in runs:
+                written += conn.execute(
+                    "UPDATE evaluations SET status = 'done', kpis = ?, error = NULL, wall_time = NULL, "
+                    "code_version = ?, claimed_by = ?, finished_at = ? WHERE stage = ? AND batch_key = ? "
+                    "AND point_index = 0 AND seed = ? AND condition = ? AND status = 'pending'",
+                    (_kpis_json(run.kpis), run.code_version, f"{IMPORTED}{source}#{run.task_id}", now, stage, key,
+                     run.seed, run.condition)).rowcount
+        return written
+
     def reset_failed(self, stage: str | None = None) -> int:
         """Put failed tasks (of ``stage``, or all) back to pending; returns how many."""
         where_stage, args = ("", []) if stage is None else (" AND stage = ?", [self.check_stage(stage)])
@@ -747,8 +782,8 @@ class CampaignStore:
     def counts(self, stage: str | None = None, *, computed_only: bool = False,
                batch_key: str | None = None) -> dict[str, int]:
         """Number of tasks per status (all four statuses present); ``computed_only`` leaves out
-        the rows that took another run's result (see "Shared runs"); ``batch_key`` counts one
-        batch of ``stage``."""
+        the rows that took another run's result (see "Shared runs") or were imported
+        (:meth:`adopt`); ``batch_key`` counts one batch of ``stage``."""
         where_stage, args = ("", []) if stage is None else (" WHERE stage = ?", [self.check_stage(stage)])
         if batch_key is not None:
             if stage is None:
@@ -756,7 +791,8 @@ class CampaignStore:
             where_stage += " AND batch_key = ?"
             args.append(batch_key)
         if computed_only:
-            where_stage += (" AND" if where_stage else " WHERE") + " COALESCE(claimed_by, '') NOT LIKE 'reused:%'"
+            where_stage += ((" AND" if where_stage else " WHERE") + " COALESCE(claimed_by, '') NOT LIKE 'reused:%'"
+                            " AND COALESCE(claimed_by, '') NOT LIKE 'imported:%'")
         out = dict.fromkeys(STATUSES, 0)
         conn = self._connect()
         try:

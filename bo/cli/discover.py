@@ -117,6 +117,27 @@ def calibrated_from(plain: Mapping[str, Any], fixed: Mapping[str, float]) -> tup
     return {**fixed, **{k: float(v) for k, v in values.items()}}, f"{path}"
 
 
+def baseline_runs(plain: Mapping[str, Any], data, calibrated: Mapping[str, float], conditions: list[str]):
+    """``discovery.baseline_store``: the store of the torchdem-calibrate campaign that found the
+    calibrated set. Its verification and validation runs of that set (same model: the store's config
+    hash is this config's model and data) are the discrepancy's runs (``run_discovery``'s
+    ``baseline``). Returns (path, condition -> runs), or None without it."""
+    from bo.campaign.store import CampaignStore
+    from bo.discovery.pipeline import runs_of_set
+
+    path = (plain.get("discovery") or {}).get("baseline_store")
+    if path is None:
+        return None
+    where = "config discovery"
+    if not isinstance(path, str) or not Path(path).is_file():
+        raise out_of_range("baseline_store", path, "an existing torchdem-calibrate campaign store (.sqlite) or null",
+                           where)
+    # the calibrate app's hash of this model and data (bo/cli/calibrate.py): a store of another model is refused
+    other = CampaignStore(path, config_hash({**plain, "measured": data}, MODEL_KEYS + ("measured",)))
+    records = [r for stage in ("verification", "validation") for r in other.records(stage, status="done")]
+    return str(path), runs_of_set(records, calibrated, conditions)
+
+
 def extension_command(name: str | None, values: Mapping[str, float]) -> str | None:
     """The Hydra overrides that switch mechanism ``name`` on at ``values`` in any command."""
     if name is None:
@@ -164,11 +185,13 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
                           allow_config_mismatch=bool(plain.get("allow_config_mismatch")),
                           extra_stages=discovery_stages())
     requeue_failed(plain, store, echo)
+    baseline = baseline_runs(plain, data, calibrated, list(measured.names))
     echo(f"torchdem-discover: {len(measured.names)} conditions of {measured.origin}; calibrated set from {source}; "
          f"store {path}")
     started = time.perf_counter()
     with executor_factory(executor_settings) as executor_for:
-        result = run_discovery(store, executor_for, model, calibrated, measured, settings, echo=echo)
+        result = run_discovery(store, executor_for, model, calibrated, measured, settings, echo=echo,
+                               baseline=baseline)
     command = extension_command(result.cause, result.extension)
     files = write_discovery_report(result, out, command)
     wall = time.perf_counter() - started

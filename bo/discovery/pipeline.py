@@ -95,7 +95,7 @@ from torchdem.mechanisms import Mechanism, ModelContext, model_context, registry
 from bo.surrogate.objective import ObjectiveSpec
 from bo.discovery.replicate_noise import ReplicateNoise
 from bo.screening.pipeline import measured_for, measured_name
-from bo.campaign.store import CampaignStore
+from bo.campaign.store import CampaignStore, EvaluationRecord
 from bo.surrogate.gp import SurrogateConfig, fit_surrogate
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
@@ -464,14 +464,51 @@ def _discrepancy(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str
 # step 1
 # --------------------------------------------------------------------------------------------
 
+def runs_of_set(records: Sequence[EvaluationRecord], calibrated: Mapping[str, float],
+                conditions: Sequence[str], rel: float = 1e-9) -> dict[str, list[EvaluationRecord]]:
+    """The done runs among ``records`` (of another store, the same model) made at the calibrated set:
+    every parameter a run names has the calibrated value (within ``rel``; the calibration stores only
+    its own parameters, the rest being the model's fixed ones), grouped by condition (those of
+    ``conditions`` only), one run per seed (the first)."""
+    out: dict[str, dict[int, EvaluationRecord]] = {c: {} for c in conditions}
+    for r in records:
+        if r.status != "done" or r.kpis is None or r.condition not in out or not r.params:
+            continue
+        if all(k in calibrated and math.isclose(float(v), float(calibrated[k]), rel_tol=rel, abs_tol=1e-12)
+               for k, v in r.params.items()):
+            out[r.condition].setdefault(r.seed, r)
+    return {c: list(runs.values()) for c, runs in out.items()}
+
+
 def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Mapping[str, float],
-                        measured: MeasuredData, settings: DiscoverySettings) -> tuple[Discrepancy, np.ndarray]:
+                        measured: MeasuredData, settings: DiscoverySettings,
+                        baseline: tuple[str, Mapping[str, Sequence[EvaluationRecord]]] | None = None
+                        ) -> tuple[Discrepancy, np.ndarray]:
     """Step 1 (see the module docstring), with the replicate noise pooled over these runs; also
-    returns the replicates ``[C, r, K]``."""
+    returns the replicates ``[C, r, K]`` (NaN beyond a condition's runs). ``baseline``: (its store's
+    path, condition -> runs of the calibrated set made there, :func:`runs_of_set`): a condition with
+    at least two such runs takes them instead of running ``settings.seeds`` (they are imported into
+    this store, :meth:`CampaignStore.adopt`); the others run as usual."""
     conditions = list(measured.names)
-    key = "calibrated/" + _key(sorted(calibrated.items()), list(settings.seeds), conditions)
-    reps = _run(store, executor, "discrepancy", key, [dict(calibrated)], settings.seeds, conditions,
-                settings.kpis)[0]
+    source, given = baseline if baseline is not None else ("", {})
+    adopted = [c for c in conditions if len(given.get(c, ())) >= 2]
+    ran = [c for c in conditions if c not in adopted]
+    parts: dict[str, np.ndarray] = {}
+    if ran:
+        key = "calibrated/" + _key(sorted(calibrated.items()), list(settings.seeds), ran)
+        reps = _run(store, executor, "discrepancy", key, [dict(calibrated)], settings.seeds, ran,
+                    settings.kpis)[0]
+        parts.update({c: reps[i] for i, c in enumerate(ran)})
+    for c in adopted:
+        seeds = sorted(r.seed for r in given[c])
+        key = "calibrated/" + _key(sorted(calibrated.items()), seeds, [c], "adopted")
+        store.batch("discrepancy", key, lambda: [dict(calibrated)], seeds=seeds, conditions=[c])
+        store.adopt("discrepancy", key, given[c], source)
+        parts[c] = _collect(store, "discrepancy", key, 1, seeds, [c], settings.kpis)[0, 0]
+    width = max(len(v) for v in parts.values())
+    reps = np.full((len(conditions), width, len(settings.kpis)), np.nan)
+    for i, c in enumerate(conditions):
+        reps[i, :len(parts[c])] = parts[c]
     discrepancy = _discrepancy(reps, conditions, settings.kpis, _lab(measured, settings.kpis),
                                ReplicateNoise.of(settings.kpis, [reps]), settings.alpha)
     if not discrepancy.dof:
@@ -747,8 +784,10 @@ def _score(f: _Fitted, kpis: Sequence[str], lab: Mapping[tuple[str, str], tuple[
 
 def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor], model: DrawDownModel,
                   calibrated: Mapping[str, float], measured: MeasuredData, settings: DiscoverySettings,
-                  echo: Callable[[str], None] = print) -> DiscoveryResult:
-    """Steps 1-4 (see the module docstring)."""
+                  echo: Callable[[str], None] = print,
+                  baseline: tuple[str, Mapping[str, Sequence[EvaluationRecord]]] | None = None) -> DiscoveryResult:
+    """Steps 1-4 (see the module docstring); ``baseline``: runs of the calibrated set made elsewhere
+    that step 1 takes instead of running it (:func:`measure_discrepancy`)."""
     settings = settings.validate()
     missing = [c for c in measured.names if c not in model.conditions]
     if missing:
@@ -773,7 +812,11 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
     kpis = list(settings.kpis)
     lab = _lab(measured, kpis)
     with executor_for(model) as executor:
-        discrepancy, reps = measure_discrepancy(store, executor, calibrated, measured, settings)
+        discrepancy, reps = measure_discrepancy(store, executor, calibrated, measured, settings, baseline)
+    if baseline is not None:
+        taken = {c: len(v) for c, v in baseline[1].items() if len(v) >= 2}
+        echo(f"discrepancy: the calibrated set's runs taken from {baseline[0]}: "
+             + (", ".join(f"{c} {n}" for c, n in taken.items()) or "none matched"))
     echo(f"discrepancy: chi^2 {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} "
          f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise; noise pooled "
          f"over these runs)")
