@@ -470,6 +470,56 @@ def test_cpp_drift_equals_torch_drift(extension, dtype, rel):
 
 
 @pytest.mark.parametrize("dtype, rel", [(F64, 1e-12), (torch.float32, 1e-5)])
+def test_cpp_drift_of_single_spheres_in_one_sweep(extension, dtype, rel):
+    """A system of single spheres, each its own body, drifts in one sweep (drift_spheres): every
+    output equals :func:`drift_kernel` (inactive spheres stay put), the orientation is the one passed
+    in, unchanged, and the result is bitwise the same on 1 and 2 threads; with the sphere-to-body map
+    not the identity (spheres of one member swapped) it takes the two-pass path and still equals it."""
+    from torchdem.integrate import drift_kernel
+
+    system, state = _system(dtype=dtype, B=3, N=150, seed=5, clumps=0.0)
+    assert system.spheres_are_bodies
+    b = state.bodies
+    g = torch.Generator().manual_seed(6)
+    force = (torch.randn(b.force.shape, generator=g, dtype=F64) * 1e-2).to(dtype)
+    torque = (torch.randn(b.torque.shape, generator=g, dtype=F64) * 1e-5).to(dtype)
+    active = b.active.clone()
+    active[2, 10:20] = False
+    xs = sphere_positions(system, b)
+    reference = xs + (1e-4 * torch.randn(xs.shape, generator=g, dtype=F64)).to(dtype)
+    dt = torch.tensor(system.dt, dtype=dtype)
+    orientation = b.orientation.clone()
+    args = [b.position, b.velocity, b.angular_momentum, orientation, force, torque, system.mass, system.inertia,
+            active, system.sphere_body_flat, system.sphere_offset.reshape(-1, 3), reference, dt]
+    names = ("x", "v", "L", "q", "xs", "omega", "displacement")
+    ref = drift_kernel(*args, True)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = Kernels(backend="cpp").drift(*args, True)
+        torch.set_num_threads(2)
+        two = Kernels(backend="cpp").drift(*args, True)
+    finally:
+        torch.set_num_threads(threads)
+    for name, a, c, e in zip(names, one, two, ref):
+        assert a.shape == e.shape and torch.equal(a, c), name
+        assert float((a - e).abs().max()) <= rel * float(e.abs().max()), name
+    assert one[3] is orientation and torch.equal(orientation, b.orientation)
+    assert torch.equal(one[0][2, 10:20], b.position[2, 10:20])
+    # spheres 0 and 1 of member 1 swapped between bodies: not its own body, so the two passes
+    sphere_body = system.sphere_body_flat.clone()
+    first = system.n_bodies
+    sphere_body[first], sphere_body[first + 1] = first + 1, first
+    swapped = [*args[:9], sphere_body, args[10], reference, dt]
+    ref_w = drift_kernel(*swapped, True)
+    out_w = Kernels(backend="cpp").drift(*swapped, True)
+    for name, a, e in zip(names, out_w, ref_w):
+        assert float((a - e).abs().max()) <= rel * float(e.abs().max()), name
+    assert torch.equal(out_w[4][first], out_w[0].reshape(-1, 3)[first + 1])  # sphere 0 sits on body 1
+    assert out_w[3] is not orientation and torch.equal(out_w[3], orientation)
+
+
+@pytest.mark.parametrize("dtype, rel", [(F64, 1e-12), (torch.float32, 1e-5)])
 def test_cpp_drift_lanes_fast_spin_and_threads(extension, dtype, rel):
     """The C++ drift runs bodies in blocks of 16 lanes and hands a body turning by 0.2 rad or more
     in one step (beyond its rotation series) to the scalar path: spheres and clumps spinning that

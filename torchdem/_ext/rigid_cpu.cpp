@@ -10,7 +10,8 @@
 // microseconds of dispatch: for a few thousand bodies the dispatch dominated the step). It
 // returns new tensors (x, v, L, q, xs, omega, displacement [B, 7]: per member the lowest x, y, z
 // and highest x, y, z sphere displacement and the largest squared length, non-finite ones left
-// out, all 0 when none is finite); nothing passed in is modified.
+// out, all 0 when none is finite); nothing passed in is modified. For a system of single spheres,
+// each its own body, q is the orientation passed in (a sphere's never turns; drift_spheres).
 // Parallel over bodies and spheres (at::parallel_for); each element is written by one thread
 // and the displacement extremes are order-independent, so results do not depend on the number
 // of threads. They differ from the torch kernel by rounding only.
@@ -329,6 +330,80 @@ void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out,
   }
 }
 
+// The drift of a system of single spheres whose sphere s is body s (the engine benchmark's dense
+// box): the body pass and the sphere pass above in one sweep, chunked as the sphere pass (so the
+// displacement box is the same), and the orientation not copied (a sphere's never turns: the caller
+// returns the input's). The same arithmetic as drift_body's spheres-only path; it
+// removes one of the two sweeps over the spheres' rows and the orientation's 32 bytes a sphere (the
+// drift was 14 % of the benchmark's B = 16 step). Returns false when sphere_body is not the
+// identity (nothing it wrote is used: drift_impl runs instead).
+template <typename T>
+bool drift_spheres(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out, int64_t S, int64_t members,
+                   T dt) {
+  const T *x0 = in[0].data_ptr<T>(), *v0 = in[1].data_ptr<T>(), *L0 = in[2].data_ptr<T>(),
+          *F = in[4].data_ptr<T>(), *tau = in[5].data_ptr<T>(), *m = in[6].data_ptr<T>(), *I = in[7].data_ptr<T>();
+  const bool* active = in[8].data_ptr<bool>();
+  const int64_t* sb = in[9].data_ptr<int64_t>();
+  const T* ref = in[11].data_ptr<T>();
+  T *x = out[0].data_ptr<T>(), *v = out[1].data_ptr<T>(), *L = out[2].data_ptr<T>(), *xs = out[4].data_ptr<T>(),
+    *w = out[5].data_ptr<T>();
+  const int64_t Ns = S / members;
+  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (Ns + 1023) / 1024));
+  const int64_t chunks = members * parts;
+  std::vector<std::array<T, 7>> chunk_disp(chunks);
+  std::vector<char> chunk_other(chunks, 0);  // a sphere of the chunk is not its own body
+  const T h = T(0.5) * dt;
+  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      constexpr T kBig = std::numeric_limits<T>::max();
+      T lo[3] = {kBig, kBig, kBig}, hi[3] = {-kBig, -kBig, -kBig}, best = T(0);
+      const int64_t member = c / parts, part = c % parts;
+      const int64_t s0 = member * Ns + Ns * part / parts, s1 = member * Ns + Ns * (part + 1) / parts;
+      for (int64_t s = s0; s < s1; ++s) {
+        if (sb[s] != s) {
+          chunk_other[c] = 1;
+          break;
+        }
+        const T act = active[s] ? T(1) : T(0);
+        T d[3];
+        for (int a = 0; a < 3; ++a) {
+          const int64_t k = 3 * s + a;
+          const T vk = v0[k] + h * F[k] / m[s];
+          const T Lk = L0[k] + h * tau[k];
+          const T xk = x0[k] + dt * vk * act;
+          v[k] = vk;
+          L[k] = Lk;
+          x[k] = xk;
+          xs[k] = xk;
+          w[k] = Lk / I[k];
+          d[a] = xk - ref[k];
+        }
+        const T d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        if (!(d2 <= std::numeric_limits<T>::max())) continue;  // NaN and inf are left out
+        best = std::max(best, d2);
+        for (int a = 0; a < 3; ++a) {
+          lo[a] = std::min(lo[a], d[a]);
+          hi[a] = std::max(hi[a], d[a]);
+        }
+      }
+      chunk_disp[c] = {lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], best};
+    }
+  });
+  if (std::find(chunk_other.begin(), chunk_other.end(), 1) != chunk_other.end()) return false;
+  T* disp = out[6].data_ptr<T>();
+  for (int64_t member = 0; member < members; ++member) {
+    std::array<T, 7> box = chunk_disp[member * parts];
+    for (int64_t part = 1; part < parts; ++part)
+      for (int k = 0; k < 7; ++k) {
+        const T value = chunk_disp[member * parts + part][k];
+        box[k] = k < 3 ? std::min(box[k], value) : std::max(box[k], value);
+      }
+    if (box[0] > box[3]) box.fill(T(0));  // no finite displacement
+    std::copy(box.begin(), box.end(), disp + 7 * member);
+  }
+  return true;
+}
+
 std::vector<at::Tensor> drift(at::Tensor position, at::Tensor velocity, at::Tensor angular_momentum,
                               at::Tensor orientation, at::Tensor force, at::Tensor torque, at::Tensor mass,
                               at::Tensor inertia, at::Tensor active, at::Tensor sphere_body, at::Tensor sphere_offset,
@@ -351,11 +426,16 @@ std::vector<at::Tensor> drift(at::Tensor position, at::Tensor velocity, at::Tens
   for (auto& t : in) t = t.contiguous();
   using torchdem_recycle::output_like;
   const int s = torchdem_recycle::kDrift;
+  // the orientation: the input's when every body is a single sphere of its own (drift_spheres)
+  const bool own_spheres = spheres_only && S == NB;
   std::vector<at::Tensor> out = {output_like(s, in[0]), output_like(s + 1, in[1]), output_like(s + 2, in[2]),
-                                 output_like(s + 3, in[3]), torchdem_recycle::output(s + 4, {S, 3}, in[0].options()),
+                                 own_spheres ? in[3] : output_like(s + 3, in[3]),
+                                 torchdem_recycle::output(s + 4, {S, 3}, in[0].options()),
                                  torchdem_recycle::output(s + 5, {NB, 3}, in[0].options()),
                                  at::empty({members, 7}, in[0].options())};
   AT_DISPATCH_FLOATING_TYPES(dtype, "drift", [&] {
+    if (own_spheres && drift_spheres<scalar_t>(in, out, S, members, static_cast<scalar_t>(dt))) return;
+    if (own_spheres) out[3] = output_like(s + 3, in[3]);
     drift_impl<scalar_t>(in, out, NB, S, members, static_cast<scalar_t>(dt), spheres_only);
   });
   return out;
