@@ -406,6 +406,38 @@ def test_run_with_cpp_kernels_equals_run_with_torch_kernels(extension):
     assert cpp.state.rebuilds == ref.state.rebuilds
 
 
+def test_lists_built_for_the_cpp_kernels_leave_the_per_pair_constants_to_the_torch_path(extension, tmp_path):
+    """A rebuild inside a C++ step writes the list's index only (the kernel looks the constants up
+    per sphere): the per-pair constants are None. Whatever needs them gets them from the system:
+    the torch kernels continuing the run (the same trajectory as the C++ kernels, to rounding), the
+    energy, a checkpoint reloaded (None saved as None)."""
+    from torchdem.integrate import PAIR_VALUES, with_pair_values
+    from torchdem.simulation import elastic_energy
+
+    system, state = _system(B=2, N=40, seed=5, spacing=0.01, size=0.9)
+    guards = GuardSettings(energy_tolerance=1e3, max_speed=1e3)
+    sim = Simulation(system, state, guards, backend="cpp").advance(150)
+    p = sim.state.pairs
+    assert sim.state.rebuilds > 3 and p.n > 0
+    assert all(getattr(p, k) is None for k in PAIR_VALUES + system.tables.CONTACT_FIELDS)
+    filled = with_pair_values(system, p)
+    radius = system.sphere_radius.reshape(-1)
+    ri, rj = radius[p.i], radius[p.j]
+    assert torch.equal(filled.radius_i, ri) and torch.equal(filled.radius_eff, ri * rj / (ri + rj))
+    law = system.tables.gather(system.sphere_pair_row[p.i] + system.sphere_material.reshape(-1)[p.j])
+    for k in system.tables.CONTACT_FIELDS:
+        assert torch.equal(getattr(filled, k), law[k]), k
+    assert torch.equal(elastic_energy(system, sim.state), elastic_energy(system, sim.state.set(pairs=filled)))
+    cpp = Simulation(system, sim.state, guards, backend="cpp").advance(100)
+    torch_run = Simulation(system, sim.state, guards, backend="torch").advance(100)
+    assert torch.allclose(torch_run.state.bodies.position, cpp.state.bodies.position, rtol=0, atol=1e-9)
+    sim.save(tmp_path / "s.pt")
+    loaded = Simulation.load(tmp_path / "s.pt", system, guards)
+    assert loaded.state.pairs.radius_i is None and torch.equal(loaded.state.pairs.key, p.key)
+    again = Simulation(system, loaded.state, guards, backend="cpp").advance(100)
+    assert torch.equal(again.state.bodies.position, cpp.state.bodies.position)
+
+
 def test_missing_compiler_falls_back_to_torch_kernels_with_one_warning(tmp_path):
     script = textwrap.dedent("""
         import warnings

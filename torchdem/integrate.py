@@ -46,11 +46,12 @@ def sphere_active(system: System, bodies: Bodies) -> Tensor:
     return bodies.active.reshape(-1)[system.sphere_body_flat] & (system.sphere_radius.reshape(-1) > 0)
 
 
-def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[State, Tensor]:
+def rebuild(system: System, state: State, xs: Tensor, time: float, values: bool = True) -> tuple[State, Tensor]:
     """Rebuild both neighbour lists at the current positions and carry contact history.
 
     On periodic axes, body positions are wrapped back into the domain first; returns the new
-    state and the (wrapped) sphere positions ``[B * Ns, 3]``.
+    state and the (wrapped) sphere positions ``[B * Ns, 3]``. ``values=False``: the pairs' per-pair
+    constants are left None (:class:`PairContacts`), for the C++ kernels, which look them up per sphere.
     """
     B, Ns = system.batch, system.n_spheres
     if system.grid.is_periodic:
@@ -67,7 +68,7 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[Stat
     t = system.tables
 
     i, j = neighbors.find_pairs(xs, radius, body, active, Ns, system.grid, system.skin)
-    constants = pair_constants(i, j, radius, mass, inertia_r, body, pair_row, mat, t)
+    constants = pair_constants(i, j, radius, mass, inertia_r, body, pair_row, mat, t, values=values)
     tang, roll = neighbors.carry_history(state.pairs.key, [state.pairs.tangential, state.pairs.rolling],
                                          constants["key"])
     pairs = PairContacts(i=i, j=j, tangential=tang, rolling=roll, **constants)
@@ -87,27 +88,48 @@ def rebuild(system: System, state: State, xs: Tensor, time: float) -> tuple[Stat
     return state, xs
 
 
+PAIR_VALUES = ("radius_i", "radius_j", "radius_eff", "mass_eff", "rolling_inertia")
+"""The per-pair values of :class:`PairContacts` besides the :attr:`MaterialTables.CONTACT_FIELDS`."""
+
+
 def pair_constants(i: Tensor, j: Tensor, radius: Tensor, mass: Tensor, rolling_inertia: Tensor, body: Tensor,
-                   pair_row: Tensor, material: Tensor, tables: MaterialTables) -> dict[str, Tensor]:
+                   pair_row: Tensor, material: Tensor, tables: MaterialTables, values: bool = True
+                   ) -> dict[str, Tensor | None]:
     """The per-pair constants of a new sphere-sphere list ``i, j`` ``[P]``: ``key``, ``body_i``,
     ``body_j``, the radii, R*, m*, the EPSD I_r* and the :attr:`MaterialTables.CONTACT_FIELDS`
     (``[P]`` each), from per-sphere ``[S]`` radius, mass, rolling inertia, body, pair-table row
-    and material. On CPU one pass of the C++ kernel (same values), else tensor operations."""
+    and material. On CPU one pass of the C++ kernel (same values), else tensor operations.
+    ``values=False``: the index fields only, every value None."""
     S = radius.shape[0]
     ext = _ext.kernels_for(radius.device)
     if ext is not None:
         index, value = ext.pair_constants(i, j, radius, mass, rolling_inertia, body, pair_row, material,
-                                          tables.stacked)
+                                          tables.stacked, values)
         key, body_i, body_j = index.unbind(0)
+        if not values:
+            return dict(key=key, body_i=body_i, body_j=body_j, **dict.fromkeys(PAIR_VALUES + tables.CONTACT_FIELDS))
         ri, rj, r_eff, m_eff, i_eff, *fields = value.unbind(0)
         return dict(key=key, body_i=body_i, body_j=body_j, radius_i=ri, radius_j=rj, radius_eff=r_eff,
                     mass_eff=m_eff, rolling_inertia=i_eff, **dict(zip(tables.CONTACT_FIELDS, fields)))
+    if not values:
+        return dict(key=i * S + j, body_i=body[i], body_j=body[j], **dict.fromkeys(PAIR_VALUES + tables.CONTACT_FIELDS))
     ri, rj = radius[i], radius[j]
     mi, mj = mass[i], mass[j]
     ir_i, ir_j = rolling_inertia[i], rolling_inertia[j]
     return dict(key=i * S + j, body_i=body[i], body_j=body[j], radius_i=ri, radius_j=rj,
                 radius_eff=ri * rj / (ri + rj), mass_eff=mi * mj / (mi + mj),
                 rolling_inertia=ir_i * ir_j / (ir_i + ir_j), **tables.gather(pair_row[i] + material[j]))
+
+
+def with_pair_values(system: System, pairs: PairContacts) -> PairContacts:
+    """``pairs`` with its per-pair constants, computed from the system's per-sphere arrays where a
+    rebuild for the C++ kernels left them None (:func:`rebuild`'s ``values``); else ``pairs``."""
+    if pairs.radius_i is not None:
+        return pairs
+    constants = pair_constants(pairs.i, pairs.j, system.sphere_radius.reshape(-1), system.sphere_mass,
+                               system.sphere_rolling_inertia, system.sphere_body_flat, system.sphere_pair_row,
+                               system.sphere_material.reshape(-1), system.tables)
+    return pairs.set(**{k: constants[k] for k in PAIR_VALUES + system.tables.CONTACT_FIELDS})
 
 
 def _pair_geometry(xs: Tensor, X: Tensor, i: Tensor, j: Tensor, body_i: Tensor, body_j: Tensor,
@@ -246,6 +268,8 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
     dt = system.dt_tensor
     p = state.pairs
     cohesive = system.has_cohesion
+    if p.n and (cohesive or kernels.extension(xs) is None):  # the torch kernels read the per-pair constants
+        p = with_pair_values(system, p)
     if p.n:
         force, torque, tang, roll = kernels.pair(
             xs, X, V, omega, force, torque, *_pair_operands(system, p), dt=dt, period=system.grid.period,
@@ -408,8 +432,8 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
         if not rebuild_now and system.walls_move:
             wall_move = float((system.walls.shift(time) - state.wall_shift).norm(dim=-1).max())
             rebuild_now = neighbors.lists_expired(displacement, system.skin, wall_move)
-    if rebuild_now:
-        state, xs = rebuild(system, state, xs, time)
+    if rebuild_now:  # the C++ kernels look the per-pair constants up per sphere
+        state, xs = rebuild(system, state, xs, time, values=kernels.extension(xs) is None)
     return forces_and_kick(system, state, xs, omega, time, kernels)
 
 

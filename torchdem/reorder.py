@@ -152,7 +152,8 @@ def reorder(system: System, state: State, body_perm: Tensor | None = None) -> tu
     walls = w.set(key=wkey[worder], tangential=w.tangential[worder], rolling=w.rolling[worder])
 
     moved = state.set(bodies=bodies, pairs=pairs, walls=walls, body_id=body_id, sphere_id=sphere_id)
-    rebuilt, _ = rebuild(new_system, moved, sphere_positions(new_system, bodies), state.step * system.dt)
+    rebuilt, _ = rebuild(new_system, moved, sphere_positions(new_system, bodies), state.step * system.dt,
+                         values=p.radius_i is not None)  # per-pair constants as the state had them
     # the skin criterion keeps measuring from the last regular build (the same positions when the
     # reorder follows a rebuild, as in Simulation), so the rebuild schedule does not change
     return new_system, rebuilt.set(rebuilds=state.rebuilds, reference=state.reference[old_sphere],

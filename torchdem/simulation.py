@@ -255,13 +255,13 @@ def elastic_energy(system: System, state: State) -> Tensor:
     Tangential and rolling spring energies are not included (they vanish for frictionless
     contacts, the case where total energy must be conserved).
     """
-    from torchdem.integrate import sphere_positions
+    from torchdem.integrate import sphere_positions, with_pair_values
     from torchdem.walls import closest_points
 
     B, Ns = system.batch, system.n_spheres
     xs = sphere_positions(system, state.bodies)
     out = torch.zeros(B, dtype=xs.dtype, device=xs.device)
-    p = state.pairs
+    p = with_pair_values(system, state.pairs)
     if p.n:
         from torchdem.neighbors import minimum_image
         sep = minimum_image(xs[p.j] - xs[p.i], system.grid.period)

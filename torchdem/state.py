@@ -87,6 +87,9 @@ class PairContacts(_Replaceable):
         mu_s, mu_r, rolling_damping: ``[P]`` interaction coefficients.
         rolling_inertia: ``[P]`` I_r of the EPSD damping, kg m^2.
         cohesion: ``[P]`` SJKR cohesion energy density, J/m^3.
+
+    The per-pair constants (radius_i ... cohesion) are None in a list built for the C++ kernels,
+    which look them up per sphere (``System.pair_lookup``); ``integrate.with_pair_values`` fills them.
     """
 
     i: Tensor
@@ -96,18 +99,18 @@ class PairContacts(_Replaceable):
     key: Tensor
     tangential: Tensor
     rolling: Tensor
-    radius_i: Tensor
-    radius_j: Tensor
-    radius_eff: Tensor
-    mass_eff: Tensor
-    young_eff: Tensor
-    shear_eff: Tensor
-    beta: Tensor
-    mu_s: Tensor
-    mu_r: Tensor
-    rolling_damping: Tensor
-    rolling_inertia: Tensor
-    cohesion: Tensor
+    radius_i: Tensor | None
+    radius_j: Tensor | None
+    radius_eff: Tensor | None
+    mass_eff: Tensor | None
+    young_eff: Tensor | None
+    shear_eff: Tensor | None
+    beta: Tensor | None
+    mu_s: Tensor | None
+    mu_r: Tensor | None
+    rolling_damping: Tensor | None
+    rolling_inertia: Tensor | None
+    cohesion: Tensor | None
 
     @property
     def n(self) -> int:
