@@ -18,6 +18,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -436,6 +437,42 @@ def test_lists_built_for_the_cpp_kernels_leave_the_per_pair_constants_to_the_tor
     assert loaded.state.pairs.radius_i is None and torch.equal(loaded.state.pairs.key, p.key)
     again = Simulation(system, loaded.state, guards, backend="cpp").advance(100)
     assert torch.equal(again.state.bodies.position, cpp.state.bodies.position)
+
+
+def test_recycled_outputs_keep_to_memory_of_their_element_size_and_checkpoints_load(extension, tmp_path):
+    """A kernel's outputs reuse the memory of its earlier outputs (recycle.h), never memory whose size
+    their element size does not divide (123 float32 values are 492 bytes: a float64 tensor over them
+    made torch.save write more bytes than its header stated, and the checkpoint did not load). A
+    state over memory larger than it uses is saved compact and loads back equal."""
+    kernels = Kernels(backend="cpp")
+
+    def kick(dtype, n):
+        z = torch.zeros(n, 3, dtype=dtype)
+        return kernels.kick(z, z, z, z, torch.ones(n, dtype=dtype), torch.tensor([0.0, 0.0, -9.81], dtype=dtype),
+                            torch.ones(n, dtype=torch.bool), torch.tensor(1e-5, dtype=dtype))
+
+    def fresh_thread():  # its pools are empty (they are per thread)
+        for _ in range(4):  # every slot then holds 41 x 3 float32 (492 bytes) and nothing else
+            kick(torch.float32, 41)
+        sizes.extend(t.untyped_storage().nbytes() for t in kick(F64, 20))  # 480 bytes would fit in 492
+
+    sizes = []
+    thread = threading.Thread(target=fresh_thread)
+    thread.start()
+    thread.join()
+    assert len(sizes) == 4 and all(n % 8 == 0 for n in sizes), sizes
+
+    system, state = _system(B=2, N=40, seed=5, spacing=0.01, size=0.9)
+    guards = GuardSettings(energy_tolerance=1e3, max_speed=1e3)
+    sim = Simulation(system, state, guards, backend="cpp").advance(20)
+    w = sim.state.walls
+    loose = torch.empty(0, dtype=w.tangential.dtype).set_(torch.UntypedStorage(w.tangential.numel() * 8 + 100), 0,
+                                                            w.tangential.shape)
+    loose.copy_(w.tangential)
+    sim.state = sim.state.set(walls=w.set(tangential=loose))
+    sim.save(tmp_path / "s.pt")
+    loaded = Simulation.load(tmp_path / "s.pt", system, guards)
+    assert torch.equal(loaded.state.walls.tangential, w.tangential)
 
 
 def test_missing_compiler_falls_back_to_torch_kernels_with_one_warning(tmp_path):

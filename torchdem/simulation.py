@@ -227,8 +227,10 @@ class Simulation:
                 lost=self.state.lost + lost.sum(-1))
 
     def save(self, path: str | Path) -> None:
-        """Write the full state (bodies, contact lists with history, counters) to ``path``."""
-        torch.save({"state": to_dict(self.state), "failed": self.failed}, Path(path))
+        """Write the full state (bodies, contact lists with history, counters) to ``path``. A tensor
+        over more memory than it uses (a kernel's recycled output buffer) is written as a compact
+        copy: torch.save writes a tensor's whole storage."""
+        torch.save({"state": _compact(to_dict(self.state)), "failed": self.failed}, Path(path))
 
     @classmethod
     def load(cls, path: str | Path, system: System, guards: GuardSettings = GuardSettings(),
@@ -247,6 +249,17 @@ class Simulation:
         sim = cls(system, state, guards, compile, backend, reorder_every)
         sim.failed = dict(data.get("failed", {}))
         return sim
+
+
+def _compact(d: dict) -> dict:
+    """``d`` (nested) with every tensor whose storage holds more than its own elements cloned."""
+    def one(v):
+        if isinstance(v, dict):
+            return _compact(v)
+        if isinstance(v, Tensor) and v.untyped_storage().nbytes() != v.numel() * v.element_size():
+            return v.clone()
+        return v
+    return {k: one(v) for k, v in d.items()}
 
 
 def elastic_energy(system: System, state: State) -> Tensor:

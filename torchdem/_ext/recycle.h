@@ -42,10 +42,13 @@ inline at::Tensor output(int slot, at::IntArrayRef sizes, const at::TensorOption
   std::vector<c10::Storage>& held = pool[slot];
   int64_t numel = 1;
   for (int64_t s : sizes) numel *= s;
-  const size_t bytes = static_cast<size_t>(numel) * options.dtype().itemsize();
+  const size_t item = options.dtype().itemsize();
+  const size_t bytes = static_cast<size_t>(numel) * item;
   for (size_t k = 0; k < held.size(); ++k) {
     c10::Storage& s = held[k];
-    if (s.use_count() != 1 || s.device() != options.device()) continue;
+    // not memory of another element size that does not divide into this one's (a float64 tensor over
+    // the 492 bytes of 123 float32 values: torch.save then writes more bytes than its header states)
+    if (s.use_count() != 1 || s.device() != options.device() || s.nbytes() % item != 0) continue;
     if (s.nbytes() >= bytes) return at::empty({0}, options).set_(s, 0, sizes);
     held.erase(held.begin() + static_cast<std::ptrdiff_t>(k));  // free but too small: make room
     break;
