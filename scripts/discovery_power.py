@@ -24,7 +24,8 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import MODEL_KEYS, _int, config_hash, executor_settings_from, plain_config, store_path_from
+from bo.cli.common import (MODEL_KEYS, _int, checkpoint_dir_for, config_hash, executor_settings_from, plain_config,
+                           store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 
@@ -108,7 +109,7 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     echo(f"power study: {len(effects)} effects x {numbers['labs']} labs + {numbers['null_labs']} null labs; "
          f"baseline from {source}; store {store.path}")
     started = time.perf_counter()
-    with executor_factory(executor_settings) as executor_for:
+    with executor_factory(executor_settings, checkpoints=checkpoint_dir_for(store.path)) as executor_for:
         outcomes = run_power_study(store, executor_for, model, baseline, template, effects, settings,
                                    labs=numbers["labs"], null_labs=numbers["null_labs"],
                                    lab_replicates=numbers["lab_replicates"], lab_seed=numbers["lab_seed"],

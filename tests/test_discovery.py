@@ -16,6 +16,7 @@
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
@@ -589,6 +590,32 @@ def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message
     with pytest.raises(ConfigError, match=message):
         discover(_plain([override, f"store={store}"]), tmp_path, echo=lambda s: None)
     assert not store.exists()
+
+
+def test_discovery_runs_checkpoint_beside_its_store(tmp_path, monkeypatch):
+    """torchdem-discover's DEM batches checkpoint in ``<store>.runs/`` (as the calibration's), so a
+    stopped discovery resumes its runs mid-way: the executors it makes get that directory."""
+    import bo.cli.common as common
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    @contextlib.contextmanager
+    def factory(settings, checkpoints=None):
+        seen["checkpoints"] = checkpoints
+        with real(settings, checkpoints=checkpoints) as executor_for:
+            seen["executor"] = executor_for("model")
+        raise Stop
+
+    real = common.executor_factory
+    monkeypatch.setattr(common, "executor_factory", factory)
+    store = tmp_path / "d.sqlite"
+    with pytest.raises(Stop):
+        discover(_plain([f"store={store}", "discovery.candidates=[]"]), tmp_path, echo=lambda s: None)
+    assert seen["checkpoints"] == tmp_path / "d.sqlite.runs"
+    assert seen["executor"].evaluate_batch.keywords["checkpoint_dir"] == str(tmp_path / "d.sqlite.runs")
 
 
 # -- on real DEM runs ------------------------------------------------------------------------

@@ -175,13 +175,14 @@ def executor_from(settings: ExecutorSettings, model, client=None, checkpoints: P
 
 
 @contextlib.contextmanager
-def executor_factory(settings: ExecutorSettings):
+def executor_factory(settings: ExecutorSettings, checkpoints: Path | None = None):
     """``model -> executor`` for the commands that run many models (discovery, the power study:
     every hypothesis and twin is a model of its own). With ``executor=dask`` and no ``address``,
     one local cluster serves them all; a cluster per model restarted its worker processes (torch,
-    the C++ kernels) for each of them."""
+    the C++ kernels) for each of them. ``checkpoints``: as :func:`executor_from`'s (a batch's
+    checkpoint is named by its model too, so the models share the directory)."""
     if settings.kind != "dask" or settings.address is not None:
-        yield functools.partial(executor_from, settings)
+        yield functools.partial(executor_from, settings, checkpoints=checkpoints)
         return
     from dask.distributed import Client
 
@@ -190,7 +191,7 @@ def executor_factory(settings: ExecutorSettings):
     cluster = local_cluster(settings.n_workers)
     try:
         with Client(cluster) as client:
-            yield functools.partial(executor_from, settings, client=client)
+            yield functools.partial(executor_from, settings, client=client, checkpoints=checkpoints)
     finally:
         cluster.close()
 

@@ -23,8 +23,8 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, check_kpis, config_hash, executor_settings_from, plain_config,
-                           replicate_seeds, requeue_failed, store_path_from)
+from bo.cli.common import (MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, config_hash, executor_settings_from,
+                           plain_config, replicate_seeds, requeue_failed, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 
@@ -189,7 +189,7 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     echo(f"torchdem-discover: {len(measured.names)} conditions of {measured.origin}; calibrated set from {source}; "
          f"store {path}")
     started = time.perf_counter()
-    with executor_factory(executor_settings) as executor_for:
+    with executor_factory(executor_settings, checkpoints=checkpoint_dir_for(path)) as executor_for:
         result = run_discovery(store, executor_for, model, calibrated, measured, settings, echo=echo,
                                baseline=baseline)
     command = extension_command(result.cause, result.extension)
