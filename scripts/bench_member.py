@@ -1,0 +1,68 @@
+"""Time the steps of one flowing lab-geometry member (profile=lab, 50-50) on one thread: the figure
+the rebuild and kernel changes of docs/performance.md ("What limits a run now") were compared by.
+
+The member is filled and settled (``bench_search.settled_member``, cached), then run to ``--start``
+s of simulated time (the gate opens at the end of the 0.8 s fill, so the default 1.3 s is half a
+second into the discharge) and cached again in ``.bench_cache/``. The script then advances
+``--warm`` steps and times ``--steps`` more by the process's CPU time (``time.thread_time``), which
+other processes on the machine disturb less than the wall clock. Sorting along the Morton curve
+every 10 rebuilds, as the lab profile does. Compare two versions of the code by running it with
+each in turn (two git worktrees, ``PYTHONPATH`` set to each), several times, alternating.
+
+Usage::
+
+    python scripts/bench_member.py [--lobe-spacing 0.3] [--start 1.3] [--steps 1000] [--json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from bench_search import CACHE, settled_member
+from torchdem.simulation import Simulation
+
+
+def flowing_member(lobe_spacing: float, seed: int, start: float) -> Simulation:
+    """The member run to ``start`` s, cached on disk; reordered every 10 rebuilds."""
+    settled = settled_member(lobe_spacing, seed, 0.8)
+    path = CACHE / f"member_lab_s{lobe_spacing:g}_seed{seed}_t{start:g}.pt"
+    if path.exists():
+        return Simulation.load(path, settled.system, reorder_every=10)
+    sim = Simulation(settled.system, settled.state, reorder_every=10)
+    started = time.perf_counter()
+    sim.run_until(start)
+    print(f"ran to {start} s in {time.perf_counter() - started:.0f} s; cached in {path}")
+    sim.save(path)
+    return Simulation.load(path, settled.system, reorder_every=10)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--lobe-spacing", type=float, default=0.3)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--start", type=float, default=1.3, help="simulated time before timing, s")
+    parser.add_argument("--warm", type=int, default=20, help="untimed steps first")
+    parser.add_argument("--steps", type=int, default=1000, help="timed steps")
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON too")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    sim = flowing_member(args.lobe_spacing, args.seed, args.start)
+    sim.advance(args.warm)
+    rebuilds = sim.state.rebuilds
+    started = time.thread_time()
+    sim.advance(args.steps)
+    cpu = time.thread_time() - started
+    out = {"lobe_spacing": args.lobe_spacing, "spheres": sim.system.n_spheres, "steps": args.steps,
+           "ms_per_step": 1e3 * cpu / args.steps, "steps_per_rebuild": args.steps / max(sim.state.rebuilds - rebuilds, 1)}
+    print(f"lab member, lobe spacing {args.lobe_spacing:g}, {out['spheres']} spheres, from t = {args.start:g} s: "
+          f"{out['ms_per_step']:.2f} ms a step (CPU time, one thread), {out['steps_per_rebuild']:.1f} steps a rebuild")
+    if args.json:
+        print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
