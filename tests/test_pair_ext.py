@@ -538,6 +538,19 @@ def test_cpp_drift_equals_torch_drift(extension, dtype, rel):
         Kernels(backend="cpp").drift(*args[:9], sphere_body, *args[10:], False)
 
 
+def _cpp_drift_on_one_and_two_threads(args, spheres_only):
+    """The C++ drift of ``args`` on one thread and on two."""
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = Kernels(backend="cpp").drift(*args, spheres_only)
+        torch.set_num_threads(2)
+        two = Kernels(backend="cpp").drift(*args, spheres_only)
+    finally:
+        torch.set_num_threads(threads)
+    return one, two
+
+
 @pytest.mark.parametrize("dtype, rel", [(F64, 1e-12), (torch.float32, 1e-5)])
 def test_cpp_drift_of_single_spheres_in_one_sweep(extension, dtype, rel):
     """A system of single spheres, each its own body, drifts in one sweep (drift_spheres): every
@@ -562,14 +575,7 @@ def test_cpp_drift_of_single_spheres_in_one_sweep(extension, dtype, rel):
             active, system.sphere_body_flat, system.sphere_offset.reshape(-1, 3), reference, dt]
     names = ("x", "v", "L", "q", "xs", "omega", "displacement")
     ref = drift_kernel(*args, True)
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = Kernels(backend="cpp").drift(*args, True)
-        torch.set_num_threads(2)
-        two = Kernels(backend="cpp").drift(*args, True)
-    finally:
-        torch.set_num_threads(threads)
+    one, two = _cpp_drift_on_one_and_two_threads(args, True)
     for name, a, c, e in zip(names, one, two, ref):
         assert a.shape == e.shape and torch.equal(a, c), name
         assert float((a - e).abs().max()) <= rel * float(e.abs().max()), name
@@ -613,14 +619,7 @@ def test_cpp_drift_lanes_fast_spin_and_threads(extension, dtype, rel):
     args = (b.position, b.velocity, L, b.orientation, force, torque, system.mass, system.inertia, b.active,
             system.sphere_body_flat, system.sphere_offset.reshape(-1, 3), xs, dt)
     ref = drift_kernel(*args, False)
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = Kernels(backend="cpp").drift(*args, False)
-        torch.set_num_threads(2)
-        two = Kernels(backend="cpp").drift(*args, False)
-    finally:
-        torch.set_num_threads(threads)
+    one, two = _cpp_drift_on_one_and_two_threads(args, False)
     names = ("x", "v", "L", "q", "xs", "omega", "displacement")
     for name, a, c, e in zip(names, one, two, ref):
         assert torch.equal(a, c), name

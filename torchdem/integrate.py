@@ -268,7 +268,7 @@ def contact_forces(system: System, state: State, xs: Tensor, omega: Tensor, time
     dt = system.dt_tensor
     p = state.pairs
     cohesive = system.has_cohesion
-    if p.n and (cohesive or kernels.extension(xs) is None):  # the torch kernels read the per-pair constants
+    if p.n and kernels.extension(xs) is None:  # the torch kernels read the per-pair constants
         p = with_pair_values(system, p)
     if p.n:
         force, torque, tang, roll = kernels.pair(
@@ -538,9 +538,10 @@ class Kernels:
         kernel then takes the lever arms from the sphere centres and skips the body centres
         (same values up to rounding).
         ``cohesion``: ``[P]`` SJKR cohesion energy density of every pair (None: no cohesion), added
-        by :func:`pair_cohesion` after the torch kernel; the C++ kernel adds it inside its contact
-        law, reading it from the 7th row of the lookup table (:attr:`System.pair_lookup` of a
-        system with cohesion)."""
+        by :func:`pair_cohesion` after the torch kernel. The C++ kernel adds cohesion inside its
+        contact law when the lookup table has the 7th, cohesion row (:attr:`System.pair_lookup` of a
+        system with cohesion), as :meth:`forces_kick` does; ``cohesion`` is not read there (a list
+        built for it has no per-pair values) and given with a 6-row table it is an error."""
         ext = self.extension(xs)
         if ext is None:
             out = self.torch_pair(xs, X, V, omega, force, torque, *contacts, dt, period, stiffness_model, periodic)
@@ -608,13 +609,13 @@ def _cpp_pair_tensors(xs: Tensor, X: Tensor, V: Tensor, omega: Tensor, force: Te
 
 
 def _law_lookup(lookup: tuple[Tensor, ...], cohesion: Tensor | None) -> tuple[Tensor, ...]:
-    """``lookup`` whose law table carries the cohesion row exactly when ``cohesion`` is given (the
-    C++ pair kernel adds cohesion when its table has 7 rows)."""
+    """``lookup``, checked: given ``cohesion``, its law table must carry the cohesion row (the C++
+    pair kernel adds cohesion when its table has 7 rows)."""
     table = lookup[-1]
     if cohesion is not None and table.shape[0] != 7:
         raise ValueError(f"Kernels.pair: cohesion given but the lookup table has shape {tuple(table.shape)}; "
                          "expected [7, R] with the cohesion row (System.pair_lookup of a system with cohesion)")
-    return lookup if cohesion is not None or table.shape[0] == 6 else (*lookup[:-1], table[:6])
+    return lookup
 
 
 def _ai2011(stiffness_model: str) -> bool:

@@ -464,6 +464,10 @@ def _discrepancy(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str
 # step 1
 # --------------------------------------------------------------------------------------------
 
+BASELINE_RUNS = 2
+"""Runs of the calibrated set made elsewhere that a condition needs to take them as its discrepancy runs."""
+
+
 def runs_of_set(records: Sequence[EvaluationRecord], calibrated: Mapping[str, float],
                 conditions: Sequence[str], rel: float = 1e-9) -> dict[str, list[EvaluationRecord]]:
     """The done runs among ``records`` (of another store, the same model) made at the calibrated set:
@@ -487,11 +491,11 @@ def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Ma
     """Step 1 (see the module docstring), with the replicate noise pooled over these runs; also
     returns the replicates ``[C, r, K]`` (NaN beyond a condition's runs). ``baseline``: (its store's
     path, condition -> runs of the calibrated set made there, :func:`runs_of_set`): a condition with
-    at least two such runs takes them instead of running ``settings.seeds`` (they are imported into
+    at least ``BASELINE_RUNS`` such runs takes them instead of running ``settings.seeds`` (they are imported into
     this store, :meth:`CampaignStore.adopt`); the others run as usual."""
     conditions = list(measured.names)
     source, given = baseline if baseline is not None else ("", {})
-    adopted = [c for c in conditions if len(given.get(c, ())) >= 2]
+    adopted = [c for c in conditions if len(given.get(c, ())) >= BASELINE_RUNS]
     ran = [c for c in conditions if c not in adopted]
     parts: dict[str, np.ndarray] = {}
     if ran:
@@ -814,7 +818,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
     with executor_for(model) as executor:
         discrepancy, reps = measure_discrepancy(store, executor, calibrated, measured, settings, baseline)
     if baseline is not None:
-        taken = {c: len(v) for c, v in baseline[1].items() if len(v) >= 2}
+        taken = {c: len(v) for c, v in baseline[1].items() if len(v) >= BASELINE_RUNS}
         echo(f"discrepancy: the calibrated set's runs taken from {baseline[0]}: "
              + (", ".join(f"{c} {n}" for c, n in taken.items()) or "none matched"))
     echo(f"discrepancy: chi^2 {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} "

@@ -247,6 +247,58 @@ void drift_block(int64_t base, int64_t count, const T* __restrict x0, const T* _
   }
 }
 
+// The sphere pass of the drift: sphere(s, d) for every sphere s, in chunks of whole members
+// (parts per member, fixed by the sphere count and the threads, so the result is the same on any
+// number of threads), each writing the sphere's displacement since the last list build to d[3] and
+// returning true, or false to stop its chunk. Per member, into disp [members, 7]: the box of the
+// finite displacements (lowest x, y, z, highest x, y, z) and the largest squared length, all 0
+// when none is finite. Returns -1, or the first sphere (of the lowest such chunk) for which
+// sphere() returned false; disp is then not written.
+template <typename T, typename Sphere>
+int64_t displacement_boxes(int64_t S, int64_t members, T* disp, const Sphere& sphere) {
+  const int64_t Ns = S / members;
+  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (Ns + 1023) / 1024));
+  const int64_t chunks = members * parts;
+  std::vector<std::array<T, 7>> chunk_disp(chunks);
+  std::vector<int64_t> stopped(chunks, -1);
+  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      constexpr T kBig = std::numeric_limits<T>::max();
+      T lo[3] = {kBig, kBig, kBig}, hi[3] = {-kBig, -kBig, -kBig}, best = T(0);
+      const int64_t member = c / parts, part = c % parts;
+      const int64_t s0 = member * Ns + Ns * part / parts, s1 = member * Ns + Ns * (part + 1) / parts;
+      for (int64_t s = s0; s < s1; ++s) {
+        T d[3];
+        if (!sphere(s, d)) {
+          stopped[c] = s;
+          break;
+        }
+        const T d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        if (!(d2 <= std::numeric_limits<T>::max())) continue;  // NaN and inf are left out
+        best = std::max(best, d2);
+        for (int a = 0; a < 3; ++a) {
+          lo[a] = std::min(lo[a], d[a]);
+          hi[a] = std::max(hi[a], d[a]);
+        }
+      }
+      chunk_disp[c] = {lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], best};
+    }
+  });
+  for (int64_t c = 0; c < chunks; ++c)
+    if (stopped[c] >= 0) return stopped[c];
+  for (int64_t member = 0; member < members; ++member) {
+    std::array<T, 7> box = chunk_disp[member * parts];
+    for (int64_t part = 1; part < parts; ++part)
+      for (int k = 0; k < 7; ++k) {
+        const T value = chunk_disp[member * parts + part][k];
+        box[k] = k < 3 ? std::min(box[k], value) : std::max(box[k], value);
+      }
+    if (box[0] > box[3]) box.fill(T(0));  // no finite displacement
+    std::copy(box.begin(), box.end(), disp + 7 * member);
+  }
+  return -1;
+}
+
 template <typename T>
 void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out, int64_t NB, int64_t S,
                 int64_t members, T dt, bool spheres_only) {
@@ -273,66 +325,29 @@ void drift_impl(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& out,
       drift_block(base, count, x0, v0, L0, q0, F, tau, m, I, active, x, v, L, q, w, dt);
     }
   });
-  // Chunks of spheres within each member: per chunk the displacement box (lowest x, y, z,
-  // highest x, y, z) and the largest squared length.
-  const int64_t Ns = S / members;
-  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (Ns + 1023) / 1024));
-  const int64_t chunks = members * parts;
-  std::vector<std::array<T, 7>> chunk_disp(chunks);
-  std::vector<int64_t> chunk_bad(chunks, 0);  // 1 + the last sphere of the chunk with a bad body
-  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
-    for (int64_t c = c0; c < c1; ++c) {
-      constexpr T kBig = std::numeric_limits<T>::max();
-      T lo[3] = {kBig, kBig, kBig}, hi[3] = {-kBig, -kBig, -kBig}, best = T(0);
-      const int64_t member = c / parts, part = c % parts;
-      const int64_t s0 = member * Ns + Ns * part / parts, s1 = member * Ns + Ns * (part + 1) / parts;
-      for (int64_t s = s0; s < s1; ++s) {
-        const int64_t b = sb[s];
-        if (static_cast<uint64_t>(b) >= static_cast<uint64_t>(NB)) {  // reported after the pass
-          chunk_bad[c] = s + 1;
-          continue;
-        }
-        V3<T> p{x[3 * b], x[3 * b + 1], x[3 * b + 2]};
-        if (!spheres_only) {
-          const Quat<T> qb{q[4 * b], q[4 * b + 1], q[4 * b + 2], q[4 * b + 3]};
-          const V3<T> r = rotate(qb, V3<T>{off[3 * s], off[3 * s + 1], off[3 * s + 2]});
-          p = {p.x + r.x, p.y + r.y, p.z + r.z};
-        }
-        xs[3 * s] = p.x;
-        xs[3 * s + 1] = p.y;
-        xs[3 * s + 2] = p.z;
-        const T d[3] = {p.x - ref[3 * s], p.y - ref[3 * s + 1], p.z - ref[3 * s + 2]};
-        const T d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-        if (!(d2 <= std::numeric_limits<T>::max())) continue;  // NaN and inf are left out
-        best = std::max(best, d2);
-        for (int a = 0; a < 3; ++a) {
-          lo[a] = std::min(lo[a], d[a]);
-          hi[a] = std::max(hi[a], d[a]);
-        }
-      }
-      chunk_disp[c] = {lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], best};
+  const int64_t bad = displacement_boxes<T>(S, members, out[6].data_ptr<T>(), [&](int64_t s, T* d) {
+    const int64_t b = sb[s];
+    if (static_cast<uint64_t>(b) >= static_cast<uint64_t>(NB)) return false;  // reported below
+    V3<T> p{x[3 * b], x[3 * b + 1], x[3 * b + 2]};
+    if (!spheres_only) {
+      const Quat<T> qb{q[4 * b], q[4 * b + 1], q[4 * b + 2], q[4 * b + 3]};
+      const V3<T> r = rotate(qb, V3<T>{off[3 * s], off[3 * s + 1], off[3 * s + 2]});
+      p = {p.x + r.x, p.y + r.y, p.z + r.z};
     }
+    xs[3 * s] = p.x;
+    xs[3 * s + 1] = p.y;
+    xs[3 * s + 2] = p.z;
+    d[0] = p.x - ref[3 * s];
+    d[1] = p.y - ref[3 * s + 1];
+    d[2] = p.z - ref[3 * s + 2];
+    return true;
   });
-  for (int64_t c = 0; c < chunks; ++c) {
-    const int64_t s = chunk_bad[c] - 1;
-    TORCH_CHECK(s < 0, "drift: sphere ", s, " belongs to body ", sb[s < 0 ? 0 : s], ", outside [0, ", NB, ")");
-  }
-  T* disp = out[6].data_ptr<T>();
-  for (int64_t member = 0; member < members; ++member) {
-    std::array<T, 7> box = chunk_disp[member * parts];
-    for (int64_t part = 1; part < parts; ++part)
-      for (int k = 0; k < 7; ++k) {
-        const T v = chunk_disp[member * parts + part][k];
-        box[k] = k < 3 ? std::min(box[k], v) : std::max(box[k], v);
-      }
-    if (box[0] > box[3]) box.fill(T(0));  // no finite displacement
-    std::copy(box.begin(), box.end(), disp + 7 * member);
-  }
+  TORCH_CHECK(bad < 0, "drift: sphere ", bad, " belongs to body ", sb[bad < 0 ? 0 : bad], ", outside [0, ", NB, ")");
 }
 
 // The drift of a system of single spheres whose sphere s is body s (the engine benchmark's dense
-// box): the body pass and the sphere pass above in one sweep, chunked as the sphere pass (so the
-// displacement box is the same), and the orientation not copied (a sphere's never turns: the caller
+// box): the body pass and the sphere pass above in one sweep (displacement_boxes), and the
+// orientation not copied (a sphere's never turns: the caller
 // returns the input's). The same arithmetic as drift_body's spheres-only path; it
 // removes one of the two sweeps over the spheres' rows and the orientation's 32 bytes a sphere (the
 // drift was 14 % of the benchmark's B = 16 step). Returns false when sphere_body is not the
@@ -347,61 +362,24 @@ bool drift_spheres(const std::vector<at::Tensor>& in, std::vector<at::Tensor>& o
   const T* ref = in[11].data_ptr<T>();
   T *x = out[0].data_ptr<T>(), *v = out[1].data_ptr<T>(), *L = out[2].data_ptr<T>(), *xs = out[4].data_ptr<T>(),
     *w = out[5].data_ptr<T>();
-  const int64_t Ns = S / members;
-  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (Ns + 1023) / 1024));
-  const int64_t chunks = members * parts;
-  std::vector<std::array<T, 7>> chunk_disp(chunks);
-  std::vector<char> chunk_other(chunks, 0);  // a sphere of the chunk is not its own body
   const T h = T(0.5) * dt;
-  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
-    for (int64_t c = c0; c < c1; ++c) {
-      constexpr T kBig = std::numeric_limits<T>::max();
-      T lo[3] = {kBig, kBig, kBig}, hi[3] = {-kBig, -kBig, -kBig}, best = T(0);
-      const int64_t member = c / parts, part = c % parts;
-      const int64_t s0 = member * Ns + Ns * part / parts, s1 = member * Ns + Ns * (part + 1) / parts;
-      for (int64_t s = s0; s < s1; ++s) {
-        if (sb[s] != s) {
-          chunk_other[c] = 1;
-          break;
-        }
-        const T act = active[s] ? T(1) : T(0);
-        T d[3];
-        for (int a = 0; a < 3; ++a) {
-          const int64_t k = 3 * s + a;
-          const T vk = v0[k] + h * F[k] / m[s];
-          const T Lk = L0[k] + h * tau[k];
-          const T xk = x0[k] + dt * vk * act;
-          v[k] = vk;
-          L[k] = Lk;
-          x[k] = xk;
-          xs[k] = xk;
-          w[k] = Lk / I[k];
-          d[a] = xk - ref[k];
-        }
-        const T d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-        if (!(d2 <= std::numeric_limits<T>::max())) continue;  // NaN and inf are left out
-        best = std::max(best, d2);
-        for (int a = 0; a < 3; ++a) {
-          lo[a] = std::min(lo[a], d[a]);
-          hi[a] = std::max(hi[a], d[a]);
-        }
-      }
-      chunk_disp[c] = {lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], best};
+  return displacement_boxes<T>(S, members, out[6].data_ptr<T>(), [&](int64_t s, T* d) {
+    if (sb[s] != s) return false;
+    const T act = active[s] ? T(1) : T(0);
+    for (int a = 0; a < 3; ++a) {
+      const int64_t k = 3 * s + a;
+      const T vk = v0[k] + h * F[k] / m[s];
+      const T Lk = L0[k] + h * tau[k];
+      const T xk = x0[k] + dt * vk * act;
+      v[k] = vk;
+      L[k] = Lk;
+      x[k] = xk;
+      xs[k] = xk;
+      w[k] = Lk / I[k];
+      d[a] = xk - ref[k];
     }
-  });
-  if (std::find(chunk_other.begin(), chunk_other.end(), 1) != chunk_other.end()) return false;
-  T* disp = out[6].data_ptr<T>();
-  for (int64_t member = 0; member < members; ++member) {
-    std::array<T, 7> box = chunk_disp[member * parts];
-    for (int64_t part = 1; part < parts; ++part)
-      for (int k = 0; k < 7; ++k) {
-        const T value = chunk_disp[member * parts + part][k];
-        box[k] = k < 3 ? std::min(box[k], value) : std::max(box[k], value);
-      }
-    if (box[0] > box[3]) box.fill(T(0));  // no finite displacement
-    std::copy(box.begin(), box.end(), disp + 7 * member);
-  }
-  return true;
+    return true;
+  }) < 0;
 }
 
 std::vector<at::Tensor> drift(at::Tensor position, at::Tensor velocity, at::Tensor angular_momentum,
