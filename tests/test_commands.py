@@ -132,6 +132,8 @@ def test_extension_reaches_the_model(extension):
         "free_interaction": lambda: test.parameter_sets[0]["mu_s_ps"] == values["mu_s_ps"],
         "front_back_walls": lambda: (test.settings.front_back_material is not None
                                      and plain_test.settings.front_back_material is None),
+        "outlet_width": lambda: (test.geometry.outlet_width == values["geometry_outlet_width"]
+                                 != plain_test.geometry.outlet_width),
         "rolling_ai2011": lambda: (test.settings.rolling_stiffness == "ai2011"
                                    and plain_test.settings.rolling_stiffness != "ai2011"),
     }

@@ -9,6 +9,9 @@ Checks:
   pairs with every particle material have mu_s = mu_r = 0, e = 1 and no rolling damping; the
   front walls keep the geometry material; mass KPIs scale by depth / slice_depth = 2;
 - geometry variants of a condition name (``50-50|mirror=True|slice_depth=0.1``) reach the model;
+- a task parameter ``geometry_outlet_width`` (the outlet_width candidate of discovery) moves the
+  built system's slot edges and gate; sets of one ensemble must agree on it, a campaign batch
+  that mixes widths runs one ensemble per width, and bad lengths are refused by name;
 - a mirrored mini box conserves mass (slow);
 - on a small box, the mirrored half and the whole box give the same KPIs within replicate
   noise (slow: 3 seeds each).
@@ -124,6 +127,56 @@ def test_geometry_variants_of_a_condition_reach_the_model():
         geometry_from({"upper_width_m": 0.35, "depth_m": 0.2, "upper_height_m": 0.5, "outlet_width_m": 0.065,
                        "upper_bottom_z_m": 0.35, "lower_width_m": 0.8, "lower_height_m": 0.3,
                        "slice_depth_m": 0.1, "mirror": "yes"})
+
+
+def test_outlet_width_parameter_moves_the_slot_and_a_batch_of_two_widths_runs_apart(tmp_path):
+    from bo.campaign.dem import evaluate_batch
+    from bo.campaign.executor import EvalTask
+    from torchdem.mechanisms import model_context, registry
+    from torchdem.model import mixture_parameters
+
+    mix, g = _mini(mirror=True)
+    model = DrawDownModel({"50-50": mix}, g, SETTINGS, fixed=PAPER_REFERENCE)
+    prior = registry()["outlet_width"].parameters(model_context(model, PAPER_REFERENCE))
+    assert prior == {"geometry_outlet_width": (pytest.approx(0.85 * g.outlet_width),
+                                               pytest.approx(1.3 * g.outlet_width))}
+    wide = 1.2 * g.outlet_width
+    test = model.test_for("50-50", [{"geometry_outlet_width": wide, "mu_s_pp": 0.4}])
+    assert test.geometry.outlet_width == wide and test.parameter_sets[0]["mu_s_pp"] == 0.4
+    assert "geometry_outlet_width" not in test.parameter_sets[0]
+    system, _, _ = test.build([0], [0])
+    w = system.walls
+    at = {n: k for k, n in enumerate(w.names)}
+    assert float(w.half_u[at["gate"]]) == pytest.approx(wide / 2, rel=1e-12)
+    inner = float(w.centre[at["upper_bottom_right"], 0] - w.half_u[at["upper_bottom_right"]])
+    assert inner == pytest.approx(wide / 2, rel=1e-12)  # the plate's inner edge is the slot's edge
+    assert mixture_parameters({"geometry_outlet_width": wide, "mu_s_pp": 0.4}) == (("geometry_outlet_width", wide),)
+    with pytest.raises(ConfigError, match="different box lengths"):
+        model.test_for("50-50", [{"geometry_outlet_width": wide}, {}])
+    with pytest.raises(ConfigError, match="outlet_width.*< upper_width"):
+        model.test_for("50-50", [{"geometry_outlet_width": 2 * g.upper_width}])
+    with pytest.raises(ConfigError, match="geometry_depth.*names no length"):
+        model.test_for("50-50", [{"geometry_depth": 0.1}])
+    with pytest.raises(ConfigError, match="geometry_outlet_width.*a length > 0 m"):
+        model.test_for("50-50", [{"geometry_outlet_width": -0.01}])
+    # a batch of two widths: two ensembles, each with its own slot (a tiny run: only the split is checked)
+    tiny = dataclasses.replace(model, settings=dataclasses.replace(SETTINGS, fill_time=0.02, discharge_time=0.06,
+                                                                   flow_window=(0.0, 0.02), final_window=0.02))
+    built = []
+    original = DrawDownModel.test_for
+
+    def spy(self, condition, sets, **kw):
+        t = original(self, condition, sets, **kw)
+        built.append((t.geometry.outlet_width, len(sets)))
+        return t
+
+    tasks = [EvalTask({"geometry_outlet_width": wide}, 0, "50-50"), EvalTask({"mu_s_pp": 0.4}, 0, "50-50"),
+             EvalTask({"geometry_outlet_width": wide}, 1, "50-50")]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(DrawDownModel, "test_for", spy)
+        out = evaluate_batch(tiny, tasks)
+    assert len(out) == 3 and all(o.wall_time > 0 for o in out)
+    assert sorted(built) == sorted([(wide, 1), (g.outlet_width, 1)])  # the wide tasks: one set, two seeds
 
 
 @pytest.mark.slow

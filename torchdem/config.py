@@ -119,9 +119,9 @@ CONTACT_RANGES = {"mu_s_": (0.0, math.inf, False, "a sliding friction coefficien
 def parameter_range(name: str) -> tuple[float, float, bool, str]:
     """``(low, high, open low, allowed text)`` of a named model parameter by its prefix: the
     contact parameters of :data:`CONTACT_RANGES` and the material parameters of
-    :data:`torchdem.model.MATERIAL_PREFIXES` (``density_<m>``, ``lobe_spacing_<m>``); any number
-    for other names."""
-    from torchdem.model import MATERIAL_PREFIXES
+    :data:`torchdem.model.MATERIAL_PREFIXES` (``density_<m>``, ``lobe_spacing_<m>``), the box lengths
+    ``geometry_<field>`` (> 0 m); any number for other names."""
+    from torchdem.model import GEOMETRY_PREFIX, MATERIAL_PREFIXES
 
     contact = next((p for p in CONTACT_RANGES if name.startswith(p)), None)
     if contact is not None:
@@ -130,6 +130,8 @@ def parameter_range(name: str) -> tuple[float, float, bool, str]:
     if material is not None:
         low, high, allowed = MATERIAL_PREFIXES[material]
         return low, high, True, allowed
+    if name.startswith(GEOMETRY_PREFIX):
+        return 0.0, math.inf, True, "a length > 0 m"
     return -math.inf, math.inf, False, "a number"
 
 

@@ -15,6 +15,11 @@ Contract:
   recommends); ``lobe_spacing_<material>`` makes that material a trilobe clump of that lobe
   spacing (:func:`torchdem.mixture.trilobe_template`). Such parameter sets run in one ensemble
   with per-member mixtures.
+- A parameter ``geometry_<field>`` (m) replaces that length of the boxes
+  (:data:`GEOMETRY_PARAMETERS`, fields of :class:`~torchdem.geometry.DrawDownGeometry`): the
+  outlet width, which the paper's text does not give, as a discovery candidate
+  (:mod:`torchdem.mechanisms.outlet_width`). An ensemble has one set of walls, so the parameter
+  sets of one test agree on them (``bo.campaign.dem.evaluate_batch`` splits a batch that does not).
 - Model extensions (:mod:`torchdem.mechanisms`) change a model through
   :func:`torchdem.mechanisms.apply_extension`; every entry point applies the ``extension``
   config group that way.
@@ -39,15 +44,43 @@ DENSITY_PREFIX = "density_"
 #: Per-material task parameters: prefix -> (exclusive low, inclusive high, allowed range text).
 MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3"),
                      "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size")}
+#: Prefix of task parameters that set a length of the boxes, m (``geometry_outlet_width``).
+GEOMETRY_PREFIX = "geometry_"
+#: The ``DrawDownGeometry`` lengths a task parameter may set (the depth stays: the lab geometry's
+#: mirror plane sits at half of it).
+GEOMETRY_PARAMETERS = ("upper_width", "upper_height", "outlet_width", "upper_bottom_z", "lower_width", "lower_height")
 
 
 def mixture_parameters(params: Mapping[str, float]) -> tuple[tuple[str, float], ...]:
-    """The task parameters that change a member's mixture (``density_*``, ``lobe_spacing_*``),
-    sorted by name. Members of one ensemble share its time step (the smallest member's) and its
-    body count (the largest member's), so a campaign batches tasks with equal or near values of
-    these together (``CampaignStore.claim(affinity=...)``): a flat-sinter run (lobe spacing 0.3)
-    batched with a default one made the latter take 1.75x its steps."""
-    return tuple(sorted((k, float(v)) for k, v in params.items() if k.startswith(tuple(MATERIAL_PREFIXES))))
+    """The task parameters that change a member's mixture (``density_*``, ``lobe_spacing_*``) or
+    the ensemble's boxes (``geometry_*``), sorted by name. Members of one ensemble share its time
+    step (the smallest member's), its body count (the largest member's) and its walls, so a
+    campaign batches tasks with equal or near values of these together
+    (``CampaignStore.claim(affinity=...)``): a flat-sinter run (lobe spacing 0.3) batched with a
+    default one made the latter take 1.75x its steps."""
+    return tuple(sorted((k, float(v)) for k, v in params.items()
+                        if k.startswith((*MATERIAL_PREFIXES, GEOMETRY_PREFIX))))
+
+
+def geometry_parameters(params: Mapping[str, float]) -> tuple[tuple[str, float], ...]:
+    """The ``geometry_*`` task parameters of a parameter set, sorted by name."""
+    return tuple(sorted((k, float(v)) for k, v in params.items() if k.startswith(GEOMETRY_PREFIX)))
+
+
+def with_geometry_parameters(geometry: DrawDownGeometry, params: Mapping[str, float], source: str
+                             ) -> DrawDownGeometry:
+    """``geometry`` with the lengths its ``geometry_<field>`` parameters set (other keys ignored),
+    validated; an unknown field or a length the boxes cannot have is a ConfigError naming it."""
+    changes = {}
+    for key, value in geometry_parameters(params):
+        field_name = key[len(GEOMETRY_PREFIX):]
+        if field_name not in GEOMETRY_PARAMETERS:
+            raise ConfigError(f"{source}: parameter {key!r} names no length a task may set; expected "
+                              f"{GEOMETRY_PREFIX}<field> with a field of {list(GEOMETRY_PARAMETERS)}")
+        if not (math.isfinite(value) and value > 0):
+            raise out_of_range(key, value, "a length > 0 m", source)
+        changes[field_name] = value
+    return dataclasses.replace(geometry, **changes).validate(source) if changes else geometry
 
 def _optional_length(value: str) -> float | None:
     return None if value == "None" else float(value)
@@ -121,9 +154,17 @@ class DrawDownModel:
         if base not in self.conditions:
             raise ConfigError(f"condition {base!r} is not part of the model; known: {sorted(self.conditions)}")
         mixture = self.conditions[base]
+        source = f"condition {condition!r}"
+        boxes = {geometry_parameters({**self.fixed, **p}) for p in parameter_sets}
+        if len(boxes) > 1:
+            raise ConfigError(f"{source}: the parameter sets of one ensemble set different box lengths "
+                              f"{sorted(boxes)}; an ensemble has one set of walls (run them apart)")
+        if boxes:
+            geometry = with_geometry_parameters(geometry, dict(next(iter(boxes))), source)
         sets, properties = [], []
         for p in parameter_sets:
-            contact, props = split_material_parameters({**self.fixed, **p}, mixture, f"condition {condition!r}")
+            full = {k: v for k, v in {**self.fixed, **p}.items() if not k.startswith(GEOMETRY_PREFIX)}
+            contact, props = split_material_parameters(full, mixture, source)
             sets.append(contact)
             properties.append(props)
         mixtures = None

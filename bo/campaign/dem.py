@@ -12,7 +12,9 @@ Contract:
   cannot be built (its fill overflows the column, its clump is too large for a periodic slice)
   fails alone too: when the ensemble's build fails, every member is built by itself, those
   that fail get their own error, and the others run as one ensemble. Bad input common to the
-  batch fails the whole batch with the message.
+  batch fails the whole batch with the message. Tasks that set different box lengths
+  (``geometry_*`` parameters) cannot share walls: a batch of several runs as one ensemble per
+  set of lengths, in turn.
 - With ``checkpoint_dir`` the ensemble saves its state every 0.5 s of simulated time to
   :func:`checkpoint_path` (a file named by the model, the condition and every task's parameters
   and seed) and, if that file exists when the batch starts, resumes from it: a campaign killed
@@ -49,7 +51,7 @@ from bo.campaign.cores import CoreShare, ThreadFollower
 from bo.campaign.executor import EvalOutcome, EvalTask
 from torchdem.drawdown import KPI_UNITS
 from torchdem.errors import BlowUpError, ConfigError
-from torchdem.model import DrawDownModel
+from torchdem.model import DrawDownModel, geometry_parameters
 
 def checkpoint_path(checkpoint_dir: str | Path, model: DrawDownModel, tasks: Sequence[EvalTask],
                     time_step_scale: float = 1.0) -> Path:
@@ -67,11 +69,21 @@ def checkpoint_path(checkpoint_dir: str | Path, model: DrawDownModel, tasks: Seq
 
 def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: str | None = None,
                    core_share: CoreShare | None = None) -> list[EvalOutcome]:
-    """Run the tasks (one condition) as one ensemble; one outcome per task, in order.
+    """Run the tasks (one condition) as one ensemble (one per set of box lengths, ``geometry_*``
+    parameters, when they differ); one outcome per task, in order.
     ``checkpoint_dir``: where the batch checkpoints and resumes. A run that blows up is retried
     at ``model.settings.retry_time_steps`` (module docstring). ``core_share``: the batch takes the
     threads the share allows, as they change."""
     threads = None if core_share is None else ThreadFollower(core_share)
+    boxes: dict[tuple, list[int]] = {}  # an ensemble has one set of walls: tasks of other box lengths run apart
+    for r, t in enumerate(tasks):
+        boxes.setdefault(geometry_parameters(t.params), []).append(r)
+    if len(boxes) > 1:
+        out: list[EvalOutcome | None] = [None] * len(tasks)
+        for rows in boxes.values():
+            for r, o in zip(rows, evaluate_batch(model, [tasks[r] for r in rows], checkpoint_dir, core_share)):
+                out[r] = o
+        return out
     out = _evaluate(model, tasks, checkpoint_dir, 1.0, threads)
     attempts: dict[int, list[str]] = {}  # task -> the errors of its attempts, in order
     for scale in model.settings.retry_time_steps:

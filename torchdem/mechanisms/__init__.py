@@ -10,7 +10,7 @@ imports them all (``pkgutil``), so adding a candidate is one small file here. A 
   ranges, given the :class:`ModelContext` (materials, nominal densities, calibrated contact
   parameters, effective stiffness); the names are those ``torchdem.model`` evaluates (contact
   parameters such as ``mu_s_ps`` or ``coh_pp``, ``density_<material>``,
-  ``lobe_spacing_<material>``, ``eta_r``);
+  ``lobe_spacing_<material>``, ``eta_r``, the box lengths ``geometry_<field>``);
 * ``apply(model) -> model``: what else the mechanism changes in a ``torchdem.model.DrawDownModel``
   (run settings, geometry); the identity for pure-parameter mechanisms;
 * ``available(context) -> str | None``: why it cannot apply to this model (None: it can).
@@ -49,6 +49,8 @@ class ModelContext:
         periodic_slice: the model is a periodic slice (no front and back walls).
         period: the slice's period (its depth) when ``periodic_slice``, else None, m.
         largest_size: largest sieve size per material, m.
+        geometry: the boxes' lengths a task may set (``torchdem.model.GEOMETRY_PARAMETERS``:
+            ``outlet_width`` ...), m.
     """
 
     materials: tuple[str, ...]
@@ -60,6 +62,7 @@ class ModelContext:
     periodic_slice: bool
     period: float | None = None
     largest_size: Mapping[str, float] = field(default_factory=dict)
+    geometry: Mapping[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -130,6 +133,7 @@ def model_context(model: "DrawDownModel", calibrated: Mapping[str, float]) -> Mo
     import torch
 
     from torchdem.materials import effective_young_modulus
+    from torchdem.model import GEOMETRY_PARAMETERS
 
     mixture = next(iter(model.conditions.values()))
     names = tuple(m.name for m in mixture.materials)
@@ -144,7 +148,8 @@ def model_context(model: "DrawDownModel", calibrated: Mapping[str, float]) -> Mo
     return ModelContext(materials=names, letters=letters, densities={m.name: m.density for m in mixture.materials},
                         shapes={m.name: m.shape for m in mixture.materials}, calibrated=dict(calibrated),
                         young_eff=e_eff, periodic_slice=periodic, period=model.geometry.slice_depth if periodic else None,
-                        largest_size={m.name: max(c.d_max for c in m.sieve) for m in mixture.materials})
+                        largest_size={m.name: max(c.d_max for c in m.sieve) for m in mixture.materials},
+                        geometry={n: float(getattr(model.geometry, n)) for n in GEOMETRY_PARAMETERS})
 
 
 def _letters_of(names: Sequence[str]) -> dict[str, str]:
