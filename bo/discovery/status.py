@@ -1,0 +1,210 @@
+"""Where a discovery campaign stands, read from its store alone: no DEM run, no GP.
+
+A discovery on the lab geometry takes days on a 2-core machine, and ``torchdem-discover`` scores
+the candidates only once every one of them has run. What the store already holds answers part of
+the question earlier:
+
+* each candidate's design: per condition, how many runs are done and the span of every KPI over
+  the design points, beside the measurement (can the candidate reach the lab at all?);
+* each candidate's held-out runs: per left-out condition, the parameters fitted without it, the
+  KPI means, their z against the measurement and the condition's chi^2, beside the calibrated
+  model's chi^2 on the same condition (does the candidate predict what it was not fitted to?).
+
+Contract: :func:`discovery_status` ``(store path, measured data, KPIs) -> DiscoveryStatus``;
+:func:`format_status` turns it into markdown (``scripts/discovery_status.py``). The z and chi^2
+are those of the pipeline (``bo.discovery.pipeline._cells``) with the DEM replicate noise pooled
+over the calibrated set's runs and every held-out condition's runs in the store; the pipeline's
+final score pools over every run of every candidate, so its figures can differ slightly. The
+store is opened read-only, so a running campaign is not disturbed.
+"""
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from bo.campaign.progress import open_read_only
+from bo.discovery.pipeline import Cell, _cells, _lab
+from bo.discovery.replicate_noise import ReplicateNoise
+from torchdem.measured import MeasuredData
+
+STAGE_PREFIX = "discovery-"
+
+
+@dataclass(frozen=True)
+class DesignSpan:
+    """A candidate's design runs on one condition: ``runs`` done, each KPI's (min, max) over them."""
+
+    candidate: str
+    condition: str
+    runs: int
+    spans: Mapping[str, tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class HeldOutStatus:
+    """A candidate's runs on a condition left out of its fit.
+
+    Attributes:
+        parameters: the candidate's parameters fitted without the condition (those not in the
+            calibrated set's runs). runs: runs done. cells: one per measured KPI.
+        chi2: sum of z^2 over the cells. baseline_chi2: the same for the calibrated set's runs.
+    """
+
+    candidate: str
+    condition: str
+    parameters: Mapping[str, float]
+    runs: int
+    cells: tuple[Cell, ...]
+    chi2: float
+    baseline_chi2: float
+
+
+@dataclass(frozen=True)
+class DiscoveryStatus:
+    """What a discovery store holds (see the module docstring); ``counts``: stage -> status -> runs."""
+
+    path: str
+    kpis: tuple[str, ...]
+    baseline: tuple[Cell, ...]
+    noise: ReplicateNoise
+    designs: tuple[DesignSpan, ...]
+    held_out: tuple[HeldOutStatus, ...]
+    counts: Mapping[str, Mapping[str, int]]
+
+
+def _replicates(runs: Sequence[Mapping[str, float]], kpis: Sequence[str]) -> np.ndarray:
+    """``[r, K]`` KPI values of runs (NaN where not measured)."""
+    out = np.array([[float(k.get(name, math.nan)) for name in kpis] for k in runs], dtype=np.float64).reshape(-1, len(kpis))
+    out[~np.isfinite(out)] = np.nan
+    return out
+
+
+def _mean(values: Sequence[float]) -> float:
+    """Mean of the finite values (NaN if none)."""
+    finite = [v for v in values if math.isfinite(v)]
+    return sum(finite) / len(finite) if finite else math.nan
+
+
+def _chi2(cells: Sequence[Cell]) -> float:
+    return float(sum(c.z ** 2 for c in cells if math.isfinite(c.z)))
+
+
+def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[str]) -> DiscoveryStatus:
+    """The store's discrepancy, design and held-out runs against ``measured`` (module docstring)."""
+    kpis = tuple(kpis)
+    conn = open_read_only(Path(path), "discovery_status")
+    try:
+        rows = conn.execute("SELECT stage, batch_key, point_index, params, condition, status, kpis "
+                            "FROM evaluations ORDER BY task_id").fetchall()
+    finally:
+        conn.close()
+    counts: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+    baseline_runs: dict[str, list] = defaultdict(list)
+    design: dict[tuple[str, str], dict[int, list]] = defaultdict(lambda: defaultdict(list))
+    held: dict[tuple[str, str], list] = defaultdict(list)
+    params_of: dict[tuple[str, str], dict[str, float]] = {}
+    calibrated: dict[str, float] = {}
+    for stage, key, point, params, condition, status, values in rows:
+        counts[stage][status] += 1
+        if status != "done" or values is None:
+            continue
+        values = {k: math.nan if v is None else float(v) for k, v in json.loads(values).items()}  # null: not measured
+        if stage == "discrepancy":
+            baseline_runs[condition].append(values)
+            calibrated.update(json.loads(params))
+        elif stage.startswith(STAGE_PREFIX):
+            name = stage[len(STAGE_PREFIX):]
+            if key.startswith("held-out/"):
+                held[(name, condition)].append(values)
+                params_of[(name, condition)] = json.loads(params)
+            else:  # the design (lhs/...) and its refinement rounds (refine/...)
+                design[(name, condition)][point].append(values)
+    conditions = list(measured.names)
+    lab = _lab(measured, kpis)
+    baseline = {c: _replicates(baseline_runs.get(c, []), kpis) for c in conditions}
+    held_reps = {k: _replicates(v, kpis) for k, v in held.items()}
+    groups = [v for v in baseline.values() if len(v) >= 2] + [v for v in held_reps.values() if len(v) >= 2]
+    noise = ReplicateNoise.of(kpis, groups) if groups else ReplicateNoise(kpis, (0.0,) * len(kpis), (0,) * len(kpis))
+    base_cells = {c: _cells(baseline[c][None], [c], kpis, lab, noise) for c in conditions}
+    order = {c: i for i, c in enumerate(conditions)}
+
+    def in_order(items):  # by candidate, then in the data's order of conditions
+        return sorted(items, key=lambda kv: (kv[0][0], order.get(kv[0][1], len(order)), kv[0][1]))
+
+    designs = []
+    for (name, condition), points in in_order(design.items()):
+        means = _replicates([{k: _mean([run.get(k, math.nan) for run in runs]) for k in kpis}
+                             for runs in points.values()], kpis)
+        spans = {k: (float(np.nanmin(means[:, j])), float(np.nanmax(means[:, j])))
+                 for j, k in enumerate(kpis) if np.isfinite(means[:, j]).any()}
+        designs.append(DesignSpan(name, condition, sum(len(r) for r in points.values()), spans))
+    held_out = []
+    for (name, condition), reps in in_order(held_reps.items()):
+        if condition not in conditions:
+            continue
+        cells = tuple(_cells(reps[None], [condition], kpis, lab, noise))
+        fitted = {k: v for k, v in params_of[(name, condition)].items()
+                  if k not in calibrated or not math.isclose(v, calibrated[k], rel_tol=1e-9)}
+        held_out.append(HeldOutStatus(name, condition, fitted, len(reps), cells, _chi2(cells),
+                                      _chi2(base_cells[condition])))
+    return DiscoveryStatus(str(path), kpis, tuple(c for cs in base_cells.values() for c in cs), noise,
+                           tuple(designs), tuple(held_out), {s: dict(v) for s, v in counts.items()})
+
+
+def format_status(status: DiscoveryStatus, measured: MeasuredData) -> str:
+    """Markdown: runs per stage, the calibrated set's cells, each candidate's design spans and held-out cells."""
+    lab = _lab(measured, status.kpis)
+    lines = [f"## {status.path}", ""]
+    for stage, c in status.counts.items():
+        lines.append(f"- {stage}: " + ", ".join(f"{n} {state}" for state, n in sorted(c.items())))
+    sd = ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in status.noise.to_dict().items())
+    lines += ["", f"DEM replicate noise, sd (degrees of freedom), pooled over the calibrated set's and the held-out "
+              f"runs: {sd}", ""]
+    head = "| condition | " + " | ".join(status.kpis) + " | chi^2 |"
+    rule = "| --- |" + " ---: |" * (len(status.kpis) + 1)
+    lines += ["### The calibrated set (DEM mean, z against the measurement)", "", head, rule]
+    by_condition: dict[str, list[Cell]] = defaultdict(list)
+    for c in status.baseline:
+        by_condition[c.condition].append(c)
+    for condition, cells in by_condition.items():
+        lines.append(f"| {condition} | " + " | ".join(_cell(cells, k) for k in status.kpis) + f" | {_chi2(cells):.1f} |")
+    for name in sorted({d.candidate for d in status.designs} | {h.candidate for h in status.held_out}):
+        lines += ["", f"### {name}", ""]
+        spans = [d for d in status.designs if d.candidate == name]
+        if spans:
+            lines += ["Design: runs done and each KPI's range over the design points (the measurement in brackets).", "",
+                      "| condition | runs | " + " | ".join(status.kpis) + " |",
+                      "| --- | ---: |" + " ---: |" * len(status.kpis)]
+            for d in spans:
+                lines.append(f"| {d.condition} | {d.runs} | " + " | ".join(
+                    (f"{d.spans[k][0]:.4g}-{d.spans[k][1]:.4g}" if k in d.spans else "-")
+                    + (f" ({lab[(d.condition, k)][0]:.4g})" if (d.condition, k) in lab else "") for k in status.kpis)
+                    + " |")
+        held = [h for h in status.held_out if h.candidate == name]
+        if held:
+            lines += ["", "Held out: each condition run with the parameters fitted without it (DEM mean, z); "
+                      "chi^2 against the calibrated set's on the same condition.", "",
+                      "| condition | fitted without it | runs | " + " | ".join(status.kpis)
+                      + " | chi^2 | calibrated set's chi^2 |",
+                      "| --- | --- | ---: |" + " ---: |" * (len(status.kpis) + 2)]
+            for h in held:
+                fitted = ", ".join(f"{k} {v:.4g}" for k, v in sorted(h.parameters.items())) or "-"
+                lines.append(f"| {h.condition} | {fitted} | {h.runs} | "
+                             + " | ".join(_cell(h.cells, k) for k in status.kpis)
+                             + f" | {h.chi2:.1f} | {h.baseline_chi2:.1f} |")
+            lines.append(f"| all {len(held)} conditions | | | " + " | " * (len(status.kpis) - 1)
+                         + f" | {sum(h.chi2 for h in held):.1f} | {sum(h.baseline_chi2 for h in held):.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _cell(cells: Sequence[Cell], kpi: str) -> str:
+    c = next((c for c in cells if c.kpi == kpi), None)
+    if c is None or not math.isfinite(c.dem_mean):
+        return "-"
+    return f"{c.dem_mean:.4g} ({c.z:+.2f})" if math.isfinite(c.z) else f"{c.dem_mean:.4g}"

@@ -1,0 +1,112 @@
+"""The status of a discovery campaign read from its store (bo/discovery/status.py,
+scripts/discovery_status.py): a store written through the campaign API with known KPI values;
+the design spans, the pooled noise, the held-out z and chi^2 and the calibrated set's chi^2 are
+recomputed here by hand; the store is not written."""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bo.campaign.executor import EvalOutcome
+from bo.campaign.store import CampaignStore
+from bo.discovery.pipeline import discovery_stages
+from bo.discovery.status import discovery_status, format_status
+from torchdem.measured import Condition, KPIValue, MeasuredData
+
+REPO = Path(__file__).resolve().parent.parent
+KPIS = ("shear_angle_deg", "mass_flow_rate_full_kg_s")
+LAB = {"A": (40.0, 1.0, 10.0, 0.3), "B": (38.0, 1.2, 10.5, 0.4)}  # shear mean, ci95, flow mean, ci95
+CALIBRATED = {"mu_s_pp": 0.5}
+
+
+def _measured() -> MeasuredData:
+    conditions = []
+    for name, (shear, ci_shear, flow, ci_flow) in LAB.items():
+        conditions.append(Condition(name=name, pellet_mass_fraction=0.5, layering=("pellet", "sinter"), fill_mass_kg=40.0,
+                                    kpis={"shear_angle_deg": KPIValue(shear, ci_shear, "deg"),
+                                          "mass_flow_rate_kg_s": KPIValue(flow, ci_flow, "kg/s")},
+                                    replicates=5))
+    return MeasuredData(source="test lab", conditions=tuple(conditions))
+
+
+def _run(store: CampaignStore, stage: str, key: str, points, seeds, conditions, values) -> None:
+    """Store a batch and record ``values(params, seed, condition) -> {kpi: value}`` for each task."""
+    store.batch(stage, key, lambda: [dict(p) for p in points], seeds=list(seeds), conditions=list(conditions))
+    tasks = store.claim(100, stage=stage, batch_key=key)
+    store.record([(t, EvalOutcome.success(values(t.params, t.seed, t.condition), 1.0)) for t in tasks])
+
+
+def _store(tmp_path) -> Path:
+    path = tmp_path / "discover.sqlite"
+    store = CampaignStore(path, "hash", extra_stages=discovery_stages(["knob"]))
+    base = {("A", 0): (35.0, 9.0), ("A", 1): (36.0, 9.2), ("A", 2): (37.0, 8.8),
+            ("B", 0): (37.5, 10.0), ("B", 1): (38.5, 10.4)}
+    for c in ("A", "B"):
+        seeds = [s for cc, s in base if cc == c]
+        _run(store, "discrepancy", f"calibrated/{c}", [CALIBRATED], seeds, [c],
+             lambda p, s, cc: dict(zip(KPIS, base[(cc, s)])))
+    # the design: two points, one run each; the KPIs follow the knob (flow at B left unmeasured at one point)
+    design = [{**CALIBRATED, "knob": 1.0}, {**CALIBRATED, "knob": 3.0}]
+    _run(store, "discovery-knob", "lhs/1", design, [0], ["A", "B"],
+         lambda p, s, c: {"shear_angle_deg": 30.0 + p["knob"] + (c == "B"),
+                          "mass_flow_rate_full_kg_s": 9.0 + p["knob"] if not (c == "B" and p["knob"] == 3.0)
+                          else math.nan})
+    held = {0: (39.0, 9.9), 1: (40.0, 10.3)}
+    _run(store, "discovery-knob", "held-out/A/1", [{**CALIBRATED, "knob": 2.5}], [0, 1], ["A"],
+         lambda p, s, c: dict(zip(KPIS, held[s])))
+
+    return path
+
+
+def test_status_recomputes_spans_noise_and_held_out_chi2_by_hand(tmp_path):
+    path = _store(tmp_path)
+    before = path.read_bytes()
+    measured = _measured()
+    status = discovery_status(path, measured, KPIS)
+    assert path.read_bytes() == before  # only read
+    assert status.counts["discrepancy"] == {"done": 5} and status.counts["discovery-knob"] == {"done": 6}
+    spans = {(d.candidate, d.condition): d for d in status.designs}
+    assert [d.condition for d in status.designs] == ["A", "B"]
+    assert spans[("knob", "A")].runs == 2 and spans[("knob", "A")].spans == {"shear_angle_deg": (31.0, 33.0),
+                                                                             "mass_flow_rate_full_kg_s": (10.0, 12.0)}
+    assert spans[("knob", "B")].spans["mass_flow_rate_full_kg_s"] == (10.0, 10.0)  # the NaN run left out
+    # pooled replicate variance over the calibrated set's groups (A: 3 runs, B: 2) and the held-out group (2)
+    groups = {"shear_angle_deg": [[35.0, 36.0, 37.0], [37.5, 38.5], [39.0, 40.0]],
+              "mass_flow_rate_full_kg_s": [[9.0, 9.2, 8.8], [10.0, 10.4], [9.9, 10.3]]}
+    var = {k: sum(((np.array(g) - np.mean(g)) ** 2).sum() for g in v) / sum(len(g) - 1 for g in v)
+           for k, v in groups.items()}
+    for k in KPIS:
+        assert status.noise.variance(k) == pytest.approx(var[k], rel=1e-12)
+    t975 = 2.7764451051977987  # Student t, 4 degrees of freedom: the lab's 5 repeats
+
+    def z(mean, n, lab_mean, ci, k):
+        return (mean - lab_mean) / math.sqrt(var[k] / n + (ci / t975) ** 2)
+
+    (h,) = status.held_out
+    assert h.candidate == "knob" and h.condition == "A" and h.parameters == {"knob": 2.5} and h.runs == 2
+    zs = [z(39.5, 2, 40.0, 1.0, "shear_angle_deg"), z(10.1, 2, 10.0, 0.3, "mass_flow_rate_full_kg_s")]
+    assert [c.z for c in h.cells] == pytest.approx(zs, rel=1e-10)
+    assert h.chi2 == pytest.approx(sum(x * x for x in zs), rel=1e-10)
+    base = [z(36.0, 3, 40.0, 1.0, "shear_angle_deg"), z(9.0, 3, 10.0, 0.3, "mass_flow_rate_full_kg_s")]
+    assert h.baseline_chi2 == pytest.approx(sum(x * x for x in base), rel=1e-10)
+    assert h.chi2 < h.baseline_chi2  # the knob predicts A far better than the calibrated set
+    text = format_status(status, measured)
+    assert "| A | knob 2.5 | 2 |" in text and "31-33 (40)" in text and "| B | 38 (" in text
+
+
+def test_script_prints_the_status_and_names_a_missing_store(tmp_path):
+    path = _store(tmp_path)
+    data = tmp_path / "lab.json"
+    _measured().save(data)
+    proc = subprocess.run([sys.executable, str(REPO / "scripts" / "discovery_status.py"), str(path), "--data", str(data),
+                           "--kpis", *KPIS], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "### knob" in proc.stdout and "calibrated set's chi^2" in proc.stdout
+    missing = subprocess.run([sys.executable, str(REPO / "scripts" / "discovery_status.py"), str(tmp_path / "no.sqlite")],
+                             capture_output=True, text=True, timeout=120)
+    assert missing.returncode != 0 and "no.sqlite" in missing.stderr and "does not exist" in missing.stderr
