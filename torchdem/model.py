@@ -155,15 +155,15 @@ class DrawDownModel:
             raise ConfigError(f"condition {base!r} is not part of the model; known: {sorted(self.conditions)}")
         mixture = self.conditions[base]
         source = f"condition {condition!r}"
-        boxes = {geometry_parameters({**self.fixed, **p}) for p in parameter_sets}
+        merged = [{**self.fixed, **p} for p in parameter_sets]
+        boxes = {geometry_parameters(m) for m in merged}
         if len(boxes) > 1:
             raise ConfigError(f"{source}: the parameter sets of one ensemble set different box lengths "
                               f"{sorted(boxes)}; an ensemble has one set of walls (run them apart)")
-        if boxes:
-            geometry = with_geometry_parameters(geometry, dict(next(iter(boxes))), source)
+        geometry = with_geometry_parameters(geometry, dict(next(iter(boxes), ())), source)
         sets, properties = [], []
-        for p in parameter_sets:
-            full = {k: v for k, v in {**self.fixed, **p}.items() if not k.startswith(GEOMETRY_PREFIX)}
+        for m in merged:
+            full = {k: v for k, v in m.items() if not k.startswith(GEOMETRY_PREFIX)}
             contact, props = split_material_parameters(full, mixture, source)
             sets.append(contact)
             properties.append(props)
