@@ -171,6 +171,8 @@ def run_settings_from(sim: Mapping[str, Any], run: Mapping[str, Any]) -> RunSett
     return RunSettings(
         fill_time=_number(run, "fill_time_s", "run", 0.0, open_low=True, allowed="> 0 s"),
         discharge_time=_number(run, "discharge_time_s", "run", 0.0, open_low=True, allowed="> 0 s"),
+        max_discharge_time=_number(run, "max_discharge_time_s", "run", 0.0, open_low=True, default=None,
+                                   allowed="> 0 s or null"),
         flow_window=tuple(_number({"v": v}, "v", "run.flow_window_s", 0.0) for v in _get(run, "flow_window_s", "run",
                                                                                           [0.5, 2.0])),
         final_window=_number(run, "final_window_s", "run", 0.0, open_low=True, default=0.5, allowed="> 0 s"),

@@ -10,6 +10,11 @@ simulates ``len(parameter sets) x replicates`` draw down tests as one batched en
 3. the gate (a wall) vanishes at ``t_open = fill_time``; the run continues for
    ``settings.discharge_time`` seconds while the load cell records the upper-box mass at
    ``loadcell_rate`` Hz (the mass of the bodies whose centres are inside the upper box);
+   with ``settings.max_discharge_time`` set, the run goes on past ``discharge_time`` until
+   every member's discharge has ended (its upper-box mass steady over the last
+   ``final_window`` s), as the lab photographs "once the discharge is finished", or until
+   ``max_discharge_time``; ``discharge_ended`` says which (1 or 0), ``discharge_duration_s``
+   how long it flowed;
 4. at the end it renders front views of the upper and lower boxes (:mod:`torchdem.render`)
    of the bodies at rest (speed below :data:`AT_REST_SPEED_M_S`): the lab photographs the boxes
    once the discharge has ended, so grains still trickling from the slot or bouncing off the
@@ -61,8 +66,12 @@ KPI_UNITS = {
     "angle_of_repose_deg": "deg", "shear_angle_deg": "deg", "mass_flow_rate_kg_s": "kg/s",
     "mass_flow_rate_full_kg_s": "kg/s", "mass_lower_box_kg": "kg", "mass_lower_box_full_kg": "kg",
     "segregation_rsd_vertical": "1", "segregation_rsd_horizontal": "1", "max_heap_height_m": "m",
-    "fill_mass_kg": "kg", "fill_mass_full_kg": "kg",
+    "fill_mass_kg": "kg", "fill_mass_full_kg": "kg", "discharge_duration_s": "s", "discharge_ended": "1",
 }
+
+#: The discharge has ended when the upper-box mass stays within this share of the fill mass of its
+#: final value (the lab's 0.2 kg of 40 kg; :class:`kpi.loadcell.DischargeConfig` ``end_tolerance_kg``).
+DISCHARGE_END_TOLERANCE = 0.005
 
 
 #: Bodies slower than this (m/s) are at rest: the photos show them, the heap height counts them.
@@ -74,7 +83,11 @@ class RunSettings:
 
     Attributes:
         fill_time: settling time with the gate closed, s. discharge_time: time after the
-            gate opens, s. loadcell_rate: Hz. time_step_fraction: of the Rayleigh time step.
+            gate opens, s (the least, with ``max_discharge_time``). max_discharge_time: None
+            stops every run at ``discharge_time``; else the run goes on until every member's
+            discharge has ended (upper-box mass within half of :data:`DISCHARGE_END_TOLERANCE`
+            of the fill over the last ``final_window`` s), at most this long after the gate
+            opens, s. loadcell_rate: Hz. time_step_fraction: of the Rayleigh time step.
         shear_modulus: overrides every particle material's G (Pa) when set — the usual
             speed-up (reduced stiffness); None keeps the materials' values.
         geometry_material: Material of the walls. rolling_damping: eta_r for every pair.
@@ -109,6 +122,7 @@ class RunSettings:
 
     fill_time: float = 0.8
     discharge_time: float = 3.5
+    max_discharge_time: float | None = None
     loadcell_rate: float = 50.0
     time_step_fraction: float = 0.15
     shear_modulus: float | None = None
@@ -148,6 +162,9 @@ class RunSettings:
             raise out_of_range("discharge_time", self.discharge_time,
                                f">= {hi + self.final_window:g} s (the mass-flow fit window ends {hi:g} s after the gate "
                                f"opens and the final mass is the mean of the last {self.final_window:g} s)", source)
+        if self.max_discharge_time is not None and not self.max_discharge_time >= self.discharge_time:
+            raise out_of_range("max_discharge_time", self.max_discharge_time,
+                               f"null or >= discharge_time ({self.discharge_time:g} s)", source)
         if self.fill_packing not in ("bounding", "lobes"):
             raise out_of_range("fill_packing", self.fill_packing, "'bounding' or 'lobes'", source)
         if self.dtype not in ("float32", "float64"):
@@ -387,8 +404,10 @@ class DrawDownTest:
 
     @property
     def total_time(self) -> float:
-        """Simulated time of a run, s (fill plus discharge)."""
-        return self.settings.fill_time + self.settings.discharge_time
+        """Simulated time of a run, s (fill plus discharge; with ``max_discharge_time``, the
+        longest a run may take)."""
+        s = self.settings
+        return s.fill_time + (s.discharge_time if s.max_discharge_time is None else s.max_discharge_time)
 
     def run_members(self, members: Sequence[tuple[int, int, int]], device="cpu",
                     progress: Callable[[float, float], None] | None = None,
@@ -421,7 +440,7 @@ class DrawDownTest:
         system, state, counts = self.build([m[2] for m in members], [m[0] for m in members], device)
         build_s = time.perf_counter() - started
         every = max(1, int(round(1.0 / (s.loadcell_rate * system.dt))))
-        t_open, t_end = s.fill_time, self.total_time
+        t_open, t_end = s.fill_time, s.fill_time + s.discharge_time
         times: list[float] = []
         masses: list[np.ndarray] = []
         ckpt = Path(checkpoint) if checkpoint is not None else None
@@ -478,6 +497,13 @@ class DrawDownTest:
         if sim.time < t_open - 0.5 * system.dt:
             sim.run_until(t_open, callback=on_step, callback_every=1)
         sim.run_until(t_end, callback=on_step, callback_every=1)
+        if s.max_discharge_time is not None:  # on until every member's discharge has ended
+            tolerance = 0.5 * DISCHARGE_END_TOLERANCE * _fill_masses(system, sim.state, counts).cpu().numpy()
+            tail = max(2, int(round(s.final_window * s.loadcell_rate)) + 1)
+            t_last = t_open + s.max_discharge_time
+            while sim.time < t_last - 0.5 * system.dt and not bool(
+                    _discharges_ended(np.stack(masses, 1), tail, tolerance, sim.failed).all()):
+                sim.run_until(min(sim.time + 5.0 / s.loadcell_rate, t_last), callback=on_step, callback_every=1)
         wall = wall_before + time.perf_counter() - started
         result = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), wall)
         for c, v in zip(result.conservation, gate_speed):
@@ -514,8 +540,9 @@ class DrawDownTest:
         in_lower = g.in_lower_box(b.position[..., 0], b.position[..., 2]) & b.active
         lower = (system.mass * in_lower).sum(-1)
         kpis, images, errors, conservation, loadcells = [], [], [], [], []
+        fill_masses = _fill_masses(system, state, counts)
         for m, (p, r, seed) in enumerate(members):
-            fill_mass = float((system.mass[m] * (state.body_id[m] < counts[m])).sum())  # ids as built
+            fill_mass = float(fill_masses[m])
             k: dict[str, float] = {"fill_mass_kg": fill_mass, "fill_mass_full_kg": fill_mass * scale}
             err: dict[str, str] = {}
             if m in sim.failed:  # isolated by the blow-up guard: nothing to measure
@@ -527,10 +554,14 @@ class DrawDownTest:
                 continue
             signal = LoadCellSignal(times, masses[m], source=f"member {m} load cell")
             discharge = DischargeConfig(fit_window_s=tuple(s.flow_window), final_window_s=s.final_window,
-                                        end_tolerance_kg=0.005 * fill_mass)  # the lab's 0.2 kg of 40 kg
+                                        end_tolerance_kg=DISCHARGE_END_TOLERANCE * fill_mass)
             try:
-                rate = measure_discharge(signal, fill_mass, discharge).mass_flow_rate_kg_s
+                ended = measure_discharge(signal, fill_mass, discharge)
+                rate = ended.mass_flow_rate_kg_s
+                k["discharge_ended"] = 1.0
+                k["discharge_duration_s"] = ended.discharge_duration_s
             except KPIInputError as exc:
+                k["discharge_ended"] = 0.0
                 # Still trickling at the end of the run (or worse): the lower-box mass below is
                 # then a lower bound, noted here; the flow rate needs only its fit window.
                 err["discharge_end"] = str(exc)
@@ -576,6 +607,24 @@ class DrawDownTest:
                                  "lost_bodies": int(state.lost[m]), "total_kg": float(total[m]),
                                  "fill_kg": fill_mass})
         return DrawDownResult(kpis, loadcells, images, members, wall, state.step, counts, conservation, errors)
+
+
+def _fill_masses(system, state, counts) -> torch.Tensor:
+    """``[B]`` mass filled into each member's upper box, kg (its bodies as built, lost or not)."""
+    built = state.body_id < torch.as_tensor(counts, device=state.body_id.device)[:, None]
+    return (system.mass * built).sum(-1)
+
+
+def _discharges_ended(masses: np.ndarray, tail: int, tolerance: np.ndarray, failed: Mapping[int, str]) -> np.ndarray:
+    """``[B]`` bool: each member's discharge has ended: its last ``tail`` load-cell samples
+    (``masses`` ``[B, T]``, kg) lie within ``tolerance`` ``[B]`` kg of one another. A member
+    the blow-up guard isolated has ended (nothing of it is measured)."""
+    if masses.shape[1] < tail:
+        return np.zeros(masses.shape[0], dtype=bool)
+    last = masses[:, -tail:]
+    ended = last.max(1) - last.min(1) <= tolerance
+    ended[list(failed)] = True
+    return ended
 
 
 def _use_threads(n: int) -> None:
