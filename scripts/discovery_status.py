@@ -3,7 +3,7 @@ candidate's design span per condition beside the measurement, and its held-out r
 beside the calibrated set's, before ``torchdem-discover`` has scored the candidates. The store is
 only read, so it may be run beside the campaign.
 
-    python scripts/discovery_status.py campaigns/table2/discover.sqlite
+    python scripts/discovery_status.py campaigns/table2/discover_4s.sqlite
     python scripts/discovery_status.py STORE --data my_lab.json --kpis shear_angle_deg mass_flow_rate_full_kg_s
 """
 from __future__ import annotations

@@ -6,7 +6,7 @@ objective scores only ``1 - noise variance / variance across the design`` in cro
 KPIs over the done runs of one stage, the noise pooled from every group of replicate runs (same
 point, condition and batch) in the noise store (default: the same store).
 
-    python scripts/noise_ceiling.py campaigns/table2/lab.sqlite --noise-from campaigns/geometry_lab.sqlite \
+    python scripts/noise_ceiling.py campaigns/table2/lab_4s.sqlite --noise-from campaigns/geometry_lab.sqlite \
         --noise-batch mirror=True     # the lab geometry's replicates of the geometry study
 
 If the Eq. 7 ceiling is below the surrogate's ``target_r2``, the paper's rule on the total variance

@@ -392,7 +392,7 @@ def test_screening_points_as_surrogate_data_cut_the_initial_design_and_still_cal
 # -- make run: a shipped store, resumed, with the verification made again ----------------------
 
 def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(known_campaign, tmp_path):
-    """What `make run` does with campaigns/table2/lab.sqlite, on the known-answer campaign: the
+    """What `make run` does with campaigns/table2/lab_4s.sqlite, on the known-answer campaign: the
     shipped store is copied (and left as it is), every stage resumes from it, and the only DEM
     runs made are the verification's, again, in a batch that takes nothing from the store."""
     import functools

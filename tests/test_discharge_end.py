@@ -6,7 +6,8 @@ finished" (``RunSettings.max_discharge_time``, ``run.max_discharge_time_s``).
   runs while the upper box still empties (``discharge_ended`` 0, the lab method's error kept);
   with ``max_discharge_time`` the same runs go on, bit for bit the same up to 0.6 s, until the
   lab method measures an ended discharge (``discharge_ended`` 1, its duration inside the run),
-  and more mass reaches the lower box.
+  and more mass reaches the lower box; measured at 0.6 s on the way (``kpis_at_discharge_time``),
+  its KPIs are those of the stopped run.
 - The setting's bounds, and the store hash of configs that leave it null (shipped stores keep
   theirs).
 """
@@ -46,7 +47,10 @@ def _cut(test: DrawDownTest, max_discharge_time: float | None) -> DrawDownTest:
 def test_a_run_goes_on_until_the_discharge_has_ended():
     base = small_drawdown()
     fixed = _cut(base, None).run(replicates=2, seeds=[3, 4])
-    until = _cut(base, 3.0).run(replicates=2, seeds=[3, 4])
+    until = _cut(base, 3.0).run_members([(0, 0, 3), (0, 1, 4)], kpis_at_discharge_time=True)
+    # the KPIs at 0.6 s of the run that went on are those of the run stopped there
+    assert until.kpis_at_discharge_time == fixed.kpis
+    assert fixed.kpis_at_discharge_time == []
     for kf, ku, ef, eu, (tf, mf), (tu, mu) in zip(fixed.kpis, until.kpis, fixed.errors, until.errors,
                                                    fixed.loadcell, until.loadcell):
         # stopped at 0.6 s, the upper box still empties: the lab method says so

@@ -2,6 +2,7 @@
 lab geometry (mirror, half depth, fill by lobes, the four conditions of Table 2), within the
 issue's budget of about 215 lab-geometry runs; ``surrogate.added`` parameters join the
 selection with their own bounds, and bad ones are one-line errors naming the key."""
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -16,9 +17,9 @@ from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
 
 
-def _plain(*overrides):
+def _plain(*overrides, profile="lab"):
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return plain_config(compose("calibrate", overrides=["profile=lab", *overrides]))
+        return plain_config(compose("calibrate", overrides=[f"profile={profile}", *overrides]))
 
 
 def test_lab_profile_composes_on_the_lab_geometry_within_budget():
@@ -27,6 +28,16 @@ def test_lab_profile_composes_on_the_lab_geometry_within_budget():
     model, _ = calibration_model_from(plain, load_measured())
     assert model.geometry.mirror and model.geometry.depth_scale == 0.5
     assert model.settings.fill_packing == "lobes"
+    # runs go on until the discharge has ended, as the lab photographs; the first campaign stopped at 4 s
+    assert model.settings.discharge_time == 4.0 and model.settings.max_discharge_time == 8.0
+    first, _ = calibration_model_from(_plain(profile="lab_4s"), load_measured())
+    assert first.settings.max_discharge_time is None
+    assert first.settings == dataclasses.replace(model.settings, max_discharge_time=None)
+    # its screening reached the parted trilobes at 0.3; the lab profile's stops at the whole trilobe
+    levels = dict(zip(s.screening.table.names, s.screening.table.levels()))
+    assert levels["lobe_spacing_sinter"].tolist() == [0.15, 0.20895, 0.2679]
+    s4 = calibration_settings_from(_plain(profile="lab_4s")).screening.table
+    assert dict(zip(s4.names, s4.levels()))["lobe_spacing_sinter"].tolist() == [0.15, 0.225, 0.3]
     assert sorted(model.conditions) == ["25-75", "50-50", "50-50-reverse", "75-25"]
     assert "lobe_spacing_sinter" in s.screening.table.names
     screening_runs = (2 * (s.screening.table.k + 2) + 1) * len(s.screening.seeds)
@@ -66,7 +77,7 @@ def test_the_extension_stops_at_the_profiles_limits():
     assert s.physical_limits()["mu_s_pg"] == PhysicalLimit(0.0, 1.0)
     assert s.physical_limits()["lobe_spacing_sinter"] == PhysicalLimit(0.15, 0.2679)
     with pytest.raises(ConfigError, match=r"screening: limits.lobe_spacing_sinter = \[0.25, 0.3\].*at least two of "
-                                          r"the screened levels \[0.15, 0.225, 0.3\]"):
+                                          r"the screened levels \[0.15, 0.20895, 0.2679\]"):
         screen_settings_from(_plain("screening.limits.lobe_spacing_sinter=[0.25,0.3]"))
     with pytest.raises(ConfigError, match=r"limits.coh_pp .*limits of screened parameters"):
         screen_settings_from(_plain("+screening.limits.coh_pp=[0,1]"))
@@ -75,8 +86,8 @@ def test_the_extension_stops_at_the_profiles_limits():
 
 
 def _shipped_screening(tmp_path):
-    """The lab profile's settings and its screening results read from a copy of the shipped store
-    (the shipped file is never opened for writing); nothing is sent to the DEM."""
+    """The first lab campaign's settings (profile=lab_4s) and its screening results read from a copy
+    of its shipped store (the shipped file is never opened for writing); nothing is sent to the DEM."""
     import shutil
     from pathlib import Path
 
@@ -85,10 +96,10 @@ def _shipped_screening(tmp_path):
     from bo.cli.common import MODEL_KEYS, config_hash
     from bo.screening.pipeline import run_screening
 
-    plain = _plain()
+    plain = _plain(profile="lab_4s")
     settings = calibration_settings_from(plain)
     s = settings.screening
-    shipped = Path(__file__).resolve().parents[1] / "campaigns" / "table2" / "lab.sqlite"
+    shipped = Path(__file__).resolve().parents[1] / "campaigns" / "table2" / "lab_4s.sqlite"
     shutil.copy(shipped, tmp_path / "lab.sqlite")
     store = CampaignStore(tmp_path / "lab.sqlite", config_hash(plain, MODEL_KEYS + ("measured",)))  # as calibrate
     assert store.counts("screening")["done"] == 66

@@ -210,6 +210,9 @@ class DrawDownResult:
         spheres: spheres per member (padded to the largest member), dt: time step, s.
         failed: member -> cause, for members the blow-up guard isolated
             (``guards.on_blowup = "isolate"``); their KPIs are not measured.
+        kpis_at_discharge_time: with ``max_discharge_time`` and ``run_members(...,
+            kpis_at_discharge_time=True)``: the KPIs each member would have had had the run
+            stopped at ``discharge_time`` (same trajectory); else empty.
     """
 
     kpis: list[dict]
@@ -225,6 +228,7 @@ class DrawDownResult:
     spheres: int = 0
     dt: float = 0.0
     failed: dict[int, str] = field(default_factory=dict)
+    kpis_at_discharge_time: list[dict] = field(default_factory=list)
 
     def kpi_table(self, name: str) -> np.ndarray:
         """``[members]`` values of one KPI (NaN where it could not be measured)."""
@@ -412,22 +416,27 @@ class DrawDownTest:
     def run_members(self, members: Sequence[tuple[int, int, int]], device="cpu",
                     progress: Callable[[float, float], None] | None = None,
                     vtk: tuple[str | Path, float] | None = None, checkpoint: str | Path | None = None,
-                    checkpoint_every: float = 0.5, threads: Callable[[], int] | None = None) -> DrawDownResult:
+                    checkpoint_every: float = 0.5, threads: Callable[[], int] | None = None,
+                    kpis_at_discharge_time: bool = False) -> DrawDownResult:
         """Run arbitrary members ``(parameter-set index, replicate index, seed)`` as one ensemble
         (what a calibration batch needs: each candidate with its own seeds); see :meth:`run`.
         ``threads``: asked at the start and at every load-cell sample how many torch threads the
         run may use now (a campaign worker takes the cores its idle neighbours left,
         :class:`bo.campaign.cores.CoreShare`); the results do not depend on it, and the thread
-        count the caller had is restored at the end."""
+        count the caller had is restored at the end. ``kpis_at_discharge_time``: with
+        ``max_discharge_time``, measure the KPIs at ``discharge_time`` too, before the run goes on
+        (:attr:`DrawDownResult.kpis_at_discharge_time`; not when resumed from a checkpoint past it)."""
         threads_before = torch.get_num_threads()
         try:
             if threads is not None:
                 _use_threads(threads())
-            return self._run_members(members, device, progress, vtk, checkpoint, checkpoint_every, threads)
+            return self._run_members(members, device, progress, vtk, checkpoint, checkpoint_every, threads,
+                                     kpis_at_discharge_time)
         finally:
             _use_threads(threads_before)
 
-    def _run_members(self, members, device, progress, vtk, checkpoint, checkpoint_every, threads) -> DrawDownResult:
+    def _run_members(self, members, device, progress, vtk, checkpoint, checkpoint_every, threads,
+                     kpis_at_discharge_time=False) -> DrawDownResult:
         members = [(int(p), int(r), int(seed)) for p, r, seed in members]
         if not members:
             raise ConfigError("DrawDownTest.run_members: no members given")
@@ -496,7 +505,11 @@ class DrawDownTest:
 
         if sim.time < t_open - 0.5 * system.dt:
             sim.run_until(t_open, callback=on_step, callback_every=1)
+        before = sim.time
         sim.run_until(t_end, callback=on_step, callback_every=1)
+        early = []
+        if kpis_at_discharge_time and s.max_discharge_time is not None and before < t_end - 0.5 * system.dt:
+            early = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), 0.0).kpis
         if s.max_discharge_time is not None:  # on until every member's discharge has ended
             tolerance = 0.5 * DISCHARGE_END_TOLERANCE * _fill_masses(system, sim.state, counts).cpu().numpy()
             tail = max(2, int(round(s.final_window * s.loadcell_rate)) + 1)
@@ -509,7 +522,7 @@ class DrawDownTest:
         for c, v in zip(result.conservation, gate_speed):
             c["max_speed_at_gate_open_m_s"] = v
         result = dataclasses.replace(result, build_time_s=build_s, spheres=int(system.n_spheres), dt=float(system.dt),
-                                     failed=dict(sim.failed))
+                                     failed=dict(sim.failed), kpis_at_discharge_time=early)
         if ckpt is not None and ckpt.exists():
             ckpt.unlink()
         return result

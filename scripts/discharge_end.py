@@ -1,0 +1,92 @@
+"""What stopping a draw down at a fixed time does to its KPIs: runs of one parameter set of a
+campaign store, each measured at ``run.discharge_time_s`` and again, on the same trajectory, once
+its discharge has ended (``run.max_discharge_time_s``), side by side.
+
+The parameter set is the first run of ``--stage`` in ``--store`` (default: the verification of the
+first lab campaign, its calibrated set); the model is the config's (Hydra overrides after ``--``,
+default ``profile=lab``). Each ``CONDITION:SEED`` runs alone on one thread; the table gives each
+KPI at the fixed end, at the discharge's end, and the difference, then the means per condition.
+
+Usage::
+
+    python scripts/discharge_end.py 50-50:0 50-50:1 25-75:0 --json out.json -- profile=lab
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sqlite3
+import time
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_dir
+
+from bo.cli.calibrate import calibration_model_from
+from bo.cli.common import plain_config
+from torchdem.cli import CONF_DIR
+from torchdem.errors import ConfigError
+from torchdem.measured import load_measured
+
+KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
+
+
+def parameter_set(store: str, stage: str) -> dict[str, float]:
+    """The parameters of the first run of ``stage`` in the store (opened read-only)."""
+    with sqlite3.connect(f"file:{store}?mode=ro", uri=True) as con:
+        row = con.execute("SELECT params FROM evaluations WHERE stage = ? ORDER BY task_id LIMIT 1", (stage,)).fetchone()
+    if row is None:
+        raise ConfigError(f"--stage {stage!r}: no run of that stage in {store}")
+    return json.loads(row[0])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("runs", nargs="+", help="CONDITION:SEED, e.g. 50-50:0")
+    parser.add_argument("--store", default="campaigns/table2/lab_4s.sqlite")
+    parser.add_argument("--stage", default="verification")
+    parser.add_argument("--json", help="write the rows as JSON here too")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides of the calibrate config, after --")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        plain = plain_config(compose("calibrate", overrides=args.overrides or ["profile=lab"]))
+    model, _ = calibration_model_from(plain, load_measured(plain.get("measured")))
+    s = model.settings
+    if s.max_discharge_time is None:
+        raise ConfigError("run.max_discharge_time_s is null in this config: the runs would stop at "
+                          f"run.discharge_time_s = {s.discharge_time:g} s; set it (profile=lab does)")
+    params = parameter_set(args.store, args.stage)
+    print(f"parameters ({args.stage} of {args.store}): {params}")
+    rows = []
+    for spec in args.runs:
+        condition, _, seed = spec.partition(":")
+        started = time.perf_counter()
+        res = model.test_for(condition, [params]).run_members([(0, 0, int(seed or 0))], kpis_at_discharge_time=True)
+        fixed, end = res.kpis_at_discharge_time[0], res.kpis[0]
+        row = {"condition": condition, "seed": int(seed or 0), "wall_s": round(time.perf_counter() - started, 1),
+               "ended": bool(end.get("discharge_ended")), "discharge_duration_s": end.get("discharge_duration_s"),
+               "fixed": {k: fixed.get(k) for k in KPIS}, "end": {k: end.get(k) for k in KPIS}}
+        rows.append(row)
+        print(f"{condition} seed {row['seed']}: discharge ended {row['discharge_duration_s']:.2f} s after the gate "
+              f"opened ({row['wall_s']:.0f} s wall); " + ", ".join(
+                  f"{k} {row['fixed'][k]:.2f} -> {row['end'][k]:.2f}" for k in KPIS), flush=True)
+    print(f"\n| condition | runs | ended after, s | " + " | ".join(f"{k}: at {s.discharge_time:g} s -> ended (diff)"
+                                                                  for k in KPIS) + " |")
+    print("| --- | ---: | ---: |" + " ---: |" * len(KPIS))
+    for condition in dict.fromkeys(r["condition"] for r in rows):
+        mine = [r for r in rows if r["condition"] == condition]
+        cells = []
+        for k in KPIS:
+            a = np.array([r["fixed"][k] for r in mine])
+            b = np.array([r["end"][k] for r in mine])
+            cells.append(f"{a.mean():.2f} -> {b.mean():.2f} ({(b - a).mean():+.2f})")
+        duration = ", ".join(f"{r['discharge_duration_s']:.2f}" for r in mine)
+        print(f"| {condition} | {len(mine)} | {duration} | " + " | ".join(cells) + " |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"parameters": params, "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
