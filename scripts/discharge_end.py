@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sqlite3
+import sys
 import time
 
 import numpy as np
@@ -46,8 +47,10 @@ def main() -> None:
     parser.add_argument("--store", default="campaigns/table2/lab_4s.sqlite")
     parser.add_argument("--stage", default="verification")
     parser.add_argument("--json", help="write the rows as JSON here too")
-    parser.add_argument("overrides", nargs="*", help="Hydra overrides of the calibrate config, after --")
-    args = parser.parse_args()
+    argv = sys.argv[1:]
+    cut = argv.index("--") if "--" in argv else len(argv)
+    args = parser.parse_args(argv[:cut])
+    args.overrides = argv[cut + 1:]  # Hydra overrides of the calibrate config, after --
     torch.set_num_threads(1)
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         plain = plain_config(compose("calibrate", overrides=args.overrides or ["profile=lab"]))
