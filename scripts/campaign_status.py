@@ -45,6 +45,11 @@ def report(progress: StoreProgress, workers: int) -> str:
                   + ("" if left is None else f", {bound or 'about'} {_hours(left / workers)} on {workers} workers")
                   + (" (classes without finished runs borrow their nearest class's figure)" if bound else "")
                   + ". Stages not reached yet are not counted."]
+    d = progress.discharge
+    if d.get("not ended") or d.get("ended"):
+        lines += ["", f"Discharge of the done runs: {d['ended']} ended, {d['not ended']} stopped while the upper box still "
+                      f"emptied (their lower box and photos are not the lab's end state: run.max_discharge_time_s)"
+                  + (f", {d['not recorded']} made before runs recorded it" if d.get("not recorded") else "") + "."]
     return "\n".join(lines)
 
 

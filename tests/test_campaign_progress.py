@@ -32,8 +32,9 @@ def _store(tmp_path) -> CampaignStore:
     return store
 
 
-def _finish(store, tasks, wall, ok=True):
-    outcome = EvalOutcome.success({"angle_of_repose_deg": 30.0}, wall) if ok else EvalOutcome.failure("x", wall)
+def _finish(store, tasks, wall, ok=True, ended=None):
+    kpis = {"angle_of_repose_deg": 30.0, **({} if ended is None else {"discharge_ended": float(ended)})}
+    outcome = EvalOutcome.success(kpis, wall) if ok else EvalOutcome.failure("x", wall)
     store.record([(t, outcome) for t in tasks])
 
 
@@ -100,3 +101,17 @@ def test_status_script_reports_a_store(tmp_path):
     assert "| mirror=True|slice_depth=0.1 lobe_spacing_sinter 0.15 | 1 | 3 | 0 | 2.0 min |" in out
     # 3 runs at 0.15 (2 min) + 1 at 0.275 + 2 at 0.3 borrowing it: 12 min of worker time, at least
     assert "Left in the store: 6 runs, at least 0.2 h of worker time, at least 0.1 h on 2 workers" in out
+
+
+def test_runs_whose_discharge_had_not_ended_are_counted(tmp_path):
+    """Done runs by ``discharge_ended``: 1, 0, or absent (runs made before it was recorded)."""
+    store = _store(tmp_path)
+    tasks = store.claim(4, "screening")
+    _finish(store, tasks[:2], 100.0, ended=True)
+    _finish(store, tasks[2:3], 100.0, ended=False)
+    _finish(store, tasks[3:], 100.0)
+    assert store_progress(store.path).discharge == {"ended": 2, "not ended": 1, "not recorded": 1}
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "campaign_status.py"), str(store.path)],
+                         capture_output=True, text=True, check=True).stdout
+    assert "Discharge of the done runs: 2 ended, 1 stopped while the upper box still emptied" in out
+    assert "1 made before runs recorded it." in out

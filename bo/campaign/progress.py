@@ -36,7 +36,7 @@ from __future__ import annotations
 import json
 import sqlite3
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import median
 
@@ -102,6 +102,9 @@ class StoreProgress:
             remaining runs has no cost figure at all.
         remaining_bound: ``""`` (an estimate), ``"at least"``, ``"at most"`` or ``"roughly"``
             (classes with remaining runs borrowed their figure, see ``CostClass.bound``).
+        discharge: of the done runs, how many ended their discharge (``"ended"``), stopped while
+            the upper box still emptied (``"not ended"``: their lower-box mass and photos are not
+            the lab's end state), or made before runs recorded it (``"not recorded"``).
     """
 
     path: str
@@ -110,6 +113,7 @@ class StoreProgress:
     spent_s: float
     remaining_s: float | None
     remaining_bound: str = ""
+    discharge: dict[str, int] = field(default_factory=dict)
 
     @property
     def remaining_runs(self) -> int:
@@ -136,6 +140,8 @@ def store_progress(path: str | Path) -> StoreProgress:
     try:
         rows = conn.execute("SELECT stage, params, seed, condition, status, wall_time, claimed_by, finished_at "
                             "FROM evaluations ORDER BY task_id").fetchall()
+        ended = [json.loads(k or "{}").get("discharge_ended") for (k,) in
+                 conn.execute("SELECT kpis FROM evaluations WHERE status = 'done'")]
     finally:
         conn.close()
     status: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
@@ -177,5 +183,7 @@ def store_progress(path: str | Path) -> StoreProgress:
             remaining = None if remaining is None or per_run is None else remaining + n_left * per_run
     bounds = {c.bound for c in classes if c.remaining and c.bound}
     total_bound = "" if not bounds else bounds.pop() if len(bounds) == 1 else "roughly"
+    discharge = {"ended": sum(e == 1 for e in ended), "not ended": sum(e == 0 for e in ended),
+                 "not recorded": sum(e is None or e != e for e in ended)}
     return StoreProgress(str(path), {s: dict(v) for s, v in status.items()}, tuple(classes), spent, remaining,
-                         total_bound)
+                         total_bound, discharge)
