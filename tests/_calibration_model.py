@@ -53,6 +53,8 @@ def known_kpis(params: dict, seed: int, condition: str, noise: bool = True) -> d
         "mass_lower_box_full_kg": 38.0 - 8.0 * friction - 5.0 * p["mu_r_pp"] + e(0.08),
         "segregation_rsd_vertical": 0.25 + e(0.05),
         "max_heap_height_m": 0.12 / rho * (1.0 + 0.3 * friction) + e(0.0005),
+        # the sinter-rich condition's runs stand for runs stopped before their discharge ended
+        "discharge_ended": 0.0 if condition.startswith("25-75") else 1.0,
     }
 
 

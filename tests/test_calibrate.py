@@ -215,6 +215,10 @@ def test_report_files_and_counts_match_the_store(known_campaign):
         assert (files["md"].parent / name).is_file(), name
     md = files["md"].read_text()
     assert "## 6. Validation" in md and "50-50-reverse" in md and "| mu_s_pp |" in md
+    # the known model's 25-75 runs report a discharge that had not ended: the report counts them
+    cut = len(result.settings.validation_seeds)
+    assert result.discharge_not_ended == {"validation": cut}
+    assert f"Runs stopped while the upper box still emptied" in md and f"validation {cut}." in md
 
 
 def test_report_sets_the_campaign_beside_the_papers_tables(known_campaign, tmp_path):

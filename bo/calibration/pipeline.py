@@ -298,6 +298,7 @@ class CalibrationResult:
     evaluations: Mapping[str, int]
     wall_time_s: Mapping[str, float]
     fresh_verification: tuple[KPIAgreement, ...] | None = None
+    discharge_not_ended: Mapping[str, int] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------------------------
@@ -868,13 +869,17 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
         runs = verify(store, executor, "validation", final, settings.validation_seeds, validation, kpis)
         val = {c: agreement(runs[c], kpis, measured.condition(c).kpis) for c in validation}
     lap("validation")
-    evaluations = {}
+    evaluations, not_ended = {}, {}
     for rec_stage in ["screening", "initial"] + [f"round-{k}" for k in range(1, len(surrogate.rounds))] \
             + ["verification", "density", "validation"]:
         c = store.counts(rec_stage)
         evaluations[rec_stage] = c["done"] + c["failed"]
+        # runs stopped while the upper box still emptied (run.max_discharge_time_s reached or null)
+        cut = sum(r.kpis.get("discharge_ended") == 0 for r in store.records(rec_stage, status="done") if r.kpis)
+        if cut:
+            not_ended[rec_stage] = cut
     evaluations["total"] = sum(evaluations.values())
     return CalibrationResult(settings=settings, screening=screening, objective=objective, parameter_choice_note=note,
                              surrogate=surrogate, ga=ga, verification=verification, density=density,
                              validation=val, final_parameters=final, evaluations=evaluations, wall_time_s=walls,
-                             fresh_verification=fresh)
+                             fresh_verification=fresh, discharge_not_ended=not_ended)

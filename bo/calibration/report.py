@@ -283,6 +283,10 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
     ev, wall = result.evaluations, result.wall_time_s
     lines += ["## Cost", "", "| stage | DEM evaluations |", "| --- | ---: |"]
     lines += [f"| {k} | {v} |" for k, v in ev.items()]
+    if result.discharge_not_ended:
+        lines += ["", "Runs stopped while the upper box still emptied (their lower-box mass and photos are not the "
+                  "end state the lab measures; `run.max_discharge_time_s`): "
+                  + ", ".join(f"{k} {v}" for k, v in result.discharge_not_ended.items()) + "."]
     lines += ["", "| stage | wall time (this process) |", "| --- | ---: |"]
     lines += [f"| {k} | {v:.1f} s |" for k, v in wall.items()]
     lines.append(f"| total | {math.fsum(wall.values()):.1f} s |")
