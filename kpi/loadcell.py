@@ -22,6 +22,7 @@ Every bad input raises :class:`kpi.errors.KPIInputError` naming the record's sou
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
@@ -277,3 +278,10 @@ def measure_discharge(
         fit_intercept_kg=float(intercept),
         smoothed_mass_kg=_read_only(smoothed),
     )
+
+def discharge_state(kpis: Mapping[str, float]) -> str:
+    """``"ended"``, ``"not ended"`` (stopped while the upper box still emptied) or ``"not recorded"``
+    (a run made before runs reported ``discharge_ended``), from a draw down run's KPIs (``torchdem.drawdown``: ``discharge_ended`` is 1 when
+    :func:`measure_discharge` found the discharge ended within the record, else 0)."""
+    ended = kpis.get("discharge_ended")
+    return "not recorded" if ended is None or ended != ended else "ended" if ended == 1 else "not ended"

@@ -19,6 +19,7 @@ import pytest
 from bo.cli.common import config_hash
 from torchdem.config import run_settings_from
 from torchdem.drawdown import DISCHARGE_END_TOLERANCE, DrawDownTest, _discharges_ended
+from kpi.loadcell import discharge_state
 from torchdem.errors import ConfigError
 
 from test_drawdown import small_drawdown
@@ -36,6 +37,13 @@ def test_end_criterion_on_hand_made_records():
     wobble = np.r_[np.linspace(10.0, 2.0, 20), 2.0 + 2.5e-3 * (np.arange(11) % 2)]
     assert not _discharges_ended(wobble[None], 11, np.full(1, 2e-3), failed={}).any()
     assert _discharges_ended(wobble[None], 11, np.full(1, 3e-3), failed={}).all()
+
+
+def test_discharge_state_of_a_runs_kpis():
+    assert discharge_state({"discharge_ended": 1.0}) == "ended"
+    assert discharge_state({"discharge_ended": 0.0}) == "not ended"
+    # runs made before it was reported: absent, or NaN where a store filled the KPI set
+    assert discharge_state({}) == discharge_state({"discharge_ended": float("nan")}) == "not recorded"
 
 
 def _cut(test: DrawDownTest, max_discharge_time: float | None) -> DrawDownTest:

@@ -515,7 +515,7 @@ class DrawDownTest:
             tail = max(2, int(round(s.final_window * s.loadcell_rate)) + 1)
             t_last = t_open + s.max_discharge_time
             while sim.time < t_last - 0.5 * system.dt and not bool(
-                    _discharges_ended(np.stack(masses, 1), tail, tolerance, sim.failed).all()):
+                    _discharges_ended(np.stack(masses[-tail:], 1), tail, tolerance, sim.failed).all()):
                 sim.run_until(min(sim.time + 5.0 / s.loadcell_rate, t_last), callback=on_step, callback_every=1)
         wall = wall_before + time.perf_counter() - started
         result = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), wall)

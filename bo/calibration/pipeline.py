@@ -60,6 +60,7 @@ import numpy as np
 
 from bo.surrogate.acquisition import (AdaptiveSettings, RoundRecord, SamplingState, best_kernel_cv, latin_hypercube,
                                       propose_batch, state_ceiling, state_learned_ceiling)
+from kpi.loadcell import discharge_state
 from torchdem.model import DENSITY_PREFIX
 from bo.campaign.executor import Executor, run_pending
 from bo.surrogate.ga import GASettings, GASummary, repeated_ga
@@ -875,7 +876,7 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
         c = store.counts(rec_stage)
         evaluations[rec_stage] = c["done"] + c["failed"]
         # runs stopped while the upper box still emptied (run.max_discharge_time_s reached or null)
-        cut = sum(r.kpis.get("discharge_ended") == 0 for r in store.records(rec_stage, status="done") if r.kpis)
+        cut = sum(discharge_state(r.kpis or {}) == "not ended" for r in store.records(rec_stage, status="done"))
         if cut:
             not_ended[rec_stage] = cut
     evaluations["total"] = sum(evaluations.values())

@@ -41,6 +41,7 @@ from pathlib import Path
 from statistics import median
 
 from bo.campaign.store import affinity_distance
+from kpi.loadcell import discharge_state
 from torchdem.errors import ConfigError
 
 __all__ = ["SHAPE_BIN", "CostClass", "StoreProgress", "store_progress"]
@@ -138,23 +139,24 @@ def store_progress(path: str | Path) -> StoreProgress:
     path = Path(path)
     conn = open_read_only(path)
     try:
-        rows = conn.execute("SELECT stage, params, seed, condition, status, wall_time, claimed_by, finished_at "
+        rows = conn.execute("SELECT stage, params, seed, condition, status, wall_time, claimed_by, finished_at, kpis "
                             "FROM evaluations ORDER BY task_id").fetchall()
-        ended = [json.loads(k or "{}").get("discharge_ended") for (k,) in
-                 conn.execute("SELECT kpis FROM evaluations WHERE status = 'done'")]
     finally:
         conn.close()
     status: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     batch_size: dict[tuple, int] = defaultdict(int)
-    for stage, _, _, _, state, wall, owner, finished in rows:
+    discharge = dict.fromkeys(("ended", "not ended", "not recorded"), 0)
+    for stage, _, _, _, state, wall, owner, finished, kpis in rows:
         status[stage][state] += 1
+        if state == "done":
+            discharge[discharge_state(json.loads(kpis or "{}"))] += 1
         if state in ("done", "failed") and wall is not None and not (owner or "").startswith(_REUSED):
             batch_size[(owner, finished, wall)] += 1
     costs: dict[tuple, list[float]] = defaultdict(list)
     counts: dict[tuple, dict[str, int]] = {}  # every class seen, with its runs done and failed
     unfinished: dict[tuple, set] = defaultdict(set)
     spent = 0.0
-    for stage, params, seed, condition, state, wall, owner, finished in rows:
+    for stage, params, seed, condition, state, wall, owner, finished, _ in rows:
         geometry = condition.partition("|")[2]
         key = (geometry, _shape(json.loads(params)))
         counts.setdefault(key, {"done": 0, "failed": 0})
@@ -183,7 +185,5 @@ def store_progress(path: str | Path) -> StoreProgress:
             remaining = None if remaining is None or per_run is None else remaining + n_left * per_run
     bounds = {c.bound for c in classes if c.remaining and c.bound}
     total_bound = "" if not bounds else bounds.pop() if len(bounds) == 1 else "roughly"
-    discharge = {"ended": sum(e == 1 for e in ended), "not ended": sum(e == 0 for e in ended),
-                 "not recorded": sum(e is None or e != e for e in ended)}
     return StoreProgress(str(path), {s: dict(v) for s, v in status.items()}, tuple(classes), spent, remaining,
                          total_bound, discharge)
