@@ -261,12 +261,16 @@ def measure_discharge(
             f"record until the discharge has ended",
         )
     lower_box_mass = float(initial_mass_kg) - final_mass
-    if lower_box_mass < 0:
+    # a box that let nothing out reads its fill again, within the load cell's resolution: the
+    # end tolerance bounds that reading's spread, so a final mass that far above the fill is an error
+    if lower_box_mass < -config.end_tolerance_kg:
         raise bad_input(
             source,
             f"initial_mass_kg = {initial_mass_kg:g} kg is below the final upper-box mass "
-            f"{final_mass:.3f} kg; expected the total mass filled into the upper box",
+            f"{final_mass:.3f} kg by more than the end tolerance {config.end_tolerance_kg:g} kg; expected "
+            f"the total mass filled into the upper box",
         )
+    lower_box_mass = max(lower_box_mass, 0.0)
     return Discharge(
         mass_flow_rate_kg_s=mass_flow_rate,
         lower_box_mass_kg=lower_box_mass,

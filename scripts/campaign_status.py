@@ -17,6 +17,7 @@ import json
 from pathlib import Path
 
 from bo.campaign.progress import StoreProgress, store_progress
+from torchdem.drawdown import JAM_FRACTION
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,7 +50,9 @@ def report(progress: StoreProgress, workers: int) -> str:
     if d.get("not ended") or d.get("ended"):
         lines += ["", f"Discharge of the done runs: {d['ended']} ended, {d['not ended']} stopped while the upper box still "
                       f"emptied (their lower box and photos are not the lab's end state: run.max_discharge_time_s)"
-                  + (f", {d['not recorded']} made before runs recorded it" if d.get("not recorded") else "") + "."]
+                  + (f", {d['not recorded']} made before runs recorded it" if d.get("not recorded") else "")
+                  + (f"; {d['jammed']} jammed (less than {JAM_FRACTION:.0%} of the fill left the upper box: the grains "
+                     f"arched over the slot)" if d.get("jammed") else "") + "."]
     return "\n".join(lines)
 
 

@@ -219,6 +219,9 @@ def test_report_files_and_counts_match_the_store(known_campaign):
     cut = len(result.settings.validation_seeds)
     assert result.discharge_not_ended == {"validation": cut}
     assert f"Runs stopped while the upper box still emptied" in md and f"validation {cut}." in md
+    # and its 75-25 runs a discharge that jammed
+    assert result.discharge_jammed == {"validation": cut}
+    assert "Runs whose discharge jammed" in md
 
 
 def test_report_sets_the_campaign_beside_the_papers_tables(known_campaign, tmp_path):

@@ -32,8 +32,9 @@ def _store(tmp_path) -> CampaignStore:
     return store
 
 
-def _finish(store, tasks, wall, ok=True, ended=None):
-    kpis = {"angle_of_repose_deg": 30.0, **({} if ended is None else {"discharge_ended": float(ended)})}
+def _finish(store, tasks, wall, ok=True, ended=None, jammed=None):
+    kpis = {"angle_of_repose_deg": 30.0, **({} if ended is None else {"discharge_ended": float(ended)}),
+            **({} if jammed is None else {"discharge_jammed": float(jammed)})}
     outcome = EvalOutcome.success(kpis, wall) if ok else EvalOutcome.failure("x", wall)
     store.record([(t, outcome) for t in tasks])
 
@@ -104,14 +105,16 @@ def test_status_script_reports_a_store(tmp_path):
 
 
 def test_runs_whose_discharge_had_not_ended_are_counted(tmp_path):
-    """Done runs by ``discharge_ended``: 1, 0, or absent (runs made before it was recorded)."""
+    """Done runs by ``discharge_ended``: 1, 0, or absent (runs made before it was recorded); and
+    those that jammed."""
     store = _store(tmp_path)
     tasks = store.claim(4, "screening")
-    _finish(store, tasks[:2], 100.0, ended=True)
+    _finish(store, tasks[:1], 100.0, ended=True, jammed=False)
+    _finish(store, tasks[1:2], 100.0, ended=True, jammed=True)
     _finish(store, tasks[2:3], 100.0, ended=False)
     _finish(store, tasks[3:], 100.0)
-    assert store_progress(store.path).discharge == {"ended": 2, "not ended": 1, "not recorded": 1}
+    assert store_progress(store.path).discharge == {"ended": 2, "not ended": 1, "not recorded": 1, "jammed": 1}
     out = subprocess.run([sys.executable, str(ROOT / "scripts" / "campaign_status.py"), str(store.path)],
                          capture_output=True, text=True, check=True).stdout
     assert "Discharge of the done runs: 2 ended, 1 stopped while the upper box still emptied" in out
-    assert "1 made before runs recorded it." in out
+    assert "1 made before runs recorded it; 1 jammed (less than 5% of the fill" in out

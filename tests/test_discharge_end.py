@@ -18,7 +18,7 @@ import pytest
 
 from bo.cli.common import config_hash
 from torchdem.config import run_settings_from
-from torchdem.drawdown import DISCHARGE_END_TOLERANCE, DrawDownTest, _discharges_ended
+from torchdem.drawdown import DISCHARGE_END_TOLERANCE, JAM_FRACTION, DrawDownTest, _discharges_ended
 from kpi.loadcell import discharge_state
 from torchdem.errors import ConfigError
 
@@ -67,7 +67,7 @@ def test_a_run_goes_on_until_the_discharge_has_ended():
         assert mf[-11] - mf[-1] > 10 * DISCHARGE_END_TOLERANCE * kf["fill_mass_kg"]
         # on until it has ended: the same run up to 0.6 s, bit for bit
         assert len(tu) > len(tf) and np.array_equal(tu[:len(tf)], tf) and np.array_equal(mu[:len(mf)], mf)
-        assert eu == {} and ku["discharge_ended"] == 1.0
+        assert eu == {} and ku["discharge_ended"] == 1.0 and ku["discharge_jammed"] == kf["discharge_jammed"] == 0.0
         assert 0.6 < ku["discharge_duration_s"] < tu[-1] <= 3.0 + 1e-9
         # it stopped soon after the tail became steady (checked every 0.1 s), not at 3 s
         assert tu[-1] < ku["discharge_duration_s"] + 0.2 + 0.1 + 0.05
@@ -93,3 +93,20 @@ def test_max_discharge_time_bounds_and_store_hash():
     # null hashes as the key's absence (the stores shipped before it keep their hash); a time does not
     assert config_hash({"run": {**run, "max_discharge_time_s": None}}) == config_hash({"run": run})
     assert config_hash({"run": {**run, "max_discharge_time_s": 8.0}}) != config_hash({"run": run})
+
+
+def test_a_slot_narrower_than_the_grains_jams_and_reads_as_level_surfaces():
+    """A 10 mm slot under 12-18 mm grains lets nothing through: the run reports a jammed discharge
+    (``discharge_jammed`` 1, nothing in the lower box, no flow) whose surfaces read 0 deg (the
+    fill's level top, the empty lower box's floor; ``torchdem.drawdown.JAM_FRACTION``) instead of
+    failing to measure, so a calibration sees the miss."""
+    base = small_drawdown()
+    geometry = dataclasses.replace(base.geometry, outlet_width=0.01)
+    s = dataclasses.replace(base.settings, discharge_time=0.6, flow_window=(0.1, 0.3), final_window=0.2)
+    res = DrawDownTest(base.mixture, geometry, settings=s).run(replicates=1, seeds=[3])
+    k, err = res.kpis[0], res.errors[0]
+    assert "shear_angle_deg" not in err and "angle_of_repose_deg" not in err
+    assert k["discharge_jammed"] == 1.0 and k["discharge_ended"] == 1.0
+    assert k["mass_lower_box_kg"] < JAM_FRACTION * k["fill_mass_kg"]
+    assert abs(k["mass_flow_rate_kg_s"]) < 0.01 * k["fill_mass_kg"] / 0.2  # 1 % of the fill in the fit window
+    assert k["shear_angle_deg"] == 0.0 and k["angle_of_repose_deg"] == 0.0

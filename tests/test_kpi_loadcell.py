@@ -130,6 +130,17 @@ def test_initial_mass_below_final_mass():
         measure_discharge(LoadCellSignal(time_s, mass_kg, "run.csv"), -40.0)
 
 
+def test_a_box_that_let_nothing_out():
+    """A jammed discharge reads its fill again: a final mass above the fill by less than the end
+    tolerance (the cell's resolution, round-off in a simulation) is no discharge, not an error."""
+    time_s = np.arange(-0.5, 3.0 + 1e-9, SAMPLE_S)
+    mass_kg = np.full(time_s.size, 40.0 + 1e-6)
+    d = measure_discharge(LoadCellSignal(time_s, mass_kg, "jam.csv"), 40.0)
+    assert d.lower_box_mass_kg == 0.0 and d.mass_flow_rate_kg_s == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(KPIInputError, match=r"below the final upper-box mass 40\.300 kg by more than the end tolerance"):
+        measure_discharge(LoadCellSignal(time_s, mass_kg + 0.3, "jam.csv"), 40.0)
+
+
 def test_dropped_samples_are_rejected():
     time_s, mass_kg, _ = discharge_record(5)
     keep = np.ones(time_s.size, bool)

@@ -23,6 +23,8 @@ simulates ``len(parameter sets) x replicates`` draw down tests as one batched en
    repose (lower box), shear angle (upper box), segregation RSD (lower box), mass flow rate
    (Gaussian-filtered load cell, slope 0.5-2.0 s), mass in the lower box (initial minus final
    upper mass) and the maximum heap height (highest top of a body at rest in the lower box).
+   A discharge that let less than :data:`JAM_FRACTION` of the fill out has jammed
+   (``discharge_jammed`` 1): its level surfaces read 0 deg instead of failing to measure.
 
 Slices: mass-like KPIs are reported for the simulated slice and scaled to the full box by
 ``depth / slice_depth`` (``*_full`` keys); angles, RSD and heights do not scale.
@@ -67,12 +69,21 @@ KPI_UNITS = {
     "mass_flow_rate_full_kg_s": "kg/s", "mass_lower_box_kg": "kg", "mass_lower_box_full_kg": "kg",
     "segregation_rsd_vertical": "1", "segregation_rsd_horizontal": "1", "max_heap_height_m": "m",
     "fill_mass_kg": "kg", "fill_mass_full_kg": "kg", "discharge_duration_s": "s", "discharge_ended": "1",
+    "discharge_jammed": "1",
 }
 
 #: The discharge has ended when the upper-box mass stays within this share of the fill mass of its
 #: final value (the lab's 0.2 kg of 40 kg; :class:`kpi.loadcell.DischargeConfig` ``end_tolerance_kg``).
 DISCHARGE_END_TOLERANCE = 0.005
 
+
+#: A discharge that has let less than this share of the fill out of the upper box has jammed
+#: (``discharge_jammed`` 1): the grains arched over the slot. A jammed box keeps its fill's level surface,
+#: so there is no shear surface to photograph: its shear angle is that of a level surface, 0 deg, as
+#: the lab's line fit would read it, and the angle of repose of an empty lower box is 0 deg too. A
+#: calibration thus sees a jammed run as the total miss it is (its flow and lower-box mass near 0)
+#: instead of losing it as unmeasured.
+JAM_FRACTION = 0.05
 
 #: Bodies slower than this (m/s) are at rest: the photos show them, the heap height counts them.
 AT_REST_SPEED_M_S = 0.1
@@ -588,15 +599,23 @@ class DrawDownTest:
                 k["mass_flow_rate_full_kg_s"] = rate * scale
             k["mass_lower_box_kg"] = fill_mass - float(masses[m][-1])
             k["mass_lower_box_full_kg"] = k["mass_lower_box_kg"] * scale
+            jammed = k["mass_lower_box_kg"] < JAM_FRACTION * fill_mass
+            k["discharge_jammed"] = float(jammed)
             at_rest = b.velocity[m].norm(dim=-1) < AT_REST_SPEED_M_S  # the photo after the discharge
             upper_img = render_state(system, state, m, labels, upper_view, shown=at_rest)
             lower_img = render_state(system, state, m, labels, lower_view, shown=at_rest)
             for name, fn, img, crop in (("shear_angle_deg", shear_angle, upper_img, up_crop),
                                         ("angle_of_repose_deg", angle_of_repose, lower_img, low_crop)):
+                if jammed and name == "shear_angle_deg":
+                    k[name] = 0.0  # the fill's level surface (JAM_FRACTION)
+                    continue
                 try:
                     k[name] = float(fn(img, crop_box=crop, source=f"member {m} {name}").angle_deg)
                 except KPIInputError as exc:
-                    err[name] = str(exc)
+                    if jammed:  # no heap in the lower box: its floor is level
+                        k[name] = 0.0
+                    else:
+                        err[name] = str(exc)
             try:
                 seg = measure_segregation(lower_img, crop_box=low_crop, source=f"member {m} lower box")
                 comp = s.rsd_component

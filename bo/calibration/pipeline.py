@@ -300,6 +300,7 @@ class CalibrationResult:
     wall_time_s: Mapping[str, float]
     fresh_verification: tuple[KPIAgreement, ...] | None = None
     discharge_not_ended: Mapping[str, int] = field(default_factory=dict)
+    discharge_jammed: Mapping[str, int] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------------------------
@@ -870,7 +871,7 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
         runs = verify(store, executor, "validation", final, settings.validation_seeds, validation, kpis)
         val = {c: agreement(runs[c], kpis, measured.condition(c).kpis) for c in validation}
     lap("validation")
-    evaluations, not_ended = {}, {}
+    evaluations, not_ended, jammed = {}, {}, {}
     for rec_stage in ["screening", "initial"] + [f"round-{k}" for k in range(1, len(surrogate.rounds))] \
             + ["verification", "density", "validation"]:
         c = store.counts(rec_stage)
@@ -879,8 +880,13 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
         cut = sum(discharge_state(r.kpis or {}) == "not ended" for r in store.records(rec_stage, status="done"))
         if cut:
             not_ended[rec_stage] = cut
+        # runs whose grains arched over the slot (torchdem.drawdown.JAM_FRACTION)
+        jams = sum((r.kpis or {}).get("discharge_jammed") == 1 for r in store.records(rec_stage, status="done"))
+        if jams:
+            jammed[rec_stage] = jams
     evaluations["total"] = sum(evaluations.values())
     return CalibrationResult(settings=settings, screening=screening, objective=objective, parameter_choice_note=note,
                              surrogate=surrogate, ga=ga, verification=verification, density=density,
                              validation=val, final_parameters=final, evaluations=evaluations, wall_time_s=walls,
-                             fresh_verification=fresh, discharge_not_ended=not_ended)
+                             fresh_verification=fresh, discharge_not_ended=not_ended,
+                             discharge_jammed=jammed)

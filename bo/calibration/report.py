@@ -36,6 +36,7 @@ from bo.surrogate.acquisition import plot_actual_vs_predicted, target_reached
 from bo.calibration.pipeline import CalibrationResult, KPIAgreement
 from bo.report.plots import write_relative_error_plot
 from bo.screening.pipeline import json_ready, measured_name
+from torchdem.drawdown import JAM_FRACTION
 
 __all__ = ["write_calibration_report", "calibration_payload", "agreement_table", "paper_comparison"]
 
@@ -287,6 +288,10 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
         lines += ["", "Runs stopped while the upper box still emptied (their lower-box mass and photos are not the "
                   "end state the lab measures; `run.max_discharge_time_s`): "
                   + ", ".join(f"{k} {v}" for k, v in result.discharge_not_ended.items()) + "."]
+    if result.discharge_jammed:
+        lines += ["", f"Runs whose discharge jammed (less than {100 * JAM_FRACTION:g} % of the fill left the upper box; their shear angle "
+                  "reads 0 deg, the fill's level surface, so the objective counts the miss): "
+                  + ", ".join(f"{k} {v}" for k, v in result.discharge_jammed.items()) + "."]
     lines += ["", "| stage | wall time (this process) |", "| --- | ---: |"]
     lines += [f"| {k} | {v:.1f} s |" for k, v in wall.items()]
     lines.append(f"| total | {math.fsum(wall.values()):.1f} s |")

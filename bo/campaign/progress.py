@@ -105,7 +105,9 @@ class StoreProgress:
             (classes with remaining runs borrowed their figure, see ``CostClass.bound``).
         discharge: of the done runs, how many ended their discharge (``"ended"``), stopped while
             the upper box still emptied (``"not ended"``: their lower-box mass and photos are not
-            the lab's end state), or made before runs recorded it (``"not recorded"``).
+            the lab's end state), or made before runs recorded it (``"not recorded"``); and how
+            many of them jammed (``"jammed"``: less than ``torchdem.drawdown.JAM_FRACTION`` of the
+            fill left the upper box).
     """
 
     path: str
@@ -145,11 +147,13 @@ def store_progress(path: str | Path) -> StoreProgress:
         conn.close()
     status: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     batch_size: dict[tuple, int] = defaultdict(int)
-    discharge = dict.fromkeys(("ended", "not ended", "not recorded"), 0)
+    discharge = dict.fromkeys(("ended", "not ended", "not recorded", "jammed"), 0)
     for stage, _, _, _, state, wall, owner, finished, kpis in rows:
         status[stage][state] += 1
         if state == "done":
-            discharge[discharge_state(json.loads(kpis or "{}"))] += 1
+            k = json.loads(kpis or "{}")
+            discharge[discharge_state(k)] += 1
+            discharge["jammed"] += k.get("discharge_jammed") == 1
         if state in ("done", "failed") and wall is not None and not (owner or "").startswith(_REUSED):
             batch_size[(owner, finished, wall)] += 1
     costs: dict[tuple, list[float]] = defaultdict(list)
