@@ -129,6 +129,7 @@ def test_extension_reaches_the_model(extension):
         "cohesion": lambda: test.parameter_sets[0]["coh_pp"] == values["coh_pp"],
         "density_per_material": lambda: [m.density for m in mixture.materials] == [values["density_pellet"],
                                                                                    values["density_sinter"]],
+        "fill_friction": lambda: test._fill_friction([0]) == [values["fill_friction"]] != plain_test._fill_friction([0]),
         "free_interaction": lambda: test.parameter_sets[0]["mu_s_ps"] == values["mu_s_ps"],
         "front_back_walls": lambda: (test.settings.front_back_material is not None
                                      and plain_test.settings.front_back_material is None),

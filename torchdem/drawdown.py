@@ -6,7 +6,10 @@ simulates ``len(parameter sets) x replicates`` draw down tests as one batched en
 1. fill: every member draws its own particles (sieve sampling, seed) and rains them layer
    by layer into the upper box (:mod:`torchdem.fill`); members are padded to equal size with
    inactive bodies;
-2. settle with the gate closed for ``settings.fill_time`` seconds;
+2. settle with the gate closed for ``settings.fill_time`` seconds (with a share of the frictions
+   when a parameter set gives :data:`FILL_FRICTION_PARAMETER`); as the gate opens, the fill's bulk
+   density (``fill_bulk_density_kg_m3``: upper-box mass over the box's width, simulated depth and
+   mean fill height) is taken;
 3. the gate (a wall) vanishes at ``t_open = fill_time``; the run continues for
    ``settings.discharge_time`` seconds while the load cell records the upper-box mass at
    ``loadcell_rate`` Hz (the mass of the bodies whose centres are inside the upper box);
@@ -51,7 +54,7 @@ from torchdem.errors import ConfigError, out_of_range
 from torchdem.clumps import ClumpTemplate, principal_template
 from torchdem.fill import rain_to_fit
 from torchdem.geometry import MIRROR_MATERIAL, DrawDownGeometry
-from torchdem.integrate import sphere_positions
+from torchdem.integrate import evaluate_forces, sphere_positions
 from torchdem.io import VTKWriter
 from torchdem.materials import Material, interaction_table
 from torchdem.mixture import Mixture, sample_layers, scalp_mixture
@@ -64,12 +67,18 @@ from torchdem.system import build_system
 #: set (default: ``RunSettings.rolling_damping``).
 ROLLING_DAMPING_PARAMETER = "eta_r"
 
+#: Contact parameter setting, per parameter set, the share of every sliding and rolling friction
+#: coefficient (particles and walls) the fill settles with; the gate opens with the full ones. 1 (the
+#: default) fills with the model's frictions; below 1 the bed packs denser, as a fill poured by hand in
+#: layers may (:mod:`torchdem.mechanisms.fill_friction`).
+FILL_FRICTION_PARAMETER = "fill_friction"
+
 KPI_UNITS = {
     "angle_of_repose_deg": "deg", "shear_angle_deg": "deg", "mass_flow_rate_kg_s": "kg/s",
     "mass_flow_rate_full_kg_s": "kg/s", "mass_lower_box_kg": "kg", "mass_lower_box_full_kg": "kg",
     "segregation_rsd_vertical": "1", "segregation_rsd_horizontal": "1", "max_heap_height_m": "m",
     "fill_mass_kg": "kg", "fill_mass_full_kg": "kg", "discharge_duration_s": "s", "discharge_ended": "1",
-    "discharge_jammed": "1",
+    "discharge_jammed": "1", "fill_bulk_density_kg_m3": "kg/m^3",
 }
 
 #: The discharge has ended when the upper-box mass stays within this share of the fill mass of its
@@ -275,6 +284,7 @@ class DrawDownTest:
                                                           "sim.fines_cut").validate())
         # contact parameters are checked now, not after minutes of filling
         self._interaction_table(range(len(self.parameter_sets)))
+        self._fill_friction(range(len(self.parameter_sets)))
 
     # -- building ------------------------------------------------------------------------
     def _interaction_table(self, parameter_index: Sequence[int], dtype=torch.float64, device="cpu"):
@@ -282,7 +292,7 @@ class DrawDownTest:
         s, mix = self.settings, self.mixture
         names = [m.name for m in mix.materials]
         per_member = [self.parameter_sets[i] for i in parameter_index]
-        keys = sorted(set().union(*per_member))
+        keys = sorted(set().union(*per_member) - {FILL_FRICTION_PARAMETER})  # the fill's share: _fill_friction
         stacked = {}
         for k in keys:
             if any(k not in p for p in per_member):
@@ -321,6 +331,18 @@ class DrawDownTest:
                        for k, m in enumerate(mix.materials)}
         return interaction_table(self._materials(), pairs, batch=len(per_member), dtype=dtype, device=device,
                                  density=density, source="contact")
+
+    def _fill_friction(self, parameter_index: Sequence[int]) -> list[float]:
+        """Per member, the share of its friction coefficients the fill settles with
+        (:data:`FILL_FRICTION_PARAMETER`, 1 when not given)."""
+        out = []
+        for i in parameter_index:
+            v = float(self.parameter_sets[i].get(FILL_FRICTION_PARAMETER, 1.0))
+            if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise out_of_range(FILL_FRICTION_PARAMETER, v, "[0, 1] (share of the friction coefficients the fill "
+                                   "settles with)", "contact")
+            out.append(v)
+        return out
 
     def _materials(self) -> list[Material]:
         G = self.settings.shear_modulus
@@ -459,12 +481,27 @@ class DrawDownTest:
         started = time.perf_counter()
         system, state, counts = self.build([m[2] for m in members], [m[0] for m in members], device)
         build_s = time.perf_counter() - started
+        full_tables = None  # the model's frictions, when the fill settles with a share of them
+        share = self._fill_friction([m[0] for m in members])
+        if any(f != 1.0 for f in share):
+            full_tables = system.tables
+            f = torch.tensor(share, dtype=full_tables.mu_s.dtype, device=full_tables.mu_s.device)[:, None, None]
+            system = dataclasses.replace(system, tables=dataclasses.replace(
+                full_tables, mu_s=full_tables.mu_s * f, mu_r=full_tables.mu_r * f))
+
+        def with_full_friction(simulation: Simulation) -> None:
+            """The gate opens: the model's own frictions from here on (lists and forces again)."""
+            if full_tables is not None and simulation.system.tables is not full_tables:
+                simulation.system = dataclasses.replace(simulation.system, tables=full_tables)
+                simulation.state = evaluate_forces(simulation.system, simulation.state, simulation.time,
+                                                   simulation.kernels)
         every = max(1, int(round(1.0 / (s.loadcell_rate * system.dt))))
         t_open, t_end = s.fill_time, s.fill_time + s.discharge_time
         times: list[float] = []
         masses: list[np.ndarray] = []
         ckpt = Path(checkpoint) if checkpoint is not None else None
         gate_speed = [math.nan] * len(members)
+        fill_density = [math.nan] * len(members)
         wall_before = 0.0
         sim = None
         if ckpt is not None and ckpt.exists():
@@ -477,6 +514,7 @@ class DrawDownTest:
             masses = [m.numpy() for m in saved["masses"]]
             wall_before = float(saved["wall_s"])
             gate_speed[:] = saved["gate_speed"].tolist()
+            fill_density[:] = saved.get("fill_density", torch.full((len(members),), math.nan)).tolist()
         else:
             sim = Simulation(system, state, s.guards, compile=s.compile, reorder_every=s.reorder_every)
         ckpt_steps = max(every, int(round(checkpoint_every / system.dt)))
@@ -494,6 +532,7 @@ class DrawDownTest:
                         "times": torch.tensor(times, dtype=torch.float64),
                         "masses": [torch.as_tensor(m) for m in masses],
                         "gate_speed": torch.tensor(gate_speed, dtype=torch.float64),
+                        "fill_density": torch.tensor(fill_density, dtype=torch.float64),
                         "wall_s": wall_before + time.perf_counter() - started}, tmp)
             os.replace(tmp, ckpt)
 
@@ -504,6 +543,7 @@ class DrawDownTest:
             if k == k_open:  # how settled the fill is when the gate opens
                 b = simulation.state.bodies
                 gate_speed[:] = (b.velocity.norm(dim=-1) * b.active).amax(-1).cpu().tolist()
+                fill_density[:] = self._fill_bulk_density(simulation).tolist()
             if k >= k_open and (k - k_open) % every == 0:  # 50 Hz from the gate opening on
                 times.append(simulation.time - t_open)
                 masses.append(self._upper_mass(simulation).cpu().numpy())
@@ -516,6 +556,7 @@ class DrawDownTest:
 
         if sim.time < t_open - 0.5 * system.dt:
             sim.run_until(t_open, callback=on_step, callback_every=1)
+        with_full_friction(sim)
         before = sim.time
         sim.run_until(t_end, callback=on_step, callback_every=1)
         early = []
@@ -530,6 +571,9 @@ class DrawDownTest:
                 sim.run_until(min(sim.time + 5.0 / s.loadcell_rate, t_last), callback=on_step, callback_every=1)
         wall = wall_before + time.perf_counter() - started
         result = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), wall)
+        for kpis in (result.kpis, early):  # the fill as the gate opened, for both measurements
+            for k, v in zip(kpis, fill_density):
+                k["fill_bulk_density_kg_m3"] = v
         for c, v in zip(result.conservation, gate_speed):
             c["max_speed_at_gate_open_m_s"] = v
         result = dataclasses.replace(result, build_time_s=build_s, spheres=int(system.n_spheres), dt=float(system.dt),
@@ -537,6 +581,25 @@ class DrawDownTest:
         if ckpt is not None and ckpt.exists():
             ckpt.unlink()
         return result
+
+    def _fill_bulk_density(self, sim: Simulation) -> np.ndarray:
+        """``[B]`` bulk density of each member's fill as the gate opens, kg/m^3: its upper-box mass over
+        the box's width x the simulated depth x the fill's height, the mean over the box's width (in
+        bins about four of the largest spheres wide) of the highest sphere top above the box's floor,
+        as a ruler held to the front wall would read it."""
+        g, system, b = self.geometry, sim.system, sim.state.bodies
+        xs = sphere_positions(system, b).reshape(system.batch, system.n_spheres, 3)
+        active = torch.gather(b.active, 1, system.sphere_body)
+        top = xs[..., 2] + system.sphere_radius
+        inside = active & g.in_upper_box(xs[..., 0], xs[..., 2])
+        n_bins = max(4, int(g.upper_width / (8.0 * float(system.sphere_radius.max()))))
+        x = ((xs[..., 0] + g.upper_width / 2) / g.upper_width * n_bins).floor().clamp(0, n_bins - 1).long()
+        height = torch.full((system.batch, n_bins), g.upper_bottom_z, dtype=top.dtype, device=top.device)
+        height = height.scatter_reduce(1, x, torch.where(inside, top, torch.full_like(top, g.upper_bottom_z)), "amax")
+        fill_height = (height.mean(-1) - g.upper_bottom_z).cpu().numpy()
+        mass = self._upper_mass(sim).cpu().numpy()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(fill_height > 0, mass / (g.upper_width * g.simulated_depth * fill_height), np.nan)
 
     def _upper_mass(self, sim: Simulation) -> torch.Tensor:
         b = sim.state.bodies

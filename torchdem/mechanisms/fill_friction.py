@@ -1,0 +1,21 @@
+"""A denser fill: the lab fills the upper box with 40 kg in four layers, and the paper does not say
+how it places them or how dense the bed is. The model rains each layer from a loose stack and lets
+it settle with the full frictions, which arrest the grains where they land; a bed placed by hand,
+levelled or poured from low may pack denser. The fill settles with ``fill_friction`` times every
+sliding and rolling friction coefficient (particles and walls), and the gate opens with the model's
+own: 0 packs the densest bed these grains allow, 1 is the model as it is
+(``torchdem.drawdown.FILL_FRICTION_PARAMETER``).
+
+The hypothesis: a denser bed holds a steeper stagnant zone beside the slot and puts more mass
+through it per unit time (Beverloo's law scales the flow with the bulk density), so it would raise
+the shear angle and the flow together, where the contact parameters trade one against the other
+(docs/calibration.md). Prior: the whole range, 0-1 of the model's frictions."""
+from torchdem.drawdown import FILL_FRICTION_PARAMETER
+from torchdem.mechanisms import Mechanism
+
+MECHANISM = Mechanism(
+    name="fill_friction",
+    description="the fill settles with a share of the frictions (a bed packed denser than the rained one)",
+    parameters=lambda c: {FILL_FRICTION_PARAMETER: (0.0, 1.0)},
+    null=lambda c: {FILL_FRICTION_PARAMETER: 1.0},
+)
