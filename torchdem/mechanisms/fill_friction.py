@@ -4,7 +4,9 @@ it settle with the full frictions, which arrest the grains where they land; a be
 levelled or poured from low may pack denser. The fill settles with ``fill_friction`` times every
 sliding and rolling friction coefficient (particles and walls), and the gate opens with the model's
 own: 0 packs the densest bed these grains allow, 1 is the model as it is
-(``torchdem.drawdown.FILL_FRICTION_PARAMETER``).
+(``torchdem.drawdown.FILL_FRICTION_PARAMETER``). Besides its density, the bed keeps the stresses it
+settled with: a bed settled without friction presses on the walls about as hard as on the floor when
+the gate opens, where a frictional one leans on its walls less.
 
 The hypothesis: a denser bed holds a steeper stagnant zone beside the slot and puts more mass
 through it per unit time (Beverloo's law scales the flow with the bulk density), so it would raise
