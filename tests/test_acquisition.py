@@ -132,8 +132,13 @@ def test_adaptive_sampling_stops_at_target_r2_per_kpi():
 
 def test_bad_configs_give_clear_errors():
     b = np.array([[0.0, 0.0], [1.0, 1.0]])
-    with pytest.raises(ConfigError, match=r"budget = 15 .*initial design size 20"):
+    with pytest.raises(ConfigError, match=r"budget = 15 .*the 20 points the initial design runs"):
         adaptive_sampling(_evaluate_plane, b, budget=15)
+    # points already run (the screening's, inside the bounds) shrink what the design runs, to half of it
+    assert AdaptiveSettings(budget=12, points_per_parameter=10).initial_size(2, reused=15) == 20
+    with pytest.raises(ConfigError, match=r"budget = 12 .*the 15 points the initial design runs \(10 points x 2 "
+                                          r"parameters, less 5 points already run, to no less than half\)"):
+        AdaptiveSettings(budget=12, points_per_parameter=10).initial_size(2, reused=5)
     with pytest.raises(ConfigError, match="no budget given"):
         adaptive_sampling(_evaluate_plane, b, target_r2=0.9)
     with pytest.raises(ConfigError, match=r"unknown setting\(s\) \['target_R2'\]"):

@@ -500,7 +500,7 @@ def test_killed_campaign_resumes_without_losing_or_repeating_a_run(tmp_path):
      None),  # valid: checked by the next case with weights
     ("+objective.weights={shear_angle_deg:0.6,angle_of_repose_deg:0.6}", r"weights >= 0 summing to 1"),
     ("surrogate.parameters=[mu_s_pp,mu_s_ss] surrogate.budget=10 surrogate.points_per_parameter=10",
-     r"config surrogate: .*budget = 10 is not allowed; expected >= the initial design size 20"),
+     r"config surrogate: .*budget = 10 is not allowed; expected >= the 20 points the initial design runs"),
     ("ga.mode=best", r"ga: mode = 'best' is not allowed; expected 'restricted' or 'unrestricted'"),
     ("surrogate.kernels=[gaussian]", r"surrogate: kernels = \['gaussian'\] is not allowed"),
     ("verification.replicates=0", r"verification: replicates = 0 is not allowed; expected an int >= 1"),

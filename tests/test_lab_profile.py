@@ -45,6 +45,8 @@ def test_lab_profile_composes_on_the_lab_geometry_within_budget():
     total = screening_runs + a.budget * len(s.surrogate.seeds) + len(s.verification_seeds) \
         + 3 * len(s.validation_seeds)
     assert total <= 215, total
+    # the first campaign's store is complete at its own budget: make run must not extend it
+    assert calibration_settings_from(_plain(profile="lab_4s")).surrogate.adaptive.budget == 92
     # single runs with the pooled noise: the stop counts R^2 against the explainable variance
     assert a.target_basis == "explainable" and s.surrogate.noise == "pooled"
     # Eq. 7 over the paper's four KPIs, whatever the screening keeps (Table 2 also has the RSDs)

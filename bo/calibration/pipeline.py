@@ -555,15 +555,15 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
     a, config = s.adaptive, s.config
     kpis = objective.kpi_names
     need = min(2, len(s.seeds))
-    full = a.initial_size(d)
     if prior is not None:
         X0, reps0, reuse_note = prior
         n0 = X0.shape[0]
         n0_usable = int(_objective_data(reps0, objective, config.strategy, pooled, need)[0].sum()) if n0 else 0
+        full = a.initial_size(d, reused=n0_usable)  # the budget covers the points the design runs
         n_initial = max(full - n0_usable, math.ceil(full / 2))
     else:
         X0, reps0, reuse_note, n0 = np.zeros((0, d)), np.zeros((0, len(s.seeds), len(kpis))), "", 0
-        n_initial = full
+        full = n_initial = a.initial_size(d)
     key = _key("surrogate", names, bounds.tolist(), list(s.seeds), a.seed, n_initial, a.q, config.strategy,
                list(kpis), list(objective.measured), list(objective.weights),
                *([X0.tolist(), reps0.tolist()] if prior is not None else []))

@@ -144,8 +144,10 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
         budget=cfg.get("budget"), points_per_parameter=cfg.get("points_per_parameter"), q=cfg.get("q"),
         target_r2=cfg.get("target_r2"), target_basis=cfg.get("target_basis", "total"), n_folds=cfg.get("n_folds"), cv_seeds=tuple(cfg.get("cv_seeds") or ()),
         kernels=tuple(kernels), seed=base_seed, acquisition=acquisition))
-    if names is not None:
-        _wrap(where, lambda: adaptive.initial_size(len(names) + len(checked_added)))  # budget vs initial design, up front
+    if names is not None:  # budget vs initial design, up front (with reuse, the least the design can run)
+        d = len(names) + len(checked_added)
+        _wrap(where, lambda: adaptive.initial_size(d, reused=d * adaptive.points_per_parameter
+                                                   if cfg.get("reuse_screening", False) is True else 0))
     config = _wrap(where, lambda: SurrogateConfig(kernel=kernels[0], strategy=strategy))
     noise = cfg.get("noise", "learned")
     if noise not in NOISE_MODELS:

@@ -254,12 +254,16 @@ class AdaptiveSettings:
             raise out_of_range("kernels", self.kernels, f"a non-empty subset of {list(KERNELS)}",
                                src)
 
-    def initial_size(self, d: int) -> int:
-        """Initial design size for ``d`` parameters; checks it against the budget."""
+    def initial_size(self, d: int, reused: int = 0) -> int:
+        """Initial design size for ``d`` parameters. Checks the budget against the points the stage
+        runs for it: the design less ``reused`` points already run (screening points inside the
+        bounds), to no less than half of it."""
         n = self.n_initial if self.n_initial is not None else self.points_per_parameter * d
-        if self.budget < n:
-            raise out_of_range("budget", self.budget, f">= the initial design size {n} "
-                               f"({self.points_per_parameter} points x {d} parameters)",
+        runs = max(n - reused, math.ceil(n / 2)) if reused > 0 else n
+        if self.budget < runs:
+            less = f", less {reused} points already run, to no less than half" if reused > 0 else ""
+            raise out_of_range("budget", self.budget, f">= the {runs} points the initial design runs "
+                               f"({self.points_per_parameter} points x {d} parameters{less})",
                                "AdaptiveSettings")
         if n < self.n_folds:
             raise out_of_range("n_folds", self.n_folds, f"<= the initial design size {n}",
