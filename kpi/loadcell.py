@@ -283,9 +283,17 @@ def measure_discharge(
         smoothed_mass_kg=_read_only(smoothed),
     )
 
+
 def discharge_state(kpis: Mapping[str, float]) -> str:
     """``"ended"``, ``"not ended"`` (stopped while the upper box still emptied) or ``"not recorded"``
     (a run made before runs reported ``discharge_ended``), from a draw down run's KPIs (``torchdem.drawdown``: ``discharge_ended`` is 1 when
     :func:`measure_discharge` found the discharge ended within the record, else 0)."""
     ended = kpis.get("discharge_ended")
     return "not recorded" if ended is None or ended != ended else "ended" if ended == 1 else "not ended"
+
+
+def discharge_jammed(kpis: Mapping[str, float]) -> bool:
+    """Whether a draw down run's discharge jammed (``torchdem.drawdown``: ``discharge_jammed`` is 1
+    when less than ``JAM_FRACTION`` of the fill left the upper box); False for runs made before it
+    was reported."""
+    return kpis.get("discharge_jammed") == 1

@@ -21,13 +21,9 @@ import time
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
 
-from bo.cli.calibrate import calibration_model_from
-from bo.cli.common import plain_config
-from torchdem.cli import CONF_DIR
+from bo.cli.calibrate import calibration_model_for
 from torchdem.errors import ConfigError
-from torchdem.measured import load_measured
 
 KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
 
@@ -52,9 +48,7 @@ def main() -> None:
     args = parser.parse_args(argv[:cut])
     args.overrides = argv[cut + 1:]  # Hydra overrides of the calibrate config, after --
     torch.set_num_threads(1)
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        plain = plain_config(compose("calibrate", overrides=args.overrides or ["profile=lab"]))
-    model, _ = calibration_model_from(plain, load_measured(plain.get("measured")))
+    _, model, _ = calibration_model_for(args.overrides or ["profile=lab"])
     s = model.settings
     if s.max_discharge_time is None:
         raise ConfigError("run.max_discharge_time_s is null in this config: the runs would stop at "

@@ -20,14 +20,10 @@ import time
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
 
-from bo.cli.calibrate import calibration_model_from
-from bo.cli.common import plain_config
+from bo.cli.calibrate import calibration_model_for
 from bo.screening.pipeline import measured_name
-from torchdem.cli import CONF_DIR
 from torchdem.errors import ConfigError
-from torchdem.measured import load_measured
 
 KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
 
@@ -57,10 +53,7 @@ def main() -> None:
     overrides = argv[cut + 1:] or ["profile=lab"]
     params = parse_parameters(args.parameters)
     torch.set_num_threads(1)
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        plain = plain_config(compose("calibrate", overrides=overrides))
-    measured = load_measured(plain.get("measured"))
-    model, _ = calibration_model_from(plain, measured)
+    _, model, measured = calibration_model_for(overrides)
     print(f"parameters: {params or 'the config values'}; model: {' '.join(overrides)}")
     rows = []
     for spec in args.runs:

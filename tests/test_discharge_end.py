@@ -19,7 +19,7 @@ import pytest
 from bo.cli.common import config_hash
 from torchdem.config import run_settings_from
 from torchdem.drawdown import DISCHARGE_END_TOLERANCE, JAM_FRACTION, DrawDownTest, _discharges_ended
-from kpi.loadcell import discharge_state
+from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.errors import ConfigError
 
 from test_drawdown import small_drawdown
@@ -44,6 +44,8 @@ def test_discharge_state_of_a_runs_kpis():
     assert discharge_state({"discharge_ended": 0.0}) == "not ended"
     # runs made before it was reported: absent, or NaN where a store filled the KPI set
     assert discharge_state({}) == discharge_state({"discharge_ended": float("nan")}) == "not recorded"
+    assert discharge_jammed({"discharge_jammed": 1.0}) and not discharge_jammed({"discharge_jammed": 0.0})
+    assert not discharge_jammed({}) and not discharge_jammed({"discharge_jammed": float("nan")})
 
 
 def _cut(test: DrawDownTest, max_discharge_time: float | None) -> DrawDownTest:

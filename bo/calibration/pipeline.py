@@ -60,7 +60,7 @@ import numpy as np
 
 from bo.surrogate.acquisition import (AdaptiveSettings, RoundRecord, SamplingState, best_kernel_cv, latin_hypercube,
                                       propose_batch, state_ceiling, state_learned_ceiling)
-from kpi.loadcell import discharge_state
+from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.model import DENSITY_PREFIX
 from bo.campaign.executor import Executor, run_pending
 from bo.surrogate.ga import GASettings, GASummary, repeated_ga
@@ -876,12 +876,12 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
             + ["verification", "density", "validation"]:
         c = store.counts(rec_stage)
         evaluations[rec_stage] = c["done"] + c["failed"]
+        done = [r.kpis or {} for r in store.records(rec_stage, status="done")]
         # runs stopped while the upper box still emptied (run.max_discharge_time_s reached or null)
-        cut = sum(discharge_state(r.kpis or {}) == "not ended" for r in store.records(rec_stage, status="done"))
+        cut = sum(discharge_state(k) == "not ended" for k in done)
         if cut:
             not_ended[rec_stage] = cut
-        # runs whose grains arched over the slot (torchdem.drawdown.JAM_FRACTION)
-        jams = sum((r.kpis or {}).get("discharge_jammed") == 1 for r in store.records(rec_stage, status="done"))
+        jams = sum(map(discharge_jammed, done))  # the grains arched over the slot (torchdem.drawdown.JAM_FRACTION)
         if jams:
             jammed[rec_stage] = jams
     evaluations["total"] = sum(evaluations.values())

@@ -41,7 +41,7 @@ from pathlib import Path
 from statistics import median
 
 from bo.campaign.store import affinity_distance
-from kpi.loadcell import discharge_state
+from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.errors import ConfigError
 
 __all__ = ["SHAPE_BIN", "CostClass", "StoreProgress", "store_progress"]
@@ -153,7 +153,7 @@ def store_progress(path: str | Path) -> StoreProgress:
         if state == "done":
             k = json.loads(kpis or "{}")
             discharge[discharge_state(k)] += 1
-            discharge["jammed"] += k.get("discharge_jammed") == 1
+            discharge["jammed"] += discharge_jammed(k)
         if state in ("done", "failed") and wall is not None and not (owner or "").startswith(_REUSED):
             batch_size[(owner, finished, wall)] += 1
     costs: dict[tuple, list[float]] = defaultdict(list)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import hydra
 from omegaconf import DictConfig
@@ -235,6 +235,22 @@ def calibration_model_from(plain: Mapping[str, Any], measured):
                                          fixed=config.contact_from(plain["contact"]), device=str(device)),
                            *config.extension_from(plain.get("extension")))
     return model, {m.name: m.density for m in mixture.materials}
+
+
+def calibration_model_for(overrides: Sequence[str]):
+    """``(plain config, model, measured data)`` of the calibrate config composed with Hydra
+    ``overrides`` (as on the command line): the model whose runs a campaign of that config makes,
+    for scripts that run or inspect such runs outside a campaign."""
+    from hydra import compose, initialize_config_dir
+
+    from bo.cli.common import plain_config
+    from torchdem.measured import load_measured
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        plain = plain_config(compose("calibrate", overrides=list(overrides)))
+    measured = load_measured(plain.get("measured"))
+    model, _ = calibration_model_from(plain, measured)
+    return plain, model, measured
 
 
 def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
