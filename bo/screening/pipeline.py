@@ -50,6 +50,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import sqlite3
 from dataclasses import dataclass
 from dataclasses import field as dataclass_field
 from pathlib import Path
@@ -75,6 +76,7 @@ __all__ = [
     "measured_for",
     "run_screening",
     "screening_batch_key",
+    "stored_screening",
 ]
 
 #: Slice mass KPIs of the DEM; the lab measures the full box, so these are never compared.
@@ -198,6 +200,69 @@ def run_screening(store: CampaignStore, executor: Executor, table: ParameterTabl
 # --------------------------------------------------------------------------------------------
 # Analysis and report
 # --------------------------------------------------------------------------------------------
+
+def stored_screening(path, kpis: Sequence[str], *, stage: str = "screening",
+                     condition: str | None = None) -> ScreeningResults:
+    """The screening a campaign store holds, read only (nothing is run or written; a campaign may
+    be writing the store meanwhile): ``ScreeningResults`` of the finished runs of ``stage``, one
+    replicate per batch (seed), KPI columns in the order of ``kpis``, NaN where a run is not done
+    or did not measure a KPI; parameters in the order the store keeps them (by name). The coded
+    levels come back from the points: per parameter its
+    lowest, middle and highest value are -1, 0 and +1. The stage must hold one design (one point
+    set) at one ``condition`` (or the one given)."""
+    source = f"{path} stage {stage!r}"
+    kpis = _check_kpis(kpis, source)
+    if not Path(path).is_file():
+        raise ConfigError(f"{path}: no campaign store at this path")
+    conn = sqlite3.connect(f"file:{Path(path).resolve()}?mode=ro", uri=True)
+    try:
+        batches = conn.execute("SELECT batch_key, points, seeds FROM batches WHERE stage = ? ORDER BY created_at, rowid",
+                               (stage,)).fetchall()
+        rows = conn.execute("SELECT batch_key, point_index, condition, status, kpis FROM evaluations WHERE stage = ?",
+                            (stage,)).fetchall()
+    except sqlite3.DatabaseError as exc:
+        raise ConfigError(f"{source}: not a readable campaign store ({exc})") from exc
+    finally:
+        conn.close()
+    if not batches:
+        raise ConfigError(f"{source}: the store holds no batch of this stage")
+    designs = {points for _, points, _ in batches}
+    if len(designs) != 1:
+        raise ConfigError(f"{source}: the stage holds {len(designs)} designs (batches "
+                          f"{[key for key, _, _ in batches]}); expected one")
+    conditions = sorted({r[2] for r in rows})
+    if condition is None:
+        if len(conditions) != 1:
+            raise ConfigError(f"{source}: runs at conditions {conditions}; name one (condition=)")
+        condition = conditions[0]
+    elif condition not in conditions:
+        raise out_of_range("condition", condition, f"one of {conditions}", source)
+    points = json.loads(batches[0][1])
+    names = tuple(points[0])
+    physical = np.array([[float(p[n]) for n in names] for p in points])
+    coded = np.zeros_like(physical)
+    for j, name in enumerate(names):
+        levels = np.unique(physical[:, j])
+        if len(levels) not in (2, 3):
+            raise ConfigError(f"{source}: parameter {name!r} takes {len(levels)} values {levels.tolist()} in the "
+                              "design; a screening design has 2 or 3 levels")
+        coded[:, j] = np.searchsorted(levels, physical[:, j]) * (2.0 / (len(levels) - 1)) - 1.0
+    seeds = []
+    for key, _, seed_json in batches:
+        batch_seeds = json.loads(seed_json)
+        if len(batch_seeds) != 1:
+            raise ConfigError(f"{source}: batch {key} has seeds {batch_seeds}; a screening batch has one")
+        seeds.append(int(batch_seeds[0]))
+    column = {key: r for r, (key, _, _) in enumerate(batches)}
+    values = np.full((len(points), len(batches), len(kpis)), np.nan)
+    for key, index, cond, status, kpi_json in rows:
+        if cond == condition and status == "done" and kpi_json:
+            measured = json.loads(kpi_json)
+            values[index, column[key]] = [math.nan if measured.get(k) is None else float(measured[k]) for k in kpis]
+    values[~np.isfinite(values)] = np.nan
+    return ScreeningResults(parameter_names=names, coded=coded, physical=physical, seeds=tuple(seeds),
+                            kpi_names=kpis, kpi_values=values, source=f"{source} condition {condition}")
+
 
 def measured_name(kpi: str) -> str:
     """The measured KPI of a DEM KPI: a reduced box's ``<x>_full_<unit>`` (its mass scaled to the
