@@ -34,6 +34,10 @@ def report(progress: StoreProgress, workers: int) -> str:
     lines = [f"## {progress.path}", ""]
     for stage, counts in progress.status.items():
         lines.append(f"- {stage}: " + ", ".join(f"{n} {state}" for state, n in sorted(counts.items())))
+        keys = progress.batches.get(stage, {})
+        if len(keys) > 1 and stage != "screening":  # earlier designs (surrogate.reuse_designs names them)
+            lines += [f"  - batch {key}: " + ", ".join(f"{n} {state}" for state, n in sorted(c.items()))
+                      for key, c in keys.items()]
     lines += ["", "| runs of | done | left | failed | worker time per run |", "| --- | ---: | ---: | ---: | ---: |"]
     for c in progress.classes:
         per_run = "-" if c.seconds_per_run is None else _duration(c.seconds_per_run)

@@ -396,6 +396,38 @@ def test_screening_points_as_surrogate_data_cut_the_initial_design_and_still_cal
     assert doc["surrogate"]["reused_screening_points"] == 13
 
 
+
+def test_design_points_reuse_the_finished_points_of_an_earlier_design(tmp_path):
+    """``surrogate.reuse_designs``: the finished points of an earlier initial design that lie inside the
+    new bounds are surrogate data, with their KPIs per seed; unfinished points and points outside the
+    bounds are left out and counted; a key the store lacks, or a design of other parameters, is an error."""
+    from bo.calibration.pipeline import design_points
+    from bo.campaign.executor import EvalOutcome
+    from bo.campaign.store import CampaignStore
+    from torchdem.errors import ConfigError
+
+    store = CampaignStore(tmp_path / "c.sqlite", "cfg", extra_stages=EXTRA_STAGES)
+    points = [{"mu_s_pp": 0.3, "mu_r_pp": 0.05}, {"mu_s_pp": 0.5, "mu_r_pp": 0.07},
+              {"mu_s_pp": 0.7, "mu_r_pp": 0.20}, {"mu_s_pp": 0.6, "mu_r_pp": 0.06}]
+    store.batch("initial", "old", lambda: points, seeds=[0], conditions=["50-50"])
+    tasks = store.claim(10, stage="initial")
+    index = {tuple(sorted(p.items())): i for i, p in enumerate(points)}
+    done = [t for t in tasks if index[tuple(sorted(t.params.items()))] < 3]  # point 3 never finishes
+    store.record([(t, EvalOutcome.success({"a": 10.0 * index[tuple(sorted(t.params.items()))], "b": 1.0}, 1.0))
+                  for t in done])
+    names = ("mu_r_pp", "mu_s_pp")  # the calibration's order, not the batch's
+    bounds = np.array([[0.045, 0.2], [0.1, 0.9]]).T  # point 2 (mu_r_pp 0.20) is outside
+    X, reps, note = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.1, 0.9]]), [0], "50-50", ["b", "a"])
+    assert X.tolist() == [[0.05, 0.3], [0.07, 0.5]]
+    assert reps.shape == (2, 1, 2) and reps[:, 0].tolist() == [[1.0, 0.0], [1.0, 10.0]]
+    assert note == "2 finished points of the earlier design ['old'] reused; 1 left out, outside the bounds; 1 never run"
+    X, _, note = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.25, 0.9]]), [0], "50-50", ["a"])
+    assert len(X) == 3 and "left out" not in note
+    with pytest.raises(ConfigError, match=r"holds no initial design 'new'; it holds \['old'\]"):
+        design_points(store, ["new"], names, bounds, [0], "50-50", ["a"])
+    with pytest.raises(ConfigError, match=r"design 'old' varies \['mu_r_pp', 'mu_s_pp'\]; the calibration varies"):
+        design_points(store, ["old"], ("mu_s_pp", "e_pp"), bounds, [0], "50-50", ["a"])
+
 # -- make run: a shipped store, resumed, with the verification made again ----------------------
 
 def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(known_campaign, tmp_path):
@@ -511,6 +543,8 @@ def test_killed_campaign_resumes_without_losing_or_repeating_a_run(tmp_path):
     ("surrogate.target_basis=explainable surrogate.replicates=1 surrogate.noise=learned",
      r"surrogate: target_basis = 'explainable' is not allowed; expected 'total' when points run once"),
     ("surrogate.reuse_screening=maybe", r"surrogate: reuse_screening = 'maybe' is not allowed; expected true or false"),
+    ("surrogate.reuse_designs=abc", r"surrogate: reuse_designs = 'abc' is not allowed; expected a list of distinct "
+     r"batch keys"),
     ("validation.conditions=[60-40]", r"validation.conditions: \['60-40'\] are not in the measured data"),
     ("measured=/nonexistent/lab.json", r"/nonexistent/lab.json: cannot read measured-data file"),
 ])

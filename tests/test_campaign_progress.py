@@ -53,6 +53,8 @@ def test_costs_per_class_batches_shared_runs_and_bounds(tmp_path):
     progress = store_progress(store.path)
 
     assert progress.status == {"screening": {"done": 4, "pending": 4, "failed": 1}}
+    assert progress.batches == {"screening": {"design": {"done": 3, "pending": 3, "failed": 1},
+                                              "again": {"done": 1, "pending": 1}}}
     by_shape = {c.shape: c for c in progress.classes}
     assert set(by_shape) == {(("lobe_spacing_sinter", 0.15),), (("lobe_spacing_sinter", 0.275),),
                              (("lobe_spacing_sinter", 0.3),)}
@@ -102,6 +104,14 @@ def test_status_script_reports_a_store(tmp_path):
     assert "| mirror=True|slice_depth=0.1 lobe_spacing_sinter 0.15 | 1 | 3 | 0 | 2.0 min |" in out
     # 3 runs at 0.15 (2 min) + 1 at 0.275 + 2 at 0.3 borrowing it: 12 min of worker time, at least
     assert "Left in the store: 6 runs, at least 0.2 h of worker time, at least 0.1 h on 2 workers" in out
+    # a surrogate stage of two designs lists each (surrogate.reuse_designs names them); the screening does not
+    store.batch("initial", "first", lambda: [_point(0.15, 0.4)], seeds=[0], conditions=[LAB])
+    store.batch("initial", "second", lambda: [_point(0.15, 0.6)], seeds=[0], conditions=[LAB])
+    store.batch("screening", "more", lambda: [_point(0.15, 0.2)], seeds=[0], conditions=[LAB])
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "campaign_status.py"), str(store.path)],
+                         capture_output=True, text=True, check=True).stdout
+    assert "  - batch first: 1 pending\n  - batch second: 1 pending" in out
+    assert "batch design" not in out
 
 
 def test_runs_whose_discharge_had_not_ended_are_counted(tmp_path):

@@ -60,8 +60,9 @@ def test_added_parameters_join_the_selection_with_their_bounds():
     screening = SimpleNamespace(results=SimpleNamespace(levels=lambda: {"mu_s_pp": (0.3, 0.9)}, parameter_names=("mu_s_pp",)),
                                 analysis=SimpleNamespace(selected_parameters=("mu_s_pp",)), proposal=None)
     names, bounds, note = choose_parameters(screening, s)
-    assert names == ("mu_s_pp", "density_pellet", "density_sinter", "mu_s_pg")
-    np.testing.assert_allclose(bounds[:, 1:], [[3240.0, 3100.0, 0.285], [3960.0, 3800.0, 0.9]])
+    assert names == ("mu_s_pp", "density_pellet", "density_sinter", "mu_s_pg", "mu_r_pp", "mu_r_pg")
+    # the rolling frictions up to the top of the paper's Table 6
+    np.testing.assert_allclose(bounds[:, 1:], [[3240.0, 3100.0, 0.285, 0.045, 0.045], [3960.0, 3800.0, 0.9, 0.24, 0.24]])
     assert "added by the config" in note
     with pytest.raises(ConfigError, match=r"surrogate: added.density_pellet"):
         calibration_settings_from(_plain("surrogate.added.density_pellet=[-1,3000]"))

@@ -128,6 +128,10 @@ class SurrogateStageSettings:
             bound from the Table-6 proposal or the screened range beyond it is moved onto it, so
             a screening may look past where the model stays physical (a trilobe's lobes part
             above a lobe spacing of 1 / (2 + sqrt 3)) while the calibration does not.
+        reuse_designs: batch keys of earlier initial designs in the store (a design the campaign
+            ran part of before its bounds changed): their finished points inside the bounds enter
+            the surrogate's data as points already run (:func:`design_points`), after the
+            screening's, and the initial Latin hypercube shrinks by as many.
     """
 
     parameters: tuple[str, ...] | None
@@ -140,6 +144,7 @@ class SurrogateStageSettings:
     noise: str = "learned"
     reuse_screening: bool = False
     limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    reuse_designs: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -541,6 +546,63 @@ def screening_points(results: ScreeningResults, names: Sequence[str], bounds: np
     return X[inside], np.array(reps[inside]), note
 
 
+def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str], bounds: np.ndarray,
+                  seeds: Sequence[int], condition: str, kpis: Sequence[str]) -> tuple[np.ndarray, np.ndarray, str]:
+    """The finished points of earlier initial designs as surrogate data: ``(X [n, d], reps [n, r, M],
+    note)`` for the ``initial`` batches ``keys`` of ``store``, the runs of ``condition`` with one of
+    ``seeds`` (``r``), KPIs ``kpis`` (``M``). A point with no finished run, or outside ``bounds
+    [2, d]``, is left out (the note counts them). Raises ConfigError for a key the store does not
+    hold or a batch whose points vary other parameters than ``names``."""
+    held = [k for _, k in store.batch_keys("initial")]
+    X, reps, outside, not_run = [], [], 0, 0
+    index = {int(seed): r for r, seed in enumerate(seeds)}
+    tol = 1e-9 * (bounds[1] - bounds[0])
+    for key in keys:
+        if key not in held:
+            raise ConfigError(f"surrogate.reuse_designs: {store.path} holds no initial design {key!r}; it holds "
+                              f"{held}")
+        points: dict[int, tuple[dict, np.ndarray]] = {}
+        for rec in store.records("initial", batch_key=key, condition=condition, status="done"):
+            if set(rec.params) != set(names):
+                raise ConfigError(f"surrogate.reuse_designs: design {key!r} varies {sorted(rec.params)}; the "
+                                  f"calibration varies {sorted(names)}")
+            if rec.seed not in index or rec.kpis is None:
+                continue
+            _, values = points.setdefault(rec.point_index, (rec.params, np.full((len(seeds), len(kpis)), np.nan)))
+            values[index[rec.seed]] = [rec.kpis.get(k, math.nan) for k in kpis]
+        n_design = len({rec.point_index for rec in store.records("initial", batch_key=key)})
+        not_run += n_design - len(points)
+        for i in sorted(points):
+            params, values = points[i]
+            x = np.array([params[n] for n in names], dtype=np.float64)
+            if np.any(x < bounds[0] - tol) or np.any(x > bounds[1] + tol):
+                outside += 1
+                continue
+            X.append(x)
+            reps.append(values)
+    X_out = np.array(X, dtype=np.float64).reshape(len(X), len(names))
+    reps_out = np.array(reps, dtype=np.float64).reshape(len(reps), len(seeds), len(kpis))
+    reps_out[~np.isfinite(reps_out)] = np.nan
+    note = (f"{len(X)} finished points of the earlier design{'s' if len(keys) > 1 else ''} {list(keys)} reused"
+            + (f"; {outside} left out, outside the bounds" if outside else "")
+            + (f"; {not_run} never run" if not_run else ""))
+    return X_out, reps_out, note
+
+
+def _joined(first: tuple[np.ndarray, np.ndarray, str], second: tuple[np.ndarray, np.ndarray, str]
+            ) -> tuple[np.ndarray, np.ndarray, str]:
+    """Two sets of points already run, one after the other; replicates padded with NaN to the wider."""
+    width = max(first[1].shape[1], second[1].shape[1])
+
+    def padded(reps: np.ndarray) -> np.ndarray:
+        out = np.full((reps.shape[0], width, reps.shape[2]), np.nan)
+        out[:, :reps.shape[1]] = reps
+        return out
+
+    return (np.concatenate([first[0], second[0]]), np.concatenate([padded(first[1]), padded(second[1])]),
+            f"{first[2]}; {second[2]}")
+
+
 def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str, names: Sequence[str],
                     bounds: np.ndarray, objective: ObjectiveSpec, s: SurrogateStageSettings,
                     echo: Callable[[str], None] = print, pooled: np.ndarray | None = None,
@@ -841,6 +903,10 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     if settings.surrogate.reuse_screening:
         nominal = {DENSITY_PREFIX + m: float(rho) for m, rho in densities.items()}
         prior = screening_points(screening.results, names, bounds, objective.kpi_names, nominal)
+    if settings.surrogate.reuse_designs:
+        earlier = design_points(store, settings.surrogate.reuse_designs, names, bounds, settings.surrogate.seeds,
+                                settings.condition, objective.kpi_names)
+        prior = earlier if prior is None else _joined(prior, earlier)
     surrogate = surrogate_stage(store, executor, condition=settings.condition, names=names, bounds=bounds,
                                 objective=objective, s=settings.surrogate, echo=echo, pooled=pooled, prior=prior)
     lap("surrogate")

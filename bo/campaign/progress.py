@@ -108,6 +108,8 @@ class StoreProgress:
             the lab's end state), or made before runs recorded it (``"not recorded"``); and how
             many of them jammed (``"jammed"``: less than ``torchdem.drawdown.JAM_FRACTION`` of the
             fill left the upper box).
+        batches: stage -> batch key -> status -> number of rows (a stage of several batches holds
+            designs asked for before, e.g. an initial design whose bounds then changed).
     """
 
     path: str
@@ -117,6 +119,7 @@ class StoreProgress:
     remaining_s: float | None
     remaining_bound: str = ""
     discharge: dict[str, int] = field(default_factory=dict)
+    batches: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)
 
     @property
     def remaining_runs(self) -> int:
@@ -143,6 +146,8 @@ def store_progress(path: str | Path) -> StoreProgress:
     try:
         rows = conn.execute("SELECT stage, params, seed, condition, status, wall_time, claimed_by, finished_at, kpis "
                             "FROM evaluations ORDER BY task_id").fetchall()
+        keyed = conn.execute("SELECT stage, batch_key, status, COUNT(*) FROM evaluations "
+                             "GROUP BY stage, batch_key, status ORDER BY MIN(task_id)").fetchall()
     finally:
         conn.close()
     status: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
@@ -189,5 +194,8 @@ def store_progress(path: str | Path) -> StoreProgress:
             remaining = None if remaining is None or per_run is None else remaining + n_left * per_run
     bounds = {c.bound for c in classes if c.remaining and c.bound}
     total_bound = "" if not bounds else bounds.pop() if len(bounds) == 1 else "roughly"
+    batches: dict[str, dict[str, dict[str, int]]] = {}
+    for stage, key, state, n in keyed:
+        batches.setdefault(stage, {}).setdefault(key, {})[state] = n
     return StoreProgress(str(path), {s: dict(v) for s, v in status.items()}, tuple(classes), spent, remaining,
-                         total_bound, discharge)
+                         total_bound, discharge, batches)

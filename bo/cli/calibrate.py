@@ -163,10 +163,16 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     reuse = cfg.get("reuse_screening", False)
     if not isinstance(reuse, bool):
         raise out_of_range("reuse_screening", reuse, "true or false (the screening's points as surrogate data)", where)
+    designs = cfg.get("reuse_designs") or []
+    if isinstance(designs, str) or not isinstance(designs, Sequence) \
+            or any(not isinstance(k, str) or not k for k in designs) or len(set(designs)) != len(designs):
+        raise out_of_range("reuse_designs", designs, "a list of distinct batch keys of earlier initial designs in "
+                           "the store (python scripts/campaign_status.py lists them), or null", where)
     return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=seeds,
                                   adaptive=adaptive, config=config,
                                   compare_strategies=bool(cfg.get("compare_strategies")), added=checked_added,
-                                  noise=noise, reuse_screening=reuse, limits=checked_limits)
+                                  noise=noise, reuse_screening=reuse, limits=checked_limits,
+                                  reuse_designs=tuple(designs))
 
 
 def calibration_settings_from(plain: Mapping[str, Any]):
