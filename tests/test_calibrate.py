@@ -428,6 +428,58 @@ def test_design_points_reuse_the_finished_points_of_an_earlier_design(tmp_path):
     with pytest.raises(ConfigError, match=r"design 'old' varies \['mu_r_pp', 'mu_s_pp'\]; the calibration varies"):
         design_points(store, ["old"], ("mu_s_pp", "e_pp"), bounds, [0], "50-50", ["a"])
 
+
+def test_a_campaign_whose_bounds_change_reuses_the_runs_of_its_earlier_design(tmp_path):
+    """A campaign stopped inside its initial design, then given wider bounds (``surrogate.added``) with
+    ``surrogate.reuse_designs`` naming the first design: the first design's finished points are data,
+    the new design shrinks by as many, and no run is made twice."""
+    import functools
+
+    class Stop(BaseException):  # an interruption: the executor records an Exception as a failed run
+        pass
+
+    log = tmp_path / "log.jsonl"
+    base = km.small_settings()
+    first = dataclasses.replace(base, surrogate=dataclasses.replace(base.surrogate, seeds=(0,), noise="pooled",
+                                                                    reuse_screening=True))
+    store = CampaignStore(tmp_path / "c.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
+    done_initial = []
+
+    def until_four_initial(tasks):
+        if store.batch_keys("initial"):
+            if len(done_initial) >= 4:
+                raise Stop
+            done_initial.extend(tasks)
+        return km.known_batch(tasks, log_path=str(log))
+
+    with pytest.raises(Stop):
+        run_calibration(store, InProcessExecutor(until_four_initial, batch_size=2), first, km.known_measurement(),
+                        tmp_path / "out1", km.NOMINAL_DENSITY, echo=lambda line: None)
+    (_, old_key), = store.batch_keys("initial")
+    assert store.counts("initial")["done"] == 4
+    assert store.withdraw_batch("initial", old_key) > 0  # its unrun tasks are no longer work left
+    # wider rolling friction of pellets, as profile=lab widened its rolling frictions
+    wider = dataclasses.replace(first, surrogate=dataclasses.replace(
+        first.surrogate, added={"mu_r_pp": (0.04, 0.25)}, reuse_designs=(old_key,)))
+    lines = []
+    result = run_calibration(store, InProcessExecutor(functools.partial(km.known_batch, log_path=str(log)),
+                                                      batch_size=6),
+                             wider, km.known_measurement(), tmp_path / "out2", km.NOMINAL_DENSITY, echo=lines.append)
+    sur = result.surrogate
+    assert any("4 finished points of the earlier design" in line for line in lines), lines
+    assert sur.reused_design_points == 4 and sur.reused_points == 13 + 4
+    new_keys = [k for _, k in store.batch_keys("initial") if k != old_key]
+    assert len(new_keys) == 1
+    n_new = len({r.point_index for r in store.records("initial", batch_key=new_keys[0])})
+    full = wider.surrogate.adaptive.initial_size(len(sur.parameters), reused=17)
+    assert n_new == max(full - 17, -(-full // 2))
+    logged = Counter(log.read_text().splitlines())
+    assert max(logged.values()) == 1  # no run made twice
+    old_X = {tuple(r.params[n] for n in sur.parameters) for r in store.records("initial", batch_key=old_key)}
+    assert old_X <= {tuple(x) for x in sur.state.X.tolist()}
+    doc = json.loads(write_calibration_report(result, tmp_path / "out2")["json"].read_text())
+    assert doc["surrogate"]["reused_design_points"] == 4 and doc["surrogate"]["reused_screening_points"] == 13
+
 # -- make run: a shipped store, resumed, with the verification made again ----------------------
 
 def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(known_campaign, tmp_path):

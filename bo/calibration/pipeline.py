@@ -245,8 +245,10 @@ class SurrogateOutcome:
             LHS). stopped_because: ``"target_r2"`` or ``"budget"``. points_run: design points this
             stage evaluated (failed ones included; the reused ones not). dropped_points: points
             without a usable objective (fewer than ``min(2, r)`` finite replicates of some KPI).
-        reused_points: screening points among the data (``reuse_screening``); reuse_note: what
-            was reused and what was left out, for the report.
+        reused_points: points run before this stage's design among the data (the screening's,
+            ``reuse_screening``, and an earlier design's, ``reuse_designs``); reused_design_points:
+            the earlier design's among them (run by this stage, so they cost DEM runs); reuse_note:
+            what was reused and what was left out, for the report.
         strategy_r2: strategy -> CV R^2 mean per round (the run's strategy and, when compared,
             the other one on the same data; with pooled noise also ``"<strategy>, learned noise"``:
             the run's strategy with a learned noise level, on the same data).
@@ -263,6 +265,7 @@ class SurrogateOutcome:
     strategy_r2: Mapping[str, tuple[float, ...]]
     reused_points: int = 0
     reuse_note: str = ""
+    reused_design_points: int = 0
 
 
 @dataclass(frozen=True)
@@ -909,6 +912,8 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
         prior = earlier if prior is None else _joined(prior, earlier)
     surrogate = surrogate_stage(store, executor, condition=settings.condition, names=names, bounds=bounds,
                                 objective=objective, s=settings.surrogate, echo=echo, pooled=pooled, prior=prior)
+    if settings.surrogate.reuse_designs:
+        surrogate = dataclasses.replace(surrogate, reused_design_points=len(earlier[0]))
     lap("surrogate")
     echo("[3/6] genetic algorithm on the surrogate")
     ga = ga_stage(store, surrogate, objective, settings, echo)

@@ -82,7 +82,8 @@ def calibration_payload(result: CalibrationResult) -> dict:
                       "strategy": s.surrogate.config.strategy,
                       "replicates_per_point": len(s.surrogate.seeds), "noise": s.surrogate.noise,
                       "points_run": sur.points_run, "dropped_points": sur.dropped_points,
-                      "reused_screening_points": sur.reused_points, "reuse_note": sur.reuse_note,
+                      "reused_screening_points": sur.reused_points - sur.reused_design_points,
+                      "reused_design_points": sur.reused_design_points, "reuse_note": sur.reuse_note,
                       "stopped_because": sur.stopped_because, "target_r2": s.surrogate.adaptive.target_r2,
                       "target_basis": s.surrogate.adaptive.target_basis,
                       "rounds": [{"round": r.index, "n_points": r.n_points, "kernel": r.kernel,
@@ -106,7 +107,8 @@ def calibration_payload(result: CalibrationResult) -> dict:
 
 def strategy_comparison(result: CalibrationResult) -> dict:
     """Per strategy: the CV R^2 after every round and the surrogate stage's DEM runs (its own
-    points x replicates; reused screening points cost none) it took to first reach the target
+    points x replicates, an earlier design's reused points included; reused screening points cost
+    none) it took to first reach the target
     (None if it never did), on the same sampled data."""
     sur, s = result.surrogate, result.settings.surrogate
     r = len(s.seeds)
@@ -115,7 +117,8 @@ def strategy_comparison(result: CalibrationResult) -> dict:
         reached = next((rec.n_points for rec, v in zip(sur.rounds, values)
                         if target_reached(v, rec.stop_ceiling, s.adaptive)), None)
         out[strategy] = {"r2_per_round": list(values), "points_to_target": reached,
-                         "dem_runs_to_target": None if reached is None else max(reached - sur.reused_points, 0) * r}
+                         "dem_runs_to_target": None if reached is None
+                         else max(reached - (sur.reused_points - sur.reused_design_points), 0) * r}
     return out
 
 
