@@ -80,10 +80,11 @@ def main() -> None:
 
     print(f"{results.source}: {int(np.isfinite(results.kpi_values[..., 0]).sum())} runs, "
           f"{results.n_replicates} replicates of {results.n_runs} points")
-    print("\n| KPI | lab | design centre | replicate sd (dof) | residual sd (dof) |\n| --- | ---: | ---: | ---: | ---: |")
+    print("\n| KPI | lab | design centre | replicate sd (dof) | residual sd (dof) | lack of fit p |\n"
+          "| --- | ---: | ---: | ---: | ---: | ---: |")
     for m, name in enumerate(SHORT):
         print(f"| {name} | {lab[m]:.2f} | {fit.intercept[m]:.2f} | {fit.replicate_sd[m]:.3f} ({fit.replicate_dof[m]}) "
-              f"| {fit.residual_sd[m]:.3f} ({fit.residual_dof[m]}) |")
+              f"| {fit.residual_sd[m]:.3f} ({fit.residual_dof[m]}) | {fit.lack_of_fit_p[m]:.2g} |")
 
     print(f"\nChange from the low to the high level (standard error); detection at {condition_name} alone with "
           f"{args.dem_replicates} DEM runs per cell:\n")

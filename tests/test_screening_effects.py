@@ -41,6 +41,7 @@ def test_main_effects_recover_a_linear_truth_within_their_standard_errors():
     assert np.all(fit.replicate_sd > SD * lo) and np.all(fit.replicate_sd < SD * hi)
     # a linear truth leaves no lack of fit: the residual is the replicate scatter
     assert np.allclose(fit.residual_sd, fit.replicate_sd, rtol=0.2)
+    assert np.all(fit.lack_of_fit_p > 0.001)
     np.testing.assert_allclose(fit.low, LOW)
     np.testing.assert_allclose(fit.high, HIGH)
 
@@ -62,6 +63,7 @@ def test_shift_and_prediction_follow_the_slopes():
 def test_curvature_shows_as_lack_of_fit():
     fit = main_effects(_screening(curvature=3.0))
     assert np.all(fit.residual_sd[0] > 2 * fit.replicate_sd[0])  # the quadratic term left out
+    assert fit.lack_of_fit_p[0] < 1e-6 and fit.lack_of_fit_p[1] > 0.001
     assert fit.residual_sd[1] < 1.3 * fit.replicate_sd[1]  # the other KPI has none
 
 

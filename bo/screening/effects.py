@@ -15,7 +15,9 @@ together, and returns a frozen :class:`MainEffects`:
   (the pure error, from the points with at least two finite replicates), the DEM's own scatter;
 - ``residual_sd[m]``: the fit's residual standard deviation. ``residual_sd`` well above
   ``replicate_sd`` means curvature or interactions the main effects miss (lack of fit), and a
-  shift predicted from ``effect`` is then rougher than its standard error says.
+  shift predicted from ``effect`` is then rougher than its standard error says;
+  ``lack_of_fit_p[m]`` is the p-value of the classical lack-of-fit F test (the residual's sum of
+  squares beyond the pure error, per degree of freedom, against the pure error's).
 
 ``MainEffects.shift(parameter, start, end)`` is the linear prediction of the KPIs' change when the
 parameter moves from ``start`` to ``end`` (``[n_kpi]``), and ``shift_se`` its standard error;
@@ -33,6 +35,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 
 from bo.screening.stepwise import ScreeningResults
 from torchdem.errors import ConfigError, out_of_range
@@ -52,6 +55,8 @@ class MainEffects:
         replicate_sd, replicate_dof: ``[m]`` pooled pure-error sd of one run and its degrees of freedom.
         residual_sd, residual_dof: ``[m]`` the fit's residual sd and degrees of freedom.
         n_runs: ``[m]`` finite runs each fit used.
+        lack_of_fit_p: ``[m]`` p-value of the lack-of-fit F test (NaN without pure error or
+            without lack-of-fit degrees of freedom).
         source: where the screening came from, named in errors.
     """
 
@@ -67,6 +72,7 @@ class MainEffects:
     residual_sd: np.ndarray
     residual_dof: np.ndarray
     n_runs: np.ndarray
+    lack_of_fit_p: np.ndarray
     source: str = "MainEffects"
 
     def index(self, parameter: str) -> int:
@@ -134,10 +140,17 @@ def main_effects(results: ScreeningResults) -> MainEffects:
         effect_se[:, j] = 2.0 * np.sqrt(np.diag(cov)[1:])
         residual_sd[j], residual_dof[j], n_runs[j] = np.sqrt(s2), dof, len(yj)
     replicate_sd, replicate_dof = _pure_error(values)
+    lack_dof = residual_dof - replicate_dof
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lack_ms = (residual_sd ** 2 * residual_dof - replicate_sd ** 2 * replicate_dof) / lack_dof
+        f_value = np.maximum(lack_ms, 0.0) / replicate_sd ** 2
+    usable = (lack_dof > 0) & (replicate_dof > 0) & np.isfinite(f_value)
+    lack_of_fit_p = np.where(usable, stats.f.sf(np.where(usable, f_value, 0.0), np.maximum(lack_dof, 1),
+                                                np.maximum(replicate_dof, 1)), np.nan)
     return MainEffects(parameter_names=tuple(results.parameter_names), kpi_names=tuple(results.kpi_names),
                        low=low, high=high, effect=effect, effect_se=effect_se, intercept=intercept,
                        replicate_sd=replicate_sd, replicate_dof=replicate_dof, residual_sd=residual_sd,
-                       residual_dof=residual_dof, n_runs=n_runs, source=results.source)
+                       residual_dof=residual_dof, n_runs=n_runs, lack_of_fit_p=lack_of_fit_p, source=results.source)
 
 
 def _pure_error(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
