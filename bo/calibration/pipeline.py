@@ -48,6 +48,7 @@ using AI-accelerated surrogate models", sections 3.3-3.7, Tables 5-9, A.4-A.6.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -557,52 +558,51 @@ def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str
     [2, d]``, is left out (the note counts them). Raises ConfigError for a key the store does not
     hold or a batch whose points vary other parameters than ``names``."""
     held = [k for _, k in store.batch_keys("initial")]
-    X, reps, outside, not_run = [], [], 0, 0
+    X, reps, not_run = [], [], 0
     index = {int(seed): r for r, seed in enumerate(seeds)}
     tol = 1e-9 * (bounds[1] - bounds[0])
     for key in keys:
         if key not in held:
             raise ConfigError(f"surrogate.reuse_designs: {store.path} holds no initial design {key!r}; it holds "
                               f"{held}")
+        records = store.records("initial", batch_key=key)
         points: dict[int, tuple[dict, np.ndarray]] = {}
-        for rec in store.records("initial", batch_key=key, condition=condition, status="done"):
+        for rec in records:
             if set(rec.params) != set(names):
                 raise ConfigError(f"surrogate.reuse_designs: design {key!r} varies {sorted(rec.params)}; the "
                                   f"calibration varies {sorted(names)}")
-            if rec.seed not in index or rec.kpis is None:
+            if rec.status != "done" or rec.condition != condition or rec.seed not in index or rec.kpis is None:
                 continue
             _, values = points.setdefault(rec.point_index, (rec.params, np.full((len(seeds), len(kpis)), np.nan)))
             values[index[rec.seed]] = [rec.kpis.get(k, math.nan) for k in kpis]
-        n_design = len({rec.point_index for rec in store.records("initial", batch_key=key)})
-        not_run += n_design - len(points)
+        not_run += len({rec.point_index for rec in records}) - len(points)
         for i in sorted(points):
-            params, values = points[i]
-            x = np.array([params[n] for n in names], dtype=np.float64)
-            if np.any(x < bounds[0] - tol) or np.any(x > bounds[1] + tol):
-                outside += 1
-                continue
-            X.append(x)
-            reps.append(values)
-    X_out = np.array(X, dtype=np.float64).reshape(len(X), len(names))
-    reps_out = np.array(reps, dtype=np.float64).reshape(len(reps), len(seeds), len(kpis))
-    reps_out[~np.isfinite(reps_out)] = np.nan
-    note = (f"{len(X)} finished points of the earlier design{'s' if len(keys) > 1 else ''} {list(keys)} reused"
+            X.append([points[i][0][n] for n in names])
+            reps.append(points[i][1])
+    X_all = np.array(X, dtype=np.float64).reshape(len(X), len(names))
+    reps_all = np.array(reps, dtype=np.float64).reshape(len(reps), len(seeds), len(kpis))
+    reps_all[~np.isfinite(reps_all)] = np.nan
+    inside = np.all((X_all >= bounds[0] - tol) & (X_all <= bounds[1] + tol), axis=1)
+    outside = int((~inside).sum())
+    X_out, reps_out = X_all[inside], reps_all[inside]
+    note = (f"{len(X_out)} finished points of the earlier design{'s' if len(keys) > 1 else ''} {list(keys)} reused"
             + (f"; {outside} left out, outside the bounds" if outside else "")
             + (f"; {not_run} never run" if not_run else ""))
     return X_out, reps_out, note
 
 
+def _padded(reps: np.ndarray, width: int) -> np.ndarray:
+    """``[n, r, M]`` replicates as ``[n, width, M]`` (``width >= r``), the extra runs NaN (not run)."""
+    out = np.full((reps.shape[0], width, reps.shape[2]), np.nan)
+    out[:, :reps.shape[1]] = reps
+    return out
+
+
 def _joined(first: tuple[np.ndarray, np.ndarray, str], second: tuple[np.ndarray, np.ndarray, str]
             ) -> tuple[np.ndarray, np.ndarray, str]:
-    """Two sets of points already run, one after the other; replicates padded with NaN to the wider."""
+    """Two sets of points already run, one after the other; replicates padded to the wider."""
     width = max(first[1].shape[1], second[1].shape[1])
-
-    def padded(reps: np.ndarray) -> np.ndarray:
-        out = np.full((reps.shape[0], width, reps.shape[2]), np.nan)
-        out[:, :reps.shape[1]] = reps
-        return out
-
-    return (np.concatenate([first[0], second[0]]), np.concatenate([padded(first[1]), padded(second[1])]),
+    return (np.concatenate([first[0], second[0]]), np.concatenate([_padded(first[1], width), _padded(second[1], width)]),
             f"{first[2]}; {second[2]}")
 
 
@@ -634,11 +634,7 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                *([X0.tolist(), reps0.tolist()] if prior is not None else []))
     rows = lambda X: [dict(zip(names, map(float, x))) for x in X]  # noqa: E731
     width = max(len(s.seeds), reps0.shape[1])
-
-    def padded(reps: np.ndarray) -> np.ndarray:
-        out = np.full((reps.shape[0], width, len(kpis)), np.nan)
-        out[:, :reps.shape[1]] = reps
-        return out
+    padded = functools.partial(_padded, width=width)
 
     def evaluated(stage: str, points: Sequence[Mapping[str, float]]) -> tuple[np.ndarray, np.ndarray]:
         X = np.array([[p[n] for n in names] for p in points], dtype=np.float64).reshape(len(points), d)
@@ -906,14 +902,14 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     if settings.surrogate.reuse_screening:
         nominal = {DENSITY_PREFIX + m: float(rho) for m, rho in densities.items()}
         prior = screening_points(screening.results, names, bounds, objective.kpi_names, nominal)
+    n_earlier = 0
     if settings.surrogate.reuse_designs:
         earlier = design_points(store, settings.surrogate.reuse_designs, names, bounds, settings.surrogate.seeds,
                                 settings.condition, objective.kpi_names)
-        prior = earlier if prior is None else _joined(prior, earlier)
+        prior, n_earlier = (earlier if prior is None else _joined(prior, earlier)), len(earlier[0])
     surrogate = surrogate_stage(store, executor, condition=settings.condition, names=names, bounds=bounds,
                                 objective=objective, s=settings.surrogate, echo=echo, pooled=pooled, prior=prior)
-    if settings.surrogate.reuse_designs:
-        surrogate = dataclasses.replace(surrogate, reused_design_points=len(earlier[0]))
+    surrogate = dataclasses.replace(surrogate, reused_design_points=n_earlier)
     lap("surrogate")
     echo("[3/6] genetic algorithm on the surrogate")
     ga = ga_stage(store, surrogate, objective, settings, echo)

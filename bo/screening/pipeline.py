@@ -62,6 +62,7 @@ from bo.design.dsd import ParameterTable, definitive_screening_design, scale_des
 from bo.campaign.executor import Executor, run_pending
 from bo.screening.bounds import ExtensionProposal, PhysicalLimit, measured_mean_ci95, propose_extension
 from bo.screening.stepwise import ScreeningAnalysis, ScreeningResults, analyse_screening
+from bo.campaign.progress import open_read_only
 from bo.campaign.store import CampaignStore
 from bo.screening.variance import VarianceDecomposition, decompose_variance
 from torchdem.errors import ConfigError, out_of_range
@@ -214,7 +215,7 @@ def stored_screening(path, kpis: Sequence[str], *, stage: str = "screening",
     kpis = _check_kpis(kpis, source)
     if not Path(path).is_file():
         raise ConfigError(f"{path}: no campaign store at this path")
-    conn = sqlite3.connect(f"file:{Path(path).resolve()}?mode=ro", uri=True)
+    conn = open_read_only(Path(path), source)
     try:
         batches = conn.execute("SELECT batch_key, points, seeds FROM batches WHERE stage = ? ORDER BY created_at, rowid",
                                (stage,)).fetchall()
