@@ -299,6 +299,56 @@ def test_hidden_density_effect_is_named_and_gains_on_held_out_conditions(tmp_pat
         assert abs(g.after_error_pct) < 0.3 * abs(g.before_error_pct), g
 
 
+def test_a_candidate_that_could_not_be_named_makes_no_held_out_runs(tmp_path):
+    """Verdict rules 5 (``prune_probability``). On the known-answer model only the densities move
+    the flow; the other candidates' parameters move nothing there, so their GPs predict about the
+    calibrated model's misfit on every held-out condition, which leaves them little chance of
+    beating it by step 3's threshold. The clump shape's GP gives it 5e-5 and the free interaction's
+    0.005: they make no held-out runs (the store has none of theirs) and are reported with their GP's
+    predicted score. Cohesion's GP chases the model's noise (its predicted held-out chi^2 is 1,426
+    against the calibrated model's 1,534, where its runs then give 1,538), so it keeps its chance
+    and its runs. The cause, its fit and its held-out runs are those of the same discovery with every
+    candidate run."""
+    from bo.discovery.pipeline import win_probability
+    from bo.discovery.report import write_discovery_report
+
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    every = _discover(tmp_path / "every", lab, prune_probability=0.0)
+    result = _discover(tmp_path / "pruned", lab)
+    assert every.cause == result.cause == "density_per_material", result.explanation
+    pruned = {h.name: h for h in result.hypotheses if h.pruned}
+    assert "clump_shape" in pruned and set(pruned) <= {"free_interaction", "cohesion", "clump_shape"}
+
+    def held(path, name):
+        store = CampaignStore(path, "known", extra_stages=discovery_stages())
+        return [k for _, k in store.batch_keys(f"discovery-{name}") if k.startswith("held-out/")]
+
+    for h in result.hypotheses[1:]:
+        assert len(held(tmp_path / "every" / "d.sqlite", h.name)) == 3
+        if h.name in pruned:
+            assert h.win_probability < 0.01 and h.held_out_cells == () and h.held_out_chi2 == {}
+            assert h.score == pytest.approx(sum(h.predicted_chi2.values()) + 2.0 * h.added)
+            assert held(tmp_path / "pruned" / "d.sqlite", h.name) == []
+        else:
+            assert h.win_probability >= 0.01 and len(held(tmp_path / "pruned" / "d.sqlite", h.name)) == 3
+    cause = next(h for h in result.hypotheses if h.name == "density_per_material")
+    assert cause.pruned is None and len(cause.held_out_cells) == 12 and cause.win_probability > 0.5
+    before = next(h for h in every.hypotheses if h.name == "density_per_material")
+    assert cause.fitted_without == before.fitted_without and cause.fitted_all == before.fitted_all
+    assert "Not run on their held-out conditions" in result.explanation
+    md = write_discovery_report(result, tmp_path / "report")["md"].read_text()
+    assert "(GP), not run" in md and "- clump_shape: not run on its held-out conditions: by its own GP" in md
+    # the probability itself against closed forms: one cell, z ~ N(m, 1) scaled, chi^2 below t
+    assert win_probability([3.0], [0.0], [1.0], [0.0], [0.0], 4.0) == pytest.approx(
+        stats.norm.cdf(2 - 3) - stats.norm.cdf(-2 - 3), abs=0.004)
+    # the GP's own variance widens the draw: sd sqrt(1 + 3) = 2 over a scale of 1
+    assert win_probability([3.0], [3.0], [1.0], [0.0], [0.0], 4.0) == pytest.approx(
+        stats.norm.cdf((2 - 3) / 2) - stats.norm.cdf((-2 - 3) / 2), abs=0.006)
+    # four cells with no offset: chi^2_4 below its median-ish 3.357
+    assert win_probability(np.zeros(4), np.zeros(4), np.ones(4), np.zeros(4), np.zeros(4), 3.357) == pytest.approx(
+        stats.chi2.cdf(3.357, 4), abs=0.01)
+
+
 def test_an_unresolved_fit_has_its_fitted_points_run_before_its_verdict(tmp_path):
     """Four design points for two densities: the GP's uncertainty at the fit exceeds the data's, so
     the fit is unresolved (fit_check) and its held-out runs land far off (score in the hundreds).
@@ -491,7 +541,8 @@ def test_no_hidden_effect_invents_no_cause(tmp_path):
     result = _discover(tmp_path, _lab({}))
     assert not result.discrepancy.significant
     assert result.cause is None and result.hypotheses == () and result.gain == ()
-    scored = _discover(tmp_path / "scored", _lab({}), always_score=True)
+    # every candidate run on its held-out conditions (prune_probability 0): none could have been named
+    scored = _discover(tmp_path / "scored", _lab({}), always_score=True, prune_probability=0.0)
     assert scored.cause is None, scored.explanation  # fitted anyway: nothing beats the parameters + noise
     assert {h.name for h in scored.hypotheses} == {PARAMETERS, "density_per_material", "free_interaction",
                                                    "cohesion", "clump_shape"}

@@ -44,6 +44,12 @@ returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model
    (learned by the GP when the design runs each point once). The fits minimise the chi^2 the
    held-out runs are scored by: per cell ``((mu - y)^2 + sigma_GP^2) / (s_k^2 / r + u^2)`` with r
    the held-out replicates and ``s_k`` pooled over the discrepancy runs and the design's replicates.
+   Held-out runs only where they can change the verdict: a candidate whose fit is resolved and whose
+   own GP gives it a probability below ``prune_probability`` of scoring below the ``parameters``
+   hypothesis less step 3's threshold (:func:`win_probability`; the GP's posterior and the held-out
+   runs' noise, the threshold's noise sd from its predicted cells) makes none: it is reported with
+   its GP's predicted score, ``pruned``, and can be neither named nor tied. Nor does a fit that is
+   unresolved and about to be refined (below): its verdict waits on the refined fits' runs.
 3. Cause: none while the discrepancy, with the noise pooled over every run, is not significant;
    else the candidate with the lowest score, if it beats the ``parameters`` hypothesis by more
    than ``max(margin, 2 x gain_noise_sd)``; else none: no candidate explains the discrepancy
@@ -115,8 +121,10 @@ PARAMETERS = "parameters"
 #: fit's chi^2, and :func:`fit_check`; 3: each fit searched by a Sobol sample and L-BFGS-B polish
 #: (``fit_search="multistart"``) instead of three GA runs; 4: a fit left unresolved by
 #: :func:`fit_check` has the DEM run the points it chose and is refitted (``escalations`` times)
-#: before the verdict.
-VERDICT_RULES = 4
+#: before the verdict; 5: a candidate whose own GP gives it less than ``prune_probability`` of beating
+#: the ``parameters`` hypothesis by the margin is not run on its held-out conditions
+#: (:func:`win_probability`), nor is an unresolved fit before its refinement.
+VERDICT_RULES = 5
 
 
 def discovery_stages(names: Sequence[str] | None = None) -> tuple[str, ...]:
@@ -157,6 +165,11 @@ class DiscoverySettings:
             on the compared KPIs; every candidate's design also runs on them (its DEM cost grows
             by their number over the measured conditions'), its GP models them, and the lab is
             assumed to measure them with the median standard uncertainty of its measured conditions.
+        prune_probability: a candidate whose fit is resolved and whose own GP gives it a
+            probability below this of scoring better than the ``parameters`` hypothesis by
+            ``margin`` (:func:`win_probability`) is not run on its held-out conditions: it could
+            not be named, and on an expensive geometry its held-out runs are a third of its
+            cost. 0: every candidate is run.
     """
 
     kpis: tuple[str, ...]
@@ -180,6 +193,7 @@ class DiscoverySettings:
     search_samples: int = 1024
     proposed_kpis: tuple[str, ...] = ("max_heap_height_m",)
     proposed_conditions: tuple[str, ...] = ()
+    prune_probability: float = 0.01
 
     def validate(self, source: str = "discovery") -> "DiscoverySettings":
         if isinstance(self.proposed_kpis, str) or len(set(self.proposed_kpis)) != len(self.proposed_kpis):
@@ -199,6 +213,9 @@ class DiscoverySettings:
             raise out_of_range("refit_fraction", self.refit_fraction, "a fraction in (0, 1)", source)
         if not 0 < self.alpha < 1:
             raise out_of_range("alpha", self.alpha, "a probability in (0, 1)", source)
+        if not (isinstance(self.prune_probability, (int, float)) and 0 <= self.prune_probability < 1):
+            raise out_of_range("prune_probability", self.prune_probability, "a probability in [0, 1) (0: never "
+                               "prune)", source)
         for name in ("penalty", "margin"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise out_of_range(name, getattr(self, name), "a finite number >= 0", source)
@@ -289,6 +306,11 @@ class HypothesisScore:
         astray: condition -> (the DEM's held-out chi^2, the GP's prediction) where a left-out fit
             went astray (:func:`prediction_astray`) even after ``escalations`` (reported; the
             refinement is the remedy, the verdict does not wait on it).
+        win_probability: the probability, by its own GP, that its held-out runs would score better
+            than the ``parameters`` hypothesis by the margin (:func:`win_probability`; NaN when
+            not computed). pruned: why its held-out runs were not made (the probability was below
+            ``prune_probability``), else None; a pruned candidate's score is its GP's prediction
+            and it can be neither named nor tied.
     """
 
     name: str
@@ -313,6 +335,8 @@ class HypothesisScore:
     fit_surrogate_chi2: float = math.nan
     fit_cells: int = 0
     astray: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    win_probability: float = math.nan
+    pruned: str | None = None
 
 
 @dataclass(frozen=True)
@@ -551,6 +575,48 @@ def _expected_chi2_terms(mean: np.ndarray, gp_var: np.ndarray, dem_var: np.ndarr
     return ((mean - lab_mean) ** 2 + gp_var) / (dem_var + lab_var)
 
 
+def _must_beat(reference: HypothesisScore, keys: Sequence[tuple[str, str]], mean: np.ndarray, gp_var: np.ndarray,
+               dem_var: np.ndarray, lab_mean: np.ndarray, lab_var: np.ndarray, margin: float) -> float:
+    """The held-out chi^2 (penalty not counted) a candidate must get below to be named: the
+    ``reference``'s score less ``max(margin, 2 x gain_noise_sd)``, the gain's noise sd taken between
+    the reference's held-out cells and the cells ``keys`` as the candidate's GP predicts them (means
+    ``mean``, standard errors ``sqrt(dem_var)``), as step 3 takes it from the runs."""
+    cells = [Cell(c, k, float(m), math.sqrt(max(float(d), 0.0)), 0, float(y), math.sqrt(max(float(v), 0.0)),
+                  (float(m) - float(y)) / math.sqrt(float(d) + float(v)) if float(d) + float(v) > 0 else math.nan,
+                  math.nan)
+             for (c, k), m, d, y, v in zip(keys, mean, dem_var, lab_mean, lab_var)]
+    return reference.score - max(margin, 2 * gain_noise_sd(reference.held_out_cells, cells))
+
+
+#: Monte Carlo draws of :func:`win_probability` (its resolution is 1 / WIN_SAMPLES).
+WIN_SAMPLES = 20_000
+
+
+def win_probability(mean: np.ndarray, gp_var: np.ndarray, dem_var: np.ndarray, lab_mean: np.ndarray,
+                    lab_var: np.ndarray, target: float, seed: int = 0) -> float:
+    """Probability, by a fit's own GP, that the held-out chi^2 of its DEM runs falls below ``target``.
+
+    Per held-out cell (arrays over the cells of every left-out condition) the DEM mean will be
+    ``f + e``: ``f ~ N(mean, gp_var)``, the GP's posterior at the left-out fit, and ``e ~ N(0,
+    dem_var)``, the noise of a mean of the held-out runs. Its chi^2 term is ``(f + e - y)^2 /
+    (dem_var + lab_var)``, y the measured mean, as the held-out cells are scored (step 2). The
+    cells' GPs are independent (one per cell), so the terms are. Monte Carlo with
+    ``WIN_SAMPLES`` draws from a seeded generator: the same fit gets the same answer. A cell with
+    no uncertainty at all (``dem_var + lab_var`` 0) is left out. Unlike
+    :func:`_expected_chi2_terms`, the GP's uncertainty here widens the distribution instead of
+    raising its mean, so an uncertain GP is given its chance."""
+    arrays = [np.asarray(a, dtype=np.float64).ravel() for a in (mean, gp_var, dem_var, lab_mean, lab_var)]
+    mean, gp_var, dem_var, lab_mean, lab_var = arrays
+    keep = (dem_var + lab_var) > 0
+    if not keep.any():
+        return math.nan
+    s = np.sqrt(dem_var[keep] + lab_var[keep])
+    spread = np.sqrt(np.maximum(gp_var[keep], 0.0) + dem_var[keep])
+    draws = np.random.default_rng(seed).standard_normal((WIN_SAMPLES, int(keep.sum())))
+    z = (mean[keep] - lab_mean[keep] + spread * draws) / s
+    return float(((z ** 2).sum(axis=1) < target).mean())
+
+
 @dataclass(frozen=True)
 class _Fitted:
     """Step 2 for one hypothesis before it is scored: ``hypothesis`` without its held-out chi^2
@@ -568,7 +634,11 @@ class _Fitted:
 def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel, context: ModelContext,
                     store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor],
                     calibrated: Mapping[str, float], measured: MeasuredData, settings: DiscoverySettings,
-                    baseline_reps: np.ndarray, echo: Callable[[str], None]) -> _Fitted:
+                    baseline_reps: np.ndarray, echo: Callable[[str], None],
+                    reference: HypothesisScore | None = None) -> _Fitted:
+    """Step 2 for one hypothesis. ``reference``: the ``parameters`` hypothesis, scored; with it, a
+    resolved fit whose own GP gives it less than ``settings.prune_probability`` of beating it as
+    step 3 requires makes no held-out runs (pruned, :func:`win_probability`)."""
     conditions = list(measured.names)
     kpis = list(settings.kpis)
     lab = _lab(measured, kpis)
@@ -661,7 +731,7 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
         mean, var = surrogate.predict_outputs(np.array([[every[n] for n in names]]))
         misfit = float((((mean[0] - lab_mean) ** 2) / (dem_var + lab_var)).sum())
         surrogate_chi2 = float((var[0] / (dem_var + lab_var)).sum())
-        predicted, without = {}, {}
+        predicted, without, held_cells = {}, {}, []
         for c in conditions:
             train = cond_of != c
             if not train.any() or not (~train).any():
@@ -669,17 +739,30 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
             x = fit(train)
             mean, var = surrogate.predict_outputs(np.array([[x[n] for n in names]]))
             test = ~train
-            predicted[c] = float(_expected_chi2_terms(mean[0, test], var[0, test], dem_var[test], lab_mean[test],
-                                                      lab_var[test]).sum())
+            held_cells.append((mean[0, test], var[0, test], dem_var[test], lab_mean[test], lab_var[test]))
+            predicted[c] = float(_expected_chi2_terms(*held_cells[-1]).sum())
             without[c] = x
+        resolved = fit_resolved(misfit, surrogate_chi2, len(cells), len(names), settings.alpha)[0]
+        p_win, beat = math.nan, math.nan
+        if reference is not None and held_cells and len(without) == len(conditions):
+            arrays = [np.concatenate(a) for a in zip(*held_cells)]
+            keys = [(cc, k) for c in without for _, cc, _, k in cells if cc == c]
+            beat = _must_beat(reference, keys, *arrays, settings.margin) - settings.penalty * len(extra)
+            p_win = win_probability(*arrays, beat, seed=settings.seed)
+        pruned = resolved and p_win < settings.prune_probability
         # the held-out predictions checked with the DEM: each condition run with the parameters
-        # fitted without it
+        # fitted without it; not for a pruned fit (it could not be named), nor for an unresolved
+        # one that is refined next (its verdict waits on the refined fits' runs)
         held: dict[str, np.ndarray] = {}
         failures: dict[str, str] = {}
         held_out = {c: (f"held-out/{c}/" + _key(sorted({**calibrated, **x}.items()), list(settings.seeds)),
                         [{**calibrated, **x}], settings.seeds, [c]) for c, x in without.items()}
-        with executor_for(hyp_model) as executor:  # every condition's runs at once (_run_together)
-            runs = _run_together(store, executor, f"discovery-{name}", list(held_out.values()), kpis)
+        if pruned or (not resolved and round_ < settings.escalations):
+            held_out = {}
+        runs = []
+        if held_out:
+            with executor_for(hyp_model) as executor:  # every condition's runs at once (_run_together)
+                runs = _run_together(store, executor, f"discovery-{name}", list(held_out.values()), kpis)
         for (c, (key, *_)), reps_c in zip(held_out.items(), runs):
             held[c] = reps_c[0, 0]
             missing = _unmeasured(held[c], c, kpis, lab)
@@ -698,7 +781,6 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                                - lab_mean[test]) ** 2 / (dem_var[test] + lab_var[test])).sum())
             if prediction_astray(dem_chi2, predicted[c], int(test.sum())):
                 astray[c] = (dem_chi2, predicted[c])
-        resolved = fit_resolved(misfit, surrogate_chi2, len(cells), len(names), settings.alpha)[0]
         if (resolved and not astray) or round_ == settings.escalations:
             break
         chosen = [every, *without.values()]
@@ -708,13 +790,21 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
         echo(f"  {name}: fit unresolved with {n_points} design points ({'; '.join(why)}); the DEM runs the "
              f"{len(X_new)} fitted points")
     in_sample = misfit + surrogate_chi2  # _expected_chi2_terms, split in its two parts
+    why_pruned = None
+    if pruned:
+        why_pruned = (f"by its own GP, a probability of {p_win:.2g} (below {settings.prune_probability:g}) that its "
+                      f"held-out runs score below {beat:.1f} (the calibrated parameters' {reference.score:.1f} less "
+                      f"max(margin, 2 x the gain's noise sd) and {settings.penalty:g} per added parameter); its GP "
+                      f"predicts a held-out chi^2 of "
+                      f"{sum(predicted.values()):.1f}, so its held-out runs were not made")
     echo(f"  {name}: {len(names)} parameters, {n_points} points fitted; surrogate held-out chi^2 "
-         + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items()))
+         + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items())
+         + (f"; pruned: {why_pruned}" if why_pruned else ""))
     hypothesis = HypothesisScore(name, description, names, {n: tuple(map(float, bounds[n])) for n in names},
                                  len(extra), {}, without, every, in_sample, math.nan, n_points,
                                  predicted_chi2=predicted, held_out_failures=failures,
                                  fit_misfit_chi2=misfit, fit_surrogate_chi2=surrogate_chi2, fit_cells=len(cells),
-                                 astray=astray)
+                                 astray=astray, win_probability=p_win, pruned=why_pruned)
     keys = [(c, k) for _, c, _, k in cells]
     wanted = [(c, k) for c in conditions for k in read[len(kpis):]] + [(c, k) for c in unmeasured for k in kpis]
     proposed, proposed_sd = _proposed_models(name, every_run, conditions + unmeasured, read, wanted,
@@ -769,6 +859,8 @@ def _score(f: _Fitted, kpis: Sequence[str], lab: Mapping[tuple[str, str], tuple[
            noise: ReplicateNoise, penalty: float) -> HypothesisScore:
     """Held-out chi^2 of ``f``'s DEM runs against the measurements with the pooled ``noise``."""
     h = f.hypothesis
+    if h.pruned:  # no held-out runs: the GP's prediction stands in the report, it never scores
+        return dataclasses.replace(h, score=float(sum(h.predicted_chi2.values()) + penalty * h.added))
     cells: list[Cell] = []
     held: dict[str, float] = {}
     for c, reps in f.held_reps.items():
@@ -837,6 +929,9 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         echo(f"fitting hypotheses: {PARAMETERS}, " + ", ".join(names))
         fitted = [_fit_hypothesis(PARAMETERS, None, model, context, store, executor_for, calibrated, measured,
                                   settings, reps, echo)]
+        # what a candidate must beat, with the noise of the discrepancy runs (pruning only)
+        to_beat = _score(fitted[0], kpis, lab, discrepancy.noise, settings.penalty) \
+            if settings.prune_probability > 0 else None
         skipped: list[HypothesisScore] = []
         for n in names:
             why = mechanisms[n].available(context)
@@ -846,7 +941,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
                 echo(f"  {n}: skipped ({why})")
                 continue
             fitted.append(_fit_hypothesis(n, mechanisms[n], model, context, store, executor_for, calibrated,
-                                          measured, settings, reps, echo))
+                                          measured, settings, reps, echo, reference=to_beat))
         # every chi^2 with one noise estimate: pooled over all runs of the discovery
         noise = discrepancy.noise
         for f in fitted:
@@ -873,14 +968,15 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         scored.update({h.name: h for h in skipped})
         hypotheses = [scored[PARAMETERS]] + [scored[n] for n in names]
         for h in hypotheses:
-            if h.skipped is None:
+            if h.skipped is None and h.pruned is None:
                 echo(f"  {h.name}: held-out chi^2 (DEM) " + ", ".join(f"{c} {v:.1f}" for c, v in h.held_out_chi2.items())
                      + f"; score {h.score:.1f}"
                      + "".join(f"; held-out runs on {c} failed: {why}" for c, why in h.held_out_failures.items()))
         reference = hypotheses[0]
-        hypotheses = [reference] + [h if h.skipped else dataclasses.replace(
+        hypotheses = [reference] + [h if h.skipped or h.pruned else dataclasses.replace(
             h, gain_noise_sd=gain_noise_sd(reference.held_out_cells, h.held_out_cells)) for h in hypotheses[1:]]
-        candidates = [h for h in hypotheses[1:] if h.skipped is None]
+        candidates = [h for h in hypotheses[1:] if h.skipped is None and h.pruned is None]
+        pruned = [h.name for h in hypotheses[1:] if h.pruned]
         best = min(candidates, key=lambda h: h.score) if candidates else None
         need = max(settings.margin, 2 * best.gain_noise_sd) if best is not None else math.nan
         rule = (f"held-out chi^2 + {settings.penalty:g} per added parameter; a cause must gain more than "
@@ -925,7 +1021,12 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         else:
             explanation = ("No candidate explains the discrepancy better than the calibrated parameters and noise: "
                            + (f"the best, {best.name}, scores {best.score:.1f} against {reference.score:.1f} "
-                              f"({rule})." if best is not None else "no candidate could be fitted."))
+                              f"({rule})." if best is not None else
+                              "by its own GP no candidate could beat them." if pruned else
+                              "no candidate could be fitted."))
+        if pruned:
+            explanation += (f" Not run on their held-out conditions, since by their own GPs they could not be "
+                            f"named (probability below {settings.prune_probability:g}): {', '.join(pruned)}.")
     echo(f"cause: {cause}. {explanation}")
     gain: list[GainRow] = []
     extension: dict[str, float] = {}

@@ -101,7 +101,8 @@ class Effect:
 class TwinOutcome:
     """Discovery on one twin: discrepancy p-value and chi^2, significant or not, the cause named
     (None: none), every hypothesis's score, the candidates tied and those whose fit was unresolved
-    (empty for outcomes of rules 1, which did not record them)."""
+    (empty for outcomes of rules 1, which did not record them) and those not run on their held-out
+    conditions because by their own GPs they could not be named (recorded from rules 5)."""
 
     mechanism: str
     effect_index: int
@@ -113,6 +114,7 @@ class TwinOutcome:
     scores: Mapping[str, float] = field(default_factory=dict)
     tied: tuple[str, ...] = ()
     unresolved: tuple[str, ...] = ()
+    pruned: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -247,12 +249,14 @@ def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel]
                      "chi2": float(d.chi2), "significant": bool(d.significant), "cause": result.cause,
                      "scores": {h.name: (float(h.score) if math.isfinite(h.score) else None)
                                 for h in result.hypotheses},
-                     "tied": list(result.tied), "unresolved": list(result.unresolved)}
+                     "tied": list(result.tied), "unresolved": list(result.unresolved),
+                     "pruned": [h.name for h in result.hypotheses if h.pruned]}
             store.put_artifact(artifact, found)
         outcome = TwinOutcome(**{**found, "scores": {k: (math.inf if v is None else v)
                                                       for k, v in found["scores"].items()},
                                  "tied": tuple(found.get("tied", ())),
-                                 "unresolved": tuple(found.get("unresolved", ()))})
+                                 "unresolved": tuple(found.get("unresolved", ())),
+                                 "pruned": tuple(found.get("pruned", ()))})
         outcomes.append(outcome)
         echo(f"[{n + 1}/{len(jobs)}] {name} effect {index} lab {lab}: p = {outcome.p_value:.3g}, "
              f"cause {outcome.cause}")

@@ -62,7 +62,8 @@ def discovery_payload(result: DiscoveryResult) -> dict:
                                                  for c, v in h.astray.items()}},
                         "fitted_all": dict(h.fitted_all), "fitted_without": {c: dict(v) for c, v in
                                                                              h.fitted_without.items()},
-                        "design_points": h.points, "skipped": h.skipped,
+                        "design_points": h.points, "skipped": h.skipped, "pruned": h.pruned,
+                        "win_probability": h.win_probability,
                         "held_out_failures": dict(h.held_out_failures),
                         "held_out_cells": [c.to_dict() for c in h.held_out_cells],
                         "detectable": dict(h.detectable), "separable": dict(h.separable)}
@@ -161,6 +162,12 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                 continue
             fit = ("-" if not h.fit_cells else f"{h.fit_misfit_chi2:.1f} + {h.fit_surrogate_chi2:.1f} ({h.fit_cells})"
                    + (" unresolved" if h.name in result.unresolved else ""))
+            if h.pruned:  # no held-out runs: its GP's predictions, marked
+                lines.append(f"| {h.name} | {h.added} | "
+                             + " | ".join(f"{h.predicted_chi2[c]:.1f} (GP)" if c in h.predicted_chi2 else "-"
+                                          for c in conds)
+                             + f" | {h.score:.1f} (GP), not run | - | {fit} |")
+                continue
             lines.append(f"| {h.name}{' **cause**' if h.name == result.cause else ''} | {h.added} | "
                          + " | ".join(f"{h.held_out_chi2.get(c, float('nan')):.1f}" for c in conds)
                          + f" | {h.score:.1f} | {'-' if math.isnan(h.gain_noise_sd) else f'{h.gain_noise_sd:.1f}'} | "
@@ -169,6 +176,8 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                   for h in result.hypotheses for c, why in h.held_out_failures.items()]
         failed += [f"- {h.name}: its fit without {c} stayed astray after refinement: the DEM's held-out chi^2 "
                    f"{v[0]:.1f} where its GP predicted {v[1]:.1f}" for h in result.hypotheses for c, v in h.astray.items()]
+        failed += [f"- {h.name}: not run on its held-out conditions: {h.pruned}" for h in result.hypotheses
+                   if h.pruned]
         lines += [""] + failed if failed else []
         scored = [h for h in result.hypotheses[1:] if h.skipped is None and h.held_out_cells]
         best = min(scored, key=lambda h: h.score) if scored else None
