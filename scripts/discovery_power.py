@@ -119,9 +119,9 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     wall = time.perf_counter() - started
     computed = store.counts(computed_only=True)["done"]
     total = store.counts()["done"]
-    from bo.discovery.pipeline import VERDICT_RULES
+    from bo.discovery.pipeline import rules_of
 
-    rules = VERDICT_RULES if cfg.get("rules") is None else cfg.get("rules")
+    rules = rules_of(settings) if cfg.get("rules") is None else cfg.get("rules")
     files = write_power_report(rows, summary, out, cost={"dem_runs_computed": computed, "dem_runs_used": total,
                                                           "wall_time_s": round(wall, 1), "verdict_rules": rules})
     echo(files["md"].read_text())

@@ -91,6 +91,11 @@ def test_power_study_recovers_the_null_rate_names_a_strong_effect_and_reuses_des
         _study(tmp_path, null_labs=40, labs=6, effects=[strong], rules=1)
     with pytest.raises(ConfigError, match=r"power.rules"):
         _study(tmp_path, null_labs=40, labs=6, effects=[strong], rules=VERDICT_RULES + 1)
+    # without pruning a discovery applies rules 4 (rules 5 differ only in held-out runs no verdict reads)
+    from bo.discovery.pipeline import rules_of
+
+    assert rules_of(DiscoverySettings(kpis=("shear_angle_deg",))) == VERDICT_RULES == 5
+    assert rules_of(DiscoverySettings(kpis=("shear_angle_deg",), prune_probability=0.0)) == 4
     assert sum(r.tied + r.unresolved for r in rows) <= sum(r.n - r.right - r.wrong for r in rows)
 
 

@@ -106,7 +106,7 @@ from bo.surrogate.gp import SurrogateConfig, fit_surrogate
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
 
-__all__ = ["PARAMETERS", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore", "GainRow",
+__all__ = ["PARAMETERS", "VERDICT_RULES", "rules_of", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore", "GainRow",
            "DiscoveryResult", "discovery_stages", "explained_share", "gain_noise_sd", "gain_rows", "measure_discrepancy",
            "run_discovery", "tied_with", "detectability"]
 
@@ -125,6 +125,12 @@ PARAMETERS = "parameters"
 #: the ``parameters`` hypothesis by the margin is not run on its held-out conditions
 #: (:func:`win_probability`), nor is an unresolved fit before its refinement.
 VERDICT_RULES = 5
+
+
+def rules_of(settings: "DiscoverySettings") -> int:
+    """The verdict rules a discovery with ``settings`` applies: ``VERDICT_RULES``, or 4 with
+    ``prune_probability`` 0 (rules 5 then differ from 4 only in held-out runs no verdict reads)."""
+    return VERDICT_RULES if settings.prune_probability > 0 else 4
 
 
 def discovery_stages(names: Sequence[str] | None = None) -> tuple[str, ...]:

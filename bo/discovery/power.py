@@ -217,10 +217,12 @@ def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel]
                     rules: int | None = None) -> list[TwinOutcome]:
     """Twins and discovery for the null (``null_labs`` labs) and every effect (``labs`` labs each),
     resuming from the store's artifacts; returns every outcome (null first). ``rules`` (default the
-    current ``VERDICT_RULES``) below the current ones only reads the outcomes the store holds."""
-    from bo.discovery.pipeline import VERDICT_RULES, run_discovery
+    rules ``settings`` apply, ``bo.discovery.pipeline.rules_of``) other than those only reads the
+    outcomes the store holds."""
+    from bo.discovery.pipeline import VERDICT_RULES, rules_of, run_discovery
 
-    rules = VERDICT_RULES if rules is None else rules
+    current = rules_of(settings)
+    rules = current if rules is None else rules
     if isinstance(rules, bool) or not isinstance(rules, int) or not 1 <= rules <= VERDICT_RULES:
         raise out_of_range("power.rules", rules, f"an int in [1, {VERDICT_RULES}] (the verdict rules' versions)",
                            "power study")
@@ -236,9 +238,10 @@ def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel]
     for n, (name, index, effect, lab) in enumerate(jobs):
         artifact = outcome_artifact(name, index, lab, rules)
         found = store.get_artifact(artifact, None)
-        if found is None and rules != VERDICT_RULES:
+        if found is None and rules != current:
             raise ConfigError(f"power study: the store {store.path} holds no outcome of {name} effect {index} lab {lab} "
-                              f"under verdict rules {rules}; only the current rules ({VERDICT_RULES}) can analyse a twin")
+                              f"under verdict rules {rules}; only the rules these settings apply ({current}) can "
+                              f"analyse a twin")
         if found is None:
             seeds = lab_seeds(lab, lab_replicates, lab_seed)
             twin = twin_measurement(store, executor_for, model, baseline, template, effect, seeds, kpis)
