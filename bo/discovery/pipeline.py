@@ -106,8 +106,8 @@ from bo.surrogate.gp import SurrogateConfig, fit_surrogate
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
 
-__all__ = ["PARAMETERS", "VERDICT_RULES", "rules_of", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore", "GainRow",
-           "DiscoveryResult", "discovery_stages", "explained_share", "gain_noise_sd", "gain_rows", "measure_discrepancy",
+__all__ = ["PARAMETERS", "VERDICT_RULES", "rules_of", "DiscoverySettings", "Cell", "Discrepancy", "HypothesisScore",
+           "GainRow", "DiscoveryResult", "discovery_stages", "explained_share", "gain_noise_sd", "gain_rows", "measure_discrepancy",
            "run_discovery", "tied_with", "detectability"]
 
 #: Name of the no-new-physics hypothesis (the calibrated parameters refitted).
@@ -314,7 +314,7 @@ class HypothesisScore:
             refinement is the remedy, the verdict does not wait on it).
         win_probability: the probability, by its own GP, that its held-out runs would score better
             than the ``parameters`` hypothesis by the margin (:func:`win_probability`; NaN when
-            not computed). pruned: why its held-out runs were not made (the probability was below
+            not computed: pruning off, or the fit unresolved). pruned: why its held-out runs were not made (the probability was below
             ``prune_probability``), else None; a pruned candidate's score is its GP's prediction
             and it can be neither named nor tied.
     """
@@ -587,10 +587,11 @@ def _must_beat(reference: HypothesisScore, keys: Sequence[tuple[str, str]], mean
     ``reference``'s score less ``max(margin, 2 x gain_noise_sd)``, the gain's noise sd taken between
     the reference's held-out cells and the cells ``keys`` as the candidate's GP predicts them (means
     ``mean``, standard errors ``sqrt(dem_var)``), as step 3 takes it from the runs."""
+    s2 = dem_var + lab_var
+    z = np.where(s2 > 0, (mean - lab_mean) / np.sqrt(np.where(s2 > 0, s2, 1.0)), np.nan)
     cells = [Cell(c, k, float(m), math.sqrt(max(float(d), 0.0)), 0, float(y), math.sqrt(max(float(v), 0.0)),
-                  (float(m) - float(y)) / math.sqrt(float(d) + float(v)) if float(d) + float(v) > 0 else math.nan,
-                  math.nan)
-             for (c, k), m, d, y, v in zip(keys, mean, dem_var, lab_mean, lab_var)]
+                  float(zc), math.nan)
+             for (c, k), m, d, y, v, zc in zip(keys, mean, dem_var, lab_mean, lab_var, z)]
     return reference.score - max(margin, 2 * gain_noise_sd(reference.held_out_cells, cells))
 
 
@@ -750,9 +751,9 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
             without[c] = x
         resolved = fit_resolved(misfit, surrogate_chi2, len(cells), len(names), settings.alpha)[0]
         p_win, beat = math.nan, math.nan
-        if reference is not None and held_cells and len(without) == len(conditions):
-            arrays = [np.concatenate(a) for a in zip(*held_cells)]
-            keys = [(cc, k) for c in without for _, cc, _, k in cells if cc == c]
+        if resolved and reference is not None and held_cells and len(without) == len(conditions):
+            arrays = [np.concatenate(a) for a in zip(*held_cells)]  # cells in condition order, as ``cells``
+            keys = [(c, k) for _, c, _, k in cells]
             beat = _must_beat(reference, keys, *arrays, settings.margin) - settings.penalty * len(extra)
             p_win = win_probability(*arrays, beat, seed=settings.seed)
         pruned = resolved and p_win < settings.prune_probability
