@@ -394,6 +394,38 @@ def test_an_unresolved_fit_has_its_fitted_points_run_before_its_verdict(tmp_path
     assert "its fit without 75-25 stayed astray after refinement" in files["md"].read_text()
 
 
+def test_an_analysis_repeated_on_other_floating_point_runs_nothing_again(tmp_path, monkeypatch):
+    """The refined and held-out points are chosen by fits; on another machine (another BLAS, another
+    vector width) the same fit lands a few 1e-13 away. The analysis repeated with every fit moved
+    so finds the stored batches of the same experiments (pipeline.SAME_POINT), runs nothing and
+    scores exactly as before; a fit moved by more than that runs its points anew."""
+    import bo.discovery.pipeline as pipeline
+
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    small = dict(candidates=("density_per_material",), points_per_parameter=2, min_points=4, escalations=1)
+    first = _discover(tmp_path, lab, **small)
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    rows = len(store.records())
+    keys = store.batch_keys()
+    assert any(k.startswith("refine/") for _, k in keys) and any(k.startswith("held-out/") for _, k in keys)
+    search = pipeline.multistart_minimum
+
+    def moved(step):
+        def fit(*args, **kwargs):
+            res = search(*args, **kwargs)
+            return dataclasses.replace(res, x=res.x * (1 + step))
+        return fit
+
+    monkeypatch.setattr(pipeline, "multistart_minimum", moved(3e-13))
+    again = _discover(tmp_path, lab, **small)
+    assert len(store.records()) == rows and store.batch_keys() == keys
+    assert [(h.name, h.score) for h in again.hypotheses] == [(h.name, h.score) for h in first.hypotheses]
+    assert again.cause == first.cause == "density_per_material"
+    monkeypatch.setattr(pipeline, "multistart_minimum", moved(1e-3))
+    _discover(tmp_path, lab, **small)
+    assert len(store.records()) > rows
+
+
 def test_no_candidates_measures_the_discrepancy_only(tmp_path):
     lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
     result = _discover(tmp_path, lab, candidates=())

@@ -104,3 +104,9 @@ def test_wilson_interval():
     assert wilson(3, 40) == pytest.approx(proportion_confint(3, 40, method="wilson"))
     lo, hi = wilson(0, 30)
     assert lo == pytest.approx(0.0, abs=1e-12) and hi == pytest.approx(0.1135, abs=1e-3)
+    # the interval holds the rate itself (the closed form's ends round past it at n = 7, 9, 14, ...),
+    # so the power plot's error bars are never negative
+    for n in range(1, 40):
+        for k in (0, n):
+            lo, hi = wilson(k, n)
+            assert lo <= k / n <= hi

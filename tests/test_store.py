@@ -65,6 +65,27 @@ def test_batch_stores_points_once_and_reuses_them(tmp_path):
     assert store.batch_keys() == [("initial", "k")]
 
 
+def test_near_batch_finds_the_same_experiment_within_the_tolerance_the_closest_first(tmp_path):
+    store = new_store(tmp_path)
+    fill(store, key="fit/a", points=[{"mu_s_pp": 0.3, "e_pp": 0.5}])
+    fill(store, key="fit/b", points=[{"mu_s_pp": 0.3 + 4e-7, "e_pp": 0.5}])
+    fill(store, key="other/c", points=[{"mu_s_pp": 0.3, "e_pp": 0.5}])
+    near = lambda point, **kw: store.near_batch(  # noqa: E731
+        "initial", "fit/", [point], seeds=kw.get("seeds", (0, 1)), conditions=kw.get("conditions", ("50-50",)),
+        tolerance={"mu_s_pp": 1e-6})
+    # the last digits moved (another machine's floating point): the stored batch and its own points
+    assert near({"mu_s_pp": 0.3 + 3e-15, "e_pp": 0.5}) == ("fit/a", [{"e_pp": 0.5, "mu_s_pp": 0.3}])
+    assert near({"mu_s_pp": 0.3 + 3.5e-7, "e_pp": 0.5})[0] == "fit/b"  # the closer of two inside the tolerance
+    assert near({"mu_s_pp": 0.3 + 2e-6, "e_pp": 0.5}) is None  # beyond it: another experiment
+    assert near({"mu_s_pp": 0.3, "e_pp": 0.5 + 1e-12}) is None  # a parameter without tolerance must be equal
+    assert near({"mu_s_pp": 0.3, "e_pp": 0.5}, seeds=(0, 1, 2)) is None  # other seeds, other runs
+    assert near({"mu_s_pp": 0.3, "e_pp": 0.5}, conditions=("70-30",)) is None
+    assert near({"mu_s_pp": 0.3}) is None  # other parameter names
+    with pytest.raises(ConfigError, match=r"tolerance\['mu_s_pp'\].*finite float >= 0"):
+        store.near_batch("initial", "fit/", [{"mu_s_pp": 0.3}], seeds=(0,), conditions=("50-50",),
+                         tolerance={"mu_s_pp": -1.0})
+
+
 def test_batch_with_other_seeds_or_conditions_is_refused(tmp_path):
     store = new_store(tmp_path)
     fill(store)

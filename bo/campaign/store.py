@@ -490,6 +490,50 @@ class CampaignStore:
         self._restore_withdrawn(stage, key, points, seeds, conditions)
         return points
 
+    def near_batch(self, stage: str, prefix: str, points: Sequence[Mapping[str, float]], *, seeds: Sequence[int],
+                   conditions: Sequence[str], tolerance: Mapping[str, float]
+                   ) -> tuple[str, list[dict[str, float]]] | None:
+        """``(key, stored points)`` of the batch of ``stage`` whose key starts with ``prefix``, stored
+        with these ``seeds`` and ``conditions``, whose points are ``points`` in order within
+        ``tolerance`` (absolute, per parameter; a parameter not named there must be equal); of several,
+        the closest (largest difference in units of the tolerance), then the oldest; None if there is
+        none.
+
+        For points a computation chose (a fit's optimum): resumed on another machine, its floating
+        point (another BLAS, another vector width) moves them in the last digits, and a key hashed
+        from the exact values would run the same experiment again. The caller says how close is
+        the same experiment."""
+        source = f"CampaignStore.near_batch({stage!r}, {prefix!r})"
+        self.check_stage(stage, source)
+        want = self._check_points(points, source)
+        seeds, conditions = self._check_seeds(seeds, source), self._check_conditions(conditions, source)
+        names = sorted(want[0]) if want else []
+        for name, tol in tolerance.items():
+            if not (isinstance(tol, Real) and math.isfinite(tol) and tol >= 0):
+                raise out_of_range(f"tolerance[{name!r}]", tol, "a finite float >= 0", source)
+        atol = np.array([float(tolerance.get(n, 0.0)) for n in names])
+        x = np.array([[p[n] for n in names] for p in want])
+        conn = self._connect()
+        try:
+            rows = conn.execute("SELECT batch_key, points, seeds, conditions FROM batches WHERE stage = ? "
+                                "AND substr(batch_key, 1, ?) = ? ORDER BY created_at, rowid",
+                                (stage, len(prefix), prefix)).fetchall()
+        finally:
+            conn.close()
+        best, found = math.inf, None
+        for key, stored_points, stored_seeds, stored_conditions in rows:
+            if json.loads(stored_seeds) != seeds or json.loads(stored_conditions) != conditions:
+                continue
+            stored = json.loads(stored_points)
+            if len(stored) != len(want) or any(sorted(p) != names for p in stored):
+                continue
+            gap = np.abs(np.array([[p[n] for n in names] for p in stored]) - x)
+            if np.all(gap <= atol):  # a difference in units of the tolerance (0 where it is 0 and equal)
+                distance = float(np.max(np.where(atol > 0, gap / np.where(atol > 0, atol, 1.0), 0.0), initial=0.0))
+                if distance < best:
+                    best, found = distance, (key, [dict(p) for p in stored])
+        return found
+
     def _restore_withdrawn(self, stage, key, points, seeds, conditions) -> None:
         """Pending tasks again for the runs of a batch that :meth:`withdraw_batch` took away."""
         conn = self._connect()

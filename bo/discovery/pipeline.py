@@ -129,7 +129,9 @@ VERDICT_RULES = 5
 
 def rules_of(settings: "DiscoverySettings") -> int:
     """The verdict rules a discovery with ``settings`` applies: ``VERDICT_RULES``, or 4 with
-    ``prune_probability`` 0 (rules 5 then differ from 4 only in held-out runs no verdict reads)."""
+    ``prune_probability`` 0 (every fit then runs on its held-out conditions, an unresolved one also
+    before its refinement: those runs' scatter joins the pooled noise every score is divided by, so
+    rules 4 are kept whole, not mixed with 5)."""
     return VERDICT_RULES if settings.prune_probability > 0 else 4
 
 
@@ -390,6 +392,29 @@ class DiscoveryResult:
 
 def _key(*parts) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=repr).encode()).hexdigest()[:12]
+
+
+#: Two points a fit chose are the same experiment when each fitted parameter agrees within this
+#: share of its range: the DEM's scatter is far larger than such a step, while the fit itself,
+#: computed again on another machine (another BLAS, another vector width), moves in the 12th digit.
+SAME_POINT = 1e-6
+
+
+def _fitted_batch(store: CampaignStore, stage: str, prefix: str, points: Sequence[Mapping[str, float]],
+                  seeds: Sequence[int], conditions: Sequence[str], names: Sequence[str],
+                  b: np.ndarray) -> tuple[str, list[dict[str, float]]]:
+    """Key and points of a batch of fitted points: a stored batch of the same experiment
+    (:data:`SAME_POINT`, ``CampaignStore.near_batch``) with its stored points, so that a resumed or
+    repeated analysis runs nothing again and goes on from the very points it ran; else a new key
+    hashed from the points."""
+    tolerance = {n: SAME_POINT * float(hi - lo) for n, lo, hi in zip(names, b[0], b[1])}
+    found = store.near_batch(stage, prefix, points, seeds=list(seeds), conditions=list(conditions),
+                             tolerance=tolerance)
+    if found is not None:
+        return found
+    if prefix == "refine/":
+        return prefix + _key(list(names), [[p[n] for n in names] for p in points], list(seeds)), [dict(p) for p in points]
+    return prefix + _key(sorted(points[0].items()), list(seeds)), [dict(p) for p in points]
 
 
 def _lab(measured: MeasuredData, kpis: Sequence[str]) -> dict[tuple[str, str], tuple[float, float, float]]:
@@ -678,10 +703,14 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
         # Round 0 is the design: it does not depend on the data, so it runs once in a store and every
         # data set reuses it. Each later round (only while the fit is unresolved) runs the points the
         # fits chose, where the GP knew too little: the fit on every condition and each left-out fit.
-        design_key = (f"lhs/{_key(names, b.tolist(), size, settings.seed)}" if round_ == 0
-                      else f"refine/{_key(names, X_new.tolist(), list(settings.fit_seeds))}")
-        design_keys.append(design_key)
         points = [{**calibrated, **dict(zip(names, map(float, x)))} for x in X_new]
+        if round_ == 0:
+            design_key = f"lhs/{_key(names, b.tolist(), size, settings.seed)}"
+        else:
+            design_key, points = _fitted_batch(store, f"discovery-{name}", "refine/", points, settings.fit_seeds,
+                                               conditions, names, b)
+            X_new = np.array([[p[n] for n in names] for p in points])
+        design_keys.append(design_key)
         with executor_for(hyp_model) as executor:
             design = [(design_key, points, settings.fit_seeds, conditions)]
             if unmeasured:
@@ -758,14 +787,17 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
             p_win = win_probability(*arrays, beat, seed=settings.seed)
         pruned = resolved and p_win < settings.prune_probability
         # the held-out predictions checked with the DEM: each condition run with the parameters
-        # fitted without it; not for a pruned fit (it could not be named), nor for an unresolved
-        # one that is refined next (its verdict waits on the refined fits' runs)
+        # fitted without it; under rules 5 not for a pruned fit (it could not be named), nor for an
+        # unresolved one that is refined next (its verdict waits on the refined fits' runs)
         held: dict[str, np.ndarray] = {}
         failures: dict[str, str] = {}
-        held_out = {c: (f"held-out/{c}/" + _key(sorted({**calibrated, **x}.items()), list(settings.seeds)),
-                        [{**calibrated, **x}], settings.seeds, [c]) for c, x in without.items()}
-        if pruned or (not resolved and round_ < settings.escalations):
-            held_out = {}
+        held_out = {}
+        waits = rules_of(settings) >= 5 and not resolved and round_ < settings.escalations
+        if not (pruned or waits):
+            for c, x in without.items():
+                key, point = _fitted_batch(store, f"discovery-{name}", f"held-out/{c}/", [{**calibrated, **x}],
+                                           settings.seeds, [c], names, b)
+                held_out[c] = (key, point, settings.seeds, [c])
         runs = []
         if held_out:
             with executor_for(hyp_model) as executor:  # every condition's runs at once (_run_together)

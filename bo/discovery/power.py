@@ -76,11 +76,12 @@ def power_stages(mechanisms: Sequence[str]) -> tuple[str, ...]:
 
 
 def wilson(k: int, n: int) -> tuple[float, float]:
-    """Wilson 95 % interval of k successes in n trials ((nan, nan) for n = 0)."""
+    """Wilson 95 % interval of k successes in n trials ((nan, nan) for n = 0). It holds k / n:
+    at k = 0 the closed form's lower end rounds to a few 1e-17 above 0."""
     if n == 0:
         return math.nan, math.nan
     lo, hi = proportion_confint(k, n, alpha=0.05, method="wilson")
-    return float(lo), float(hi)
+    return min(float(lo), k / n), max(float(hi), k / n)
 
 
 @dataclass(frozen=True)
