@@ -125,13 +125,13 @@ def _known_model():
     return model
 
 
-def _discover(tmp_path, lab, **changes):
+def _discover(tmp_path, lab, echo=lambda s: None, **changes):
     changes = {"candidates": ("density_per_material", "free_interaction", "cohesion", "clump_shape"), **changes}
     settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1), **changes)
     store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
     executor_for = lambda model: InProcessExecutor(functools.partial(km.known_batch), batch_size=12)  # noqa: E731
     calibrated = {**_known_model().fixed, **km.TRUE}
-    return run_discovery(store, executor_for, _known_model(), calibrated, lab, settings, echo=lambda s: None)
+    return run_discovery(store, executor_for, _known_model(), calibrated, lab, settings, echo=echo)
 
 
 def test_discrepancy_z_chi2_and_p_value(tmp_path):
@@ -314,7 +314,11 @@ def test_a_candidate_that_could_not_be_named_makes_no_held_out_runs(tmp_path):
 
     lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
     every = _discover(tmp_path / "every", lab, prune_probability=0.0)
-    result = _discover(tmp_path / "pruned", lab)
+    said = []
+    result = _discover(tmp_path / "pruned", lab, echo=said.append)
+    # a candidate that keeps its chance says so before its runs are made (3 conditions x 3 seeds)
+    assert any(line.startswith("  density_per_material: by its own GP, a probability of") and
+               line.endswith("running them (9 runs)") for line in said), said
     assert every.cause == result.cause == "density_per_material", result.explanation
     pruned = {h.name: h for h in result.hypotheses if h.pruned}
     assert "clump_shape" in pruned and set(pruned) <= {"free_interaction", "cohesion", "clump_shape"}

@@ -800,6 +800,9 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                 held_out[c] = (key, point, settings.seeds, [c])
         runs = []
         if held_out:
+            if math.isfinite(p_win):  # why these runs are worth their cost, before they are made
+                echo(f"  {name}: by its own GP, a probability of {p_win:.2g} that its held-out runs score below "
+                     f"{beat:.1f}; running them ({sum(len(v[2]) for v in held_out.values())} runs)")
             with executor_for(hyp_model) as executor:  # every condition's runs at once (_run_together)
                 runs = _run_together(store, executor, f"discovery-{name}", list(held_out.values()), kpis)
         for (c, (key, *_)), reps_c in zip(held_out.items(), runs):
