@@ -12,6 +12,7 @@ Usage::
     python scripts/discovery_power.py store=campaigns/power_mini.sqlite
     python scripts/discovery_power.py power.labs=3 power.null_labs=10 'power.mechanisms=[cohesion]'
     python scripts/discovery_power.py store=campaigns/power_mini.sqlite power.rules=1   # the outcomes of rules 1
+    python scripts/discovery_power.py store=campaigns/power_mini.sqlite power.reanalyse=true   # do they follow?
 """
 from __future__ import annotations
 
@@ -24,8 +25,8 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, checkpoint_dir_for, config_hash, executor_settings_from, plain_config,
-                           store_path_from)
+from bo.cli.common import (MODEL_KEYS, _int, checkpoint_dir_for, config_hash, executor_settings_from, flag,
+                           plain_config, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 
@@ -94,6 +95,7 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     numbers = {k: _int(cfg.get(k), f"power.{k}", "config", low, allowed) for k, low, allowed in (
         ("labs", 1, "an int >= 1"), ("null_labs", 0, "an int >= 0"), ("lab_replicates", 2, "an int >= 2"),
         ("lab_seed", 0, "an int >= 0"), ("discovery_seed", 0, "an int >= 0"))}
+    reanalysing = flag(cfg.get("reanalyse", False), "power.reanalyse", "config")
     target = float(cfg.get("target", 0.8))
     if not 0 < target <= 1:
         raise out_of_range("power.target", target, "a share in (0, 1]", "config")
@@ -106,6 +108,8 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     store = CampaignStore(store_path_from(plain, out), config_hash(plain, MODEL_KEYS + ("measured", "calibration")),
                           allow_config_mismatch=bool(plain.get("allow_config_mismatch")),
                           extra_stages=discovery_stages() + power_stages(names))
+    if reanalysing:
+        return reanalyse_report(store, model, baseline, template, effects, settings, numbers, out, echo)
     echo(f"power study: {len(effects)} effects x {numbers['labs']} labs + {numbers['null_labs']} null labs; "
          f"baseline from {source}; store {store.path}")
     started = time.perf_counter()
@@ -126,6 +130,35 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
                                                           "wall_time_s": round(wall, 1), "verdict_rules": rules})
     echo(files["md"].read_text())
     return {"files": {k: str(v) for k, v in files.items()}, "computed": computed, "used": total}
+
+
+def reanalyse_report(store, model, baseline, template, effects, settings, numbers: Mapping[str, int], out: Path,
+                     echo=print) -> dict:
+    """``power.reanalyse``: every stored twin analysed again without a DEM run (``bo.discovery.power.reanalyse``);
+    writes reanalysis.json and reanalysis.md and prints the count of each status."""
+    from collections import Counter
+
+    from bo.discovery.pipeline import rules_of
+    from bo.discovery.power import reanalyse
+
+    started = time.perf_counter()
+    rows = reanalyse(store, model, baseline, template, effects, settings, labs=numbers["labs"],
+                     null_labs=numbers["null_labs"], lab_replicates=numbers["lab_replicates"],
+                     lab_seed=numbers["lab_seed"], discovery_seed=numbers["discovery_seed"], echo=echo)
+    counts = Counter(r["status"] for r in rows)
+    wall = round(time.perf_counter() - started, 1)
+    lines = ["# Power study analysed again from its store", "",
+             f"Verdict rules {rules_of(settings)}, {len(rows)} stored twins, wall time {wall} s, no DEM run: "
+             + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) + ".", ""]
+    lines += [f"- {r['mechanism']} effect {r['effect_index']} lab {r['lab']}: {r['status']}"
+              + (f", {r['runs']} runs" if "runs" in r else "")
+              + "".join(f"; {k} {v[0]} -> {v[1]}" for k, v in r.get("changed", {}).items())
+              for r in rows if r["status"] != "same"]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "reanalysis.json").write_text(json.dumps({"rows": rows, "wall_time_s": wall}, indent=2, default=str) + "\n")
+    (out / "reanalysis.md").write_text("\n".join(lines) + "\n")
+    echo("\n".join(lines))
+    return {"counts": dict(counts), "files": {"md": str(out / "reanalysis.md"), "json": str(out / "reanalysis.json")}}
 
 
 def _pct(rate) -> str:

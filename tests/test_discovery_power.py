@@ -33,6 +33,10 @@ from torchdem.measured import load_measured
 CANDIDATES = ("density_per_material", "cohesion")
 
 
+def _settings():
+    return DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1), candidates=CANDIDATES)
+
+
 def _study(tmp_path, null_labs, labs, effects, rules=None):
     model = _known_model()
     template = load_measured().subset(["50-50", "75-25", "25-75"], "test")
@@ -47,7 +51,7 @@ def _study(tmp_path, null_labs, labs, effects, rules=None):
         return InProcessExecutor(batch, batch_size=64)
 
     baseline = {**model.fixed, **km.TRUE}
-    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1), candidates=CANDIDATES)
+    settings = _settings()
     out = run_power_study(store, executor_for, model, baseline, template, effects, settings, labs=labs,
                           null_labs=null_labs, lab_replicates=5, lab_seed=1000, echo=lambda s: None, rules=rules)
     return store, out, calls
@@ -91,12 +95,43 @@ def test_power_study_recovers_the_null_rate_names_a_strong_effect_and_reuses_des
         _study(tmp_path, null_labs=40, labs=6, effects=[strong], rules=1)
     with pytest.raises(ConfigError, match=r"power.rules"):
         _study(tmp_path, null_labs=40, labs=6, effects=[strong], rules=VERDICT_RULES + 1)
-    # without pruning a discovery applies rules 4 (rules 5 differ only in held-out runs no verdict reads)
+    # without pruning a discovery applies rules 4 whole (the held-out runs before a refinement too)
     from bo.discovery.pipeline import rules_of
 
     assert rules_of(DiscoverySettings(kpis=("shear_angle_deg",))) == VERDICT_RULES == 5
     assert rules_of(DiscoverySettings(kpis=("shear_angle_deg",), prune_probability=0.0)) == 4
     assert sum(r.tied + r.unresolved for r in rows) <= sum(r.n - r.right - r.wrong for r in rows)
+
+
+def test_a_reanalysis_reads_the_store_only_and_says_which_outcomes_follow(tmp_path):
+    """``power.reanalyse``: every stored twin analysed again on a copy of the store with an executor
+    that runs nothing. Straight after the study every outcome follows; an outcome edited in the
+    store is reported with the field that differs; a discovery that would need runs the store does
+    not hold (other discovery seeds) is counted, and the store itself is left as it was."""
+    import dataclasses
+    import json
+
+    from bo.discovery.power import reanalyse
+
+    rho = km.NOMINAL_DENSITY
+    strong = Effect("density_per_material", {f"density_{m}": 0.8 * v for m, v in rho.items()}, fraction=(0.8 - 0.7) / 0.6)
+    store, outcomes, calls = _study(tmp_path, null_labs=2, labs=2, effects=[strong])
+    model, template = _known_model(), load_measured().subset(["50-50", "75-25", "25-75"], "test")
+    baseline = {**model.fixed, **km.TRUE}
+    again = functools.partial(reanalyse, store, model, baseline, template, [strong], labs=2, null_labs=2,
+                              lab_replicates=5, lab_seed=1000, echo=lambda s: None)
+    rows = again(_settings())
+    assert [(r["mechanism"], r["lab"], r["status"]) for r in rows] == [
+        (NULL, 0, "same"), (NULL, 1, "same"), ("density_per_material", 0, "same"), ("density_per_material", 1, "same")]
+    name = outcome_artifact("density_per_material", 0, 1, VERDICT_RULES)
+    edited = {**store.get_artifact(name), "cause": "cohesion"}
+    store.put_artifact(name, edited)
+    rows = again(_settings())
+    assert rows[3]["status"] == "different" and rows[3]["changed"] == {"cause": ["cohesion", "density_per_material"]}
+    before = len(store.records())
+    rows = again(_settings(), discovery_seed=7)
+    assert {r["status"] for r in rows} == {"needs runs"} and all(r["runs"] == 9 for r in rows)  # 3 conditions x 3
+    assert len(store.records()) == before and store.get_artifact(name) == edited
 
 
 def test_wilson_interval():

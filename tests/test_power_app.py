@@ -52,6 +52,13 @@ def test_bad_effects_name_the_key(override, key):
         app.effects_from(plain, context)
 
 
+def test_a_bad_reanalyse_flag_is_refused_before_the_store_is_opened(tmp_path):
+    plain, _ = _context("power.reanalyse=maybe", f"store={tmp_path / 'p.sqlite'}")
+    with pytest.raises(ConfigError, match="power.reanalyse"):
+        app.run(plain, tmp_path / "out")
+    assert not (tmp_path / "p.sqlite").exists()
+
+
 def test_report_table_and_figure(tmp_path):
     rate = lambda k, n: (k / n, max(0.0, k / n - 0.2), min(1.0, k / n + 0.2))  # noqa: E731
     rows = [PowerRow(NULL, "none", 0.0, 30, 2, 0, 1, rate(2, 30), rate(0, 30), rate(1, 30), {"cohesion": 1}),

@@ -58,7 +58,7 @@ from torchdem.measured import Condition, KPIValue, MeasuredData
 from torchdem.model import DrawDownModel
 
 __all__ = ["NULL", "LAB_KPIS", "twin_kpis", "Effect", "TwinOutcome", "PowerRow", "power_stages", "twin_measurement",
-           "run_power_study", "tabulate", "power_summary", "wilson"]
+           "run_power_study", "reanalyse", "ReadOnlyExecutor", "RunsNeeded", "tabulate", "power_summary", "wilson"]
 
 #: Name of the no-mechanism twins.
 NULL = "null"
@@ -211,6 +211,121 @@ def outcome_artifact(name: str, index: int, lab: int, rules: int) -> str:
     return f"power/{name}/{index}/{lab}" if rules == 1 else f"power/rules{rules}/{name}/{index}/{lab}"
 
 
+def _jobs(effects: Sequence[Effect], labs: int, null_labs: int) -> list[tuple[str, int, Effect | None, int]]:
+    """``(mechanism, effect index, effect, lab)`` of every twin, the null's first."""
+    if labs < 1 or null_labs < 0:
+        raise out_of_range("(labs, null_labs)", (labs, null_labs), "labs >= 1, null_labs >= 0", "power study")
+    jobs = [(NULL, 0, None, r) for r in range(null_labs)]
+    for i, e in enumerate(effects):
+        get(e.mechanism, "power study")
+        jobs += [(e.mechanism, i, e, r) for r in range(labs)]
+    return jobs
+
+
+def _analyse(store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor], model: DrawDownModel,
+             baseline: Mapping[str, float], template: MeasuredData, settings, name: str, index: int,
+             effect: Effect | None, lab: int, lab_replicates: int, lab_seed: int, discovery_seed: int) -> dict:
+    """One twin made (or read) and analysed: its outcome as the store keeps it."""
+    from bo.discovery.pipeline import run_discovery
+
+    seeds = lab_seeds(lab, lab_replicates, lab_seed)
+    twin = twin_measurement(store, executor_for, model, baseline, template, effect, seeds, list(settings.kpis))
+    own = dataclasses.replace(settings, seeds=tuple(lab_seeds(lab, len(settings.seeds), discovery_seed)))
+    result = run_discovery(store, executor_for, model, baseline, twin, own, echo=lambda s: None)
+    d = result.discrepancy
+    return {"mechanism": name, "effect_index": index, "lab": lab, "p_value": float(d.p_value),
+            "chi2": float(d.chi2), "significant": bool(d.significant), "cause": result.cause,
+            "scores": {h.name: (float(h.score) if math.isfinite(h.score) else None) for h in result.hypotheses},
+            "tied": list(result.tied), "unresolved": list(result.unresolved),
+            "pruned": [h.name for h in result.hypotheses if h.pruned]}
+
+
+class RunsNeeded(Exception):
+    """A re-analysis asked for DEM runs its store does not hold."""
+
+    def __init__(self, tasks: Sequence):
+        self.tasks = list(tasks)
+        super().__init__(f"{len(self.tasks)} DEM runs not in the store")
+
+
+class ReadOnlyExecutor(Executor):
+    """Runs nothing: any task raises :class:`RunsNeeded` (a re-analysis that may only read the store)."""
+
+    def __init__(self):
+        super().__init__(lambda tasks: [], 1)
+
+    @property
+    def parallelism(self) -> int:
+        return 1
+
+    def run(self, tasks):
+        raise RunsNeeded(tasks)
+
+
+#: The outcome fields a re-analysis compares (``p_value`` and ``chi2`` follow from the scores).
+COMPARED = ("significant", "cause", "scores", "tied", "unresolved")
+
+
+def reanalyse(store: CampaignStore, model: DrawDownModel, baseline: Mapping[str, float], template: MeasuredData,
+              effects: Sequence[Effect], settings, *, labs: int, null_labs: int, lab_replicates: int,
+              lab_seed: int, discovery_seed: int = 500_000, echo: Callable[[str], None] = print) -> list[dict]:
+    """Every twin with a stored outcome under the rules ``settings`` apply, analysed again with this
+    code from the runs the store holds, on a copy of it (``store`` is not written): per twin
+    ``status`` "same" (every field of :data:`COMPARED` equal to the last digit), "different"
+    (``changed``: the fields and both values) or "needs runs" (``runs``: those of the batches it had
+    asked for when it stopped at the first; the copy is taken again so that these unrun batches do
+    not stand in for the next twin's).
+    Twins without a stored outcome are left out. Shows whether the shipped outcomes follow from the
+    shipped runs on this machine."""
+    import shutil
+    import sqlite3
+    import tempfile
+    from pathlib import Path
+
+    from bo.discovery.pipeline import rules_of
+
+    rules = rules_of(settings)
+    executor_for = lambda m: ReadOnlyExecutor()  # noqa: E731
+    rows: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="reanalyse-") as tmp:
+        copy = Path(tmp) / store.path.name
+
+        def fresh() -> CampaignStore:
+            for suffix in ("", "-wal", "-shm"):
+                Path(str(copy) + suffix).unlink(missing_ok=True)
+            with sqlite3.connect(f"file:{store.path}?mode=ro", uri=True) as src, sqlite3.connect(copy) as dst:
+                src.backup(dst)
+            return CampaignStore(copy, store.config_hash, extra_stages=store.extra_stages,
+                                 allow_config_mismatch=store.stored_config_hash != store.config_hash)
+
+        def unrun(s: CampaignStore) -> int:
+            c = s.counts()
+            return c["pending"] + c["running"]
+
+        work = fresh()
+        base = unrun(work)
+        jobs = _jobs(effects, labs, null_labs)
+        for n, (name, index, effect, lab) in enumerate(jobs):
+            stored = store.get_artifact(outcome_artifact(name, index, lab, rules), None)
+            if stored is None:
+                continue
+            row = {"mechanism": name, "effect_index": index, "lab": lab}
+            try:
+                found = _analyse(work, executor_for, model, baseline, template, settings, name, index, effect, lab,
+                                 lab_replicates, lab_seed, discovery_seed)
+            except RunsNeeded:
+                row.update(status="needs runs", runs=unrun(work) - base)
+                work = fresh()
+            else:
+                changed = {k: [stored.get(k), found.get(k)] for k in COMPARED if stored.get(k) != found.get(k)}
+                row.update(status="different" if changed else "same", changed=changed)
+            rows.append(row)
+            echo(f"[{n + 1}/{len(jobs)}] {name} effect {index} lab {lab}: {row['status']}"
+                 + (f" ({row['runs']} runs)" if "runs" in row else "")
+                 + (f" ({', '.join(row['changed'])})" if row.get("changed") else ""))
+    return rows
+
+
 def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel], Executor], model: DrawDownModel,
                     baseline: Mapping[str, float], template: MeasuredData, effects: Sequence[Effect],
                     settings, *, labs: int, null_labs: int, lab_replicates: int, lab_seed: int,
@@ -220,7 +335,7 @@ def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel]
     resuming from the store's artifacts; returns every outcome (null first). ``rules`` (default the
     rules ``settings`` apply, ``bo.discovery.pipeline.rules_of``) other than those only reads the
     outcomes the store holds."""
-    from bo.discovery.pipeline import VERDICT_RULES, rules_of, run_discovery
+    from bo.discovery.pipeline import VERDICT_RULES, rules_of
 
     current = rules_of(settings)
     rules = current if rules is None else rules
@@ -228,13 +343,7 @@ def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel]
         raise out_of_range("power.rules", rules, f"an int in [1, {VERDICT_RULES}] (the verdict rules' versions)",
                            "power study")
 
-    if labs < 1 or null_labs < 0:
-        raise out_of_range("(labs, null_labs)", (labs, null_labs), "labs >= 1, null_labs >= 0", "power study")
-    jobs = [(NULL, 0, None, r) for r in range(null_labs)]
-    for i, e in enumerate(effects):
-        get(e.mechanism, "power study")
-        jobs += [(e.mechanism, i, e, r) for r in range(labs)]
-    kpis = list(settings.kpis)
+    jobs = _jobs(effects, labs, null_labs)
     outcomes = []
     for n, (name, index, effect, lab) in enumerate(jobs):
         artifact = outcome_artifact(name, index, lab, rules)
@@ -244,17 +353,8 @@ def run_power_study(store: CampaignStore, executor_for: Callable[[DrawDownModel]
                               f"under verdict rules {rules}; only the rules these settings apply ({current}) can "
                               f"analyse a twin")
         if found is None:
-            seeds = lab_seeds(lab, lab_replicates, lab_seed)
-            twin = twin_measurement(store, executor_for, model, baseline, template, effect, seeds, kpis)
-            own = dataclasses.replace(settings, seeds=tuple(lab_seeds(lab, len(settings.seeds), discovery_seed)))
-            result = run_discovery(store, executor_for, model, baseline, twin, own, echo=lambda s: None)
-            d = result.discrepancy
-            found = {"mechanism": name, "effect_index": index, "lab": lab, "p_value": float(d.p_value),
-                     "chi2": float(d.chi2), "significant": bool(d.significant), "cause": result.cause,
-                     "scores": {h.name: (float(h.score) if math.isfinite(h.score) else None)
-                                for h in result.hypotheses},
-                     "tied": list(result.tied), "unresolved": list(result.unresolved),
-                     "pruned": [h.name for h in result.hypotheses if h.pruned]}
+            found = _analyse(store, executor_for, model, baseline, template, settings, name, index, effect, lab,
+                             lab_replicates, lab_seed, discovery_seed)
             store.put_artifact(artifact, found)
         outcome = TwinOutcome(**{**found, "scores": {k: (math.inf if v is None else v)
                                                       for k, v in found["scores"].items()},
