@@ -313,9 +313,9 @@ def test_a_candidate_that_could_not_be_named_makes_no_held_out_runs(tmp_path):
     from bo.discovery.report import write_discovery_report
 
     lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
-    every = _discover(tmp_path / "every", lab, prune_probability=0.0)
+    every = _discover(tmp_path / "every", lab)  # the default: no pruning
     said = []
-    result = _discover(tmp_path / "pruned", lab, echo=said.append)
+    result = _discover(tmp_path / "pruned", lab, echo=said.append, prune_probability=0.01)
     # a candidate that keeps its chance says so before its runs are made (3 conditions x 3 seeds)
     assert any(line.startswith("  density_per_material: by its own GP, a probability of") and
                line.endswith("running them (9 runs)") for line in said), said

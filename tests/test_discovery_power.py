@@ -88,8 +88,10 @@ def test_power_study_recovers_the_null_rate_names_a_strong_effect_and_reuses_des
     n_calls = len(calls)
     _, again, _ = _study(tmp_path, null_labs=40, labs=6, effects=[strong])
     assert again == outcomes and len(calls) == n_calls
-    # outcomes are keyed by the verdict rules: those of older rules are read, never made or mixed
-    assert store.get_artifact(outcome_artifact(NULL, 0, 0, VERDICT_RULES), None) is not None
+    # outcomes are keyed by the verdict rules the settings apply (4: pruning is off by default):
+    # those of other rules are read, never made or mixed
+    assert store.get_artifact(outcome_artifact(NULL, 0, 0, 4), None) is not None
+    assert store.get_artifact(outcome_artifact(NULL, 0, 0, VERDICT_RULES), None) is None
     assert store.get_artifact(outcome_artifact(NULL, 0, 0, 1), None) is None
     with pytest.raises(ConfigError, match=r"holds no outcome of null effect 0 lab 0 under verdict rules 1"):
         _study(tmp_path, null_labs=40, labs=6, effects=[strong], rules=1)
@@ -98,8 +100,8 @@ def test_power_study_recovers_the_null_rate_names_a_strong_effect_and_reuses_des
     # without pruning a discovery applies rules 4 whole (the held-out runs before a refinement too)
     from bo.discovery.pipeline import rules_of
 
-    assert rules_of(DiscoverySettings(kpis=("shear_angle_deg",))) == VERDICT_RULES == 5
-    assert rules_of(DiscoverySettings(kpis=("shear_angle_deg",), prune_probability=0.0)) == 4
+    assert rules_of(DiscoverySettings(kpis=("shear_angle_deg",), prune_probability=0.01)) == VERDICT_RULES == 5
+    assert rules_of(DiscoverySettings(kpis=("shear_angle_deg",))) == 4  # pruning is off by default
     assert sum(r.tied + r.unresolved for r in rows) <= sum(r.n - r.right - r.wrong for r in rows)
 
 
@@ -123,7 +125,7 @@ def test_a_reanalysis_reads_the_store_only_and_says_which_outcomes_follow(tmp_pa
     rows = again(_settings())
     assert [(r["mechanism"], r["lab"], r["status"]) for r in rows] == [
         (NULL, 0, "same"), (NULL, 1, "same"), ("density_per_material", 0, "same"), ("density_per_material", 1, "same")]
-    name = outcome_artifact("density_per_material", 0, 1, VERDICT_RULES)
+    name = outcome_artifact("density_per_material", 0, 1, 4)  # the rules of the default settings
     edited = {**store.get_artifact(name), "cause": "cohesion"}
     store.put_artifact(name, edited)
     rows = again(_settings())

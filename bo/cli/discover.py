@@ -64,7 +64,7 @@ def discovery_settings_from(plain: Mapping[str, Any]):
             fit_starts=cfg.get("fit_starts", 3), fit_search=str(cfg.get("fit_search", "multistart")),
             search_samples=cfg.get("search_samples", 1024), proposed_kpis=_proposed(cfg.get("proposed_kpis"), where),
             proposed_conditions=_names(cfg.get("proposed_conditions"), "proposed_conditions", where),
-            prune_probability=float(cfg.get("prune_probability", 0.01)))
+            prune_probability=float(cfg.get("prune_probability", 0.0)))
         return settings.validate(where)
     except ConfigError:
         raise

@@ -177,7 +177,9 @@ class DiscoverySettings:
             probability below this of scoring better than the ``parameters`` hypothesis by
             ``margin`` (:func:`win_probability`) is not run on its held-out conditions: it could
             not be named, and on an expensive geometry its held-out runs are a third of its
-            cost. 0: every candidate is run.
+            cost. 0 (the default): every candidate is run. On the mini box's 210 power-study twins
+            0.01 pruned the true cause in 45 of the 180 twins with an effect (its GP is more
+            certain than its runs bear out), and the right cause was named in 34 instead of 39.
     """
 
     kpis: tuple[str, ...]
@@ -201,7 +203,7 @@ class DiscoverySettings:
     search_samples: int = 1024
     proposed_kpis: tuple[str, ...] = ("max_heap_height_m",)
     proposed_conditions: tuple[str, ...] = ()
-    prune_probability: float = 0.01
+    prune_probability: float = 0.0
 
     def validate(self, source: str = "discovery") -> "DiscoverySettings":
         if isinstance(self.proposed_kpis, str) or len(set(self.proposed_kpis)) != len(self.proposed_kpis):
