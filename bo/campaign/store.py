@@ -167,6 +167,19 @@ _MISSING = object()
 
 
 @functools.lru_cache(maxsize=1)
+def copy_store(source: Path, target: Path) -> None:
+    """Copy the campaign store file ``source`` to ``target`` (replaced if it exists), consistent even
+    while another process writes the source (SQLite's backup API; the source is opened read-only)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    read = sqlite3.connect(f"file:{source}?mode=ro", uri=True)
+    write = sqlite3.connect(target)
+    try:
+        read.backup(write)
+    finally:
+        write.close()
+        read.close()
+
+
 def default_code_version() -> str:
     """The git commit of the repo holding this package (``+dirty`` if tracked files changed),
     else the installed torchdem version, else ``"unknown"``."""

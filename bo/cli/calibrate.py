@@ -78,11 +78,9 @@ def seed_store(plain: Mapping[str, Any], path: Path) -> Path | None:
     if src == path.resolve():
         raise ConfigError(f"config: store_from = {source} is the run's own store; give a new store= (or none)")
     if not path.exists():
-        import sqlite3
+        from bo.campaign.store import copy_store
 
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with sqlite3.connect(f"file:{src}?mode=ro", uri=True) as read, sqlite3.connect(path) as write:
-            read.backup(write)  # a consistent copy even if another process writes the source
+        copy_store(src, path)
     return src
 
 

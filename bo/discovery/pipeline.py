@@ -402,21 +402,17 @@ def _key(*parts) -> str:
 SAME_POINT = 1e-6
 
 
-def _fitted_batch(store: CampaignStore, stage: str, prefix: str, points: Sequence[Mapping[str, float]],
+def _fitted_batch(store: CampaignStore, stage: str, key: str, points: Sequence[Mapping[str, float]],
                   seeds: Sequence[int], conditions: Sequence[str], names: Sequence[str],
                   b: np.ndarray) -> tuple[str, list[dict[str, float]]]:
-    """Key and points of a batch of fitted points: a stored batch of the same experiment
-    (:data:`SAME_POINT`, ``CampaignStore.near_batch``) with its stored points, so that a resumed or
-    repeated analysis runs nothing again and goes on from the very points it ran; else a new key
-    hashed from the points."""
+    """Key and points of a batch of fitted points: a stored batch of the same kind (``key`` up to its
+    last ``/``) and the same experiment (:data:`SAME_POINT`, ``CampaignStore.near_batch``) with its
+    stored points, so that a resumed or repeated analysis runs nothing again and goes on from the
+    very points it ran; else ``key`` (hashed from the points) with ``points``."""
     tolerance = {n: SAME_POINT * float(hi - lo) for n, lo, hi in zip(names, b[0], b[1])}
-    found = store.near_batch(stage, prefix, points, seeds=list(seeds), conditions=list(conditions),
-                             tolerance=tolerance)
-    if found is not None:
-        return found
-    if prefix == "refine/":
-        return prefix + _key(list(names), [[p[n] for n in names] for p in points], list(seeds)), [dict(p) for p in points]
-    return prefix + _key(sorted(points[0].items()), list(seeds)), [dict(p) for p in points]
+    found = store.near_batch(stage, key[:key.rindex("/") + 1], points, seeds=list(seeds),
+                             conditions=list(conditions), tolerance=tolerance)
+    return found if found is not None else (key, [dict(p) for p in points])
 
 
 def _lab(measured: MeasuredData, kpis: Sequence[str]) -> dict[tuple[str, str], tuple[float, float, float]]:
@@ -709,8 +705,9 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
         if round_ == 0:
             design_key = f"lhs/{_key(names, b.tolist(), size, settings.seed)}"
         else:
-            design_key, points = _fitted_batch(store, f"discovery-{name}", "refine/", points, settings.fit_seeds,
-                                               conditions, names, b)
+            design_key, points = _fitted_batch(
+                store, f"discovery-{name}", f"refine/{_key(names, X_new.tolist(), list(settings.fit_seeds))}", points,
+                settings.fit_seeds, conditions, names, b)
             X_new = np.array([[p[n] for n in names] for p in points])
         design_keys.append(design_key)
         with executor_for(hyp_model) as executor:
@@ -797,8 +794,10 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
         waits = rules_of(settings) >= 5 and not resolved and round_ < settings.escalations
         if not (pruned or waits):
             for c, x in without.items():
-                key, point = _fitted_batch(store, f"discovery-{name}", f"held-out/{c}/", [{**calibrated, **x}],
-                                           settings.seeds, [c], names, b)
+                point = {**calibrated, **x}
+                key, point = _fitted_batch(store, f"discovery-{name}",
+                                           f"held-out/{c}/" + _key(sorted(point.items()), list(settings.seeds)),
+                                           [point], settings.seeds, [c], names, b)
                 held_out[c] = (key, point, settings.seeds, [c])
         runs = []
         if held_out:

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -243,10 +244,6 @@ def _analyse(store: CampaignStore, executor_for: Callable[[DrawDownModel], Execu
 class RunsNeeded(Exception):
     """A re-analysis asked for DEM runs its store does not hold."""
 
-    def __init__(self, tasks: Sequence):
-        self.tasks = list(tasks)
-        super().__init__(f"{len(self.tasks)} DEM runs not in the store")
-
 
 class ReadOnlyExecutor(Executor):
     """Runs nothing: any task raises :class:`RunsNeeded` (a re-analysis that may only read the store)."""
@@ -259,7 +256,7 @@ class ReadOnlyExecutor(Executor):
         return 1
 
     def run(self, tasks):
-        raise RunsNeeded(tasks)
+        raise RunsNeeded(f"{len(tasks)} DEM runs not in the store")
 
 
 #: The outcome fields a re-analysis compares (``p_value`` and ``chi2`` follow from the scores).
@@ -277,24 +274,21 @@ def reanalyse(store: CampaignStore, model: DrawDownModel, baseline: Mapping[str,
     not stand in for the next twin's).
     Twins without a stored outcome are left out. Shows whether the shipped outcomes follow from the
     shipped runs on this machine."""
-    import shutil
-    import sqlite3
     import tempfile
     from pathlib import Path
 
+    from bo.campaign.store import copy_store
     from bo.discovery.pipeline import rules_of
 
     rules = rules_of(settings)
     executor_for = lambda m: ReadOnlyExecutor()  # noqa: E731
     rows: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="reanalyse-") as tmp:
-        copy = Path(tmp) / store.path.name
+        copies = itertools.count()
 
-        def fresh() -> CampaignStore:
-            for suffix in ("", "-wal", "-shm"):
-                Path(str(copy) + suffix).unlink(missing_ok=True)
-            with sqlite3.connect(f"file:{store.path}?mode=ro", uri=True) as src, sqlite3.connect(copy) as dst:
-                src.backup(dst)
+        def fresh() -> CampaignStore:  # a new file each time: SQLite in this process may still hold the last one
+            copy = Path(tmp) / f"{next(copies)}-{store.path.name}"
+            copy_store(store.path, copy)
             return CampaignStore(copy, store.config_hash, extra_stages=store.extra_stages,
                                  allow_config_mismatch=store.stored_config_hash != store.config_hash)
 
