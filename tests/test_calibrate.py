@@ -337,6 +337,49 @@ def test_explainable_stop_counts_against_the_higher_of_the_pooled_and_learned_ce
     assert "| noise ceiling | with learned noise | explained share |" in files["md"].read_text()
 
 
+def test_the_ga_minimises_the_strategy_that_cross_validated_best(tmp_path):
+    """ga.strategy: the rounds sample with one strategy (scalar here), the GA minimises the one whose
+    Eq. 7 cross-validated best in the last round, built from the same points' KPIs; its optimum is
+    the known answer's; the default keeps the rounds' strategy, and no DEM run is repeated for it."""
+    import functools
+
+    from bo.calibration.pipeline import ga_stage
+
+    base = km.small_settings()
+    settings = dataclasses.replace(base, surrogate=dataclasses.replace(
+        base.surrogate, config=dataclasses.replace(base.surrogate.config, strategy="scalar")), ga_strategy="best")
+    store = CampaignStore(tmp_path / "c.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
+    lines = []
+    result = run_calibration(store, InProcessExecutor(functools.partial(km.known_batch), batch_size=6), settings,
+                             km.known_measurement(), tmp_path / "out", km.NOMINAL_DENSITY, echo=lines.append)
+    r2 = result.surrogate.strategy_r2
+    last = {t: r2[t][-1] for t in ("scalar", "per_kpi")}
+    chosen = max(last, key=last.get)
+    assert result.ga.strategy == chosen
+    assert f"The GA minimises the {chosen} surrogate" in result.ga.strategy_note
+    assert f"scalar {last['scalar']:.3f}" in result.ga.strategy_note
+    assert any(f"GA (restricted, {chosen}," in line for line in lines)
+    # the same points, in the other strategy's form: per_kpi keeps every KPI of the scalar state's points
+    assert result.surrogate.jammed.shape == result.surrogate.kpi_replicates.shape[:2]
+    from scipy.optimize import differential_evolution
+
+    b = result.surrogate.bounds
+    best = differential_evolution(lambda x: _noise_free_objective(result, x), list(zip(b[0], np.minimum(b[1], 0.9))),
+                                  seed=0, tol=1e-10)
+    x = [result.ga.calibrated[n] for n in result.surrogate.parameters]
+    assert _noise_free_objective(result, x) < best.fun + 0.004
+    files = write_calibration_report(result, tmp_path / "report")
+    assert result.ga.strategy_note + "." in files["md"].read_text()
+    assert json.loads(files["json"].read_text())["ga"]["strategy"] == chosen
+    # each strategy by name, and the default (the rounds' own), on the same surrogate: no DEM run
+    runs = store.counts()["done"]
+    for wanted, expected in (("per_kpi", "per_kpi"), ("scalar", "scalar"), (None, "scalar")):
+        ga = ga_stage(store, result.surrogate, result.objective, dataclasses.replace(settings, ga_strategy=wanted),
+                      echo=lambda s: None)
+        assert ga.strategy == expected and (ga.strategy_note == "") == (wanted is None)
+    assert store.counts()["done"] == runs
+
+
 def test_screening_limits_stop_the_extension_in_the_calibration(tmp_path):
     """``screening.limits`` reaches the Table-6 rule of the calibration's screening stage: the
     known-answer screening moves mu_s_pp to 1.1 and mu_s_ss to 1.3; with sliding friction limited
@@ -617,6 +660,8 @@ def test_killed_campaign_resumes_without_losing_or_repeating_a_run(tmp_path):
     ("surrogate.parameters=[mu_s_pp,mu_s_ss] surrogate.budget=10 surrogate.points_per_parameter=10",
      r"config surrogate: .*budget = 10 is not allowed; expected >= the 20 points the initial design runs"),
     ("ga.mode=best", r"ga: mode = 'best' is not allowed; expected 'restricted' or 'unrestricted'"),
+    ("ga.strategy=cheapest", r"ga.strategy = 'cheapest' is not allowed; expected null \(the surrogate's strategy\) or "
+     r"one of \['scalar', 'per_kpi', 'best'\]"),
     ("surrogate.kernels=[gaussian]", r"surrogate: kernels = \['gaussian'\] is not allowed"),
     ("verification.replicates=0", r"verification: replicates = 0 is not allowed; expected an int >= 1"),
     ("verification.fresh=maybe", r"verification: fresh = 'maybe' is not allowed; expected true or false"),

@@ -23,7 +23,9 @@ and the GA result is kept as a store artifact.
    the Latin hypercube shrinks by as many points, to no less than half its size.
 3. ``ga`` (artifact): the GA on the surrogate mean over ``ga_repetitions`` surrogate trainings
    (Table 9), restricted (friction and restitution <= 0.9) and unrestricted (Table 8); the lowest fitness of
-   the chosen mode is the calibrated set.
+   the chosen mode is the calibrated set. The GA's surrogate is the rounds' strategy, or with
+   ``ga_strategy`` another one or ``"best"``: the strategy whose Eq. 7 cross-validated better in
+   the last round (the surrogate that predicts the objective best out of sample picks the point).
 4. ``verification`` (stage ``verification``): the calibrated set with the verification seeds;
    relative error per KPI (Fig. 14, Table A.4). With ``fresh_verification`` the same runs are
    made again in a batch of their own that takes nothing from the store (batch key
@@ -93,6 +95,8 @@ EXTRA_STAGES = ("density",)
 #: DEM KPI compared with the measured heap height in the bulk density check.
 HEAP_HEIGHT_KPI = "max_heap_height_m"
 _GA_MODES = ("restricted", "unrestricted")
+#: ``ga_strategy`` value: the strategy whose Eq. 7 cross-validated best in the last round.
+GA_BEST = "best"
 
 
 # --------------------------------------------------------------------------------------------
@@ -167,6 +171,9 @@ class CalibrationSettings:
         validate_with_density: validate with the recalibrated densities (when recalibrated).
         seed: seed of the GA repetitions.
         fresh_verification: run the verification again, sharing no stored run (see stage 4).
+        ga_strategy: the surrogate strategy the GA minimises: None (the rounds' strategy), one of
+            ``STRATEGIES``, or ``"best"`` (the one with the higher CV R^2 of Eq. 7 in the last
+            round; the rounds' own when the other was not cross-validated).
     """
 
     condition: str
@@ -184,6 +191,7 @@ class CalibrationSettings:
     validate_with_density: bool = True
     seed: int = 0
     fresh_verification: bool = False
+    ga_strategy: str | None = None
 
     def validate(self, source: str = "calibration") -> "CalibrationSettings":
         if self.screening.condition != self.condition:
@@ -203,6 +211,9 @@ class CalibrationSettings:
             raise out_of_range("surrogate.seeds", s.seeds, "a non-empty list of distinct ints", source)
         if s.config.strategy not in STRATEGIES:
             raise out_of_range("surrogate.strategy", s.config.strategy, f"one of {list(STRATEGIES)}", source)
+        if self.ga_strategy is not None and self.ga_strategy not in (*STRATEGIES, GA_BEST):
+            raise out_of_range("ga.strategy", self.ga_strategy,
+                               f"null (the surrogate's strategy) or one of {[*STRATEGIES, GA_BEST]}", source)
         return self
 
 
@@ -253,6 +264,9 @@ class SurrogateOutcome:
         strategy_r2: strategy -> CV R^2 mean per round (the run's strategy and, when compared,
             the other one on the same data; with pooled noise also ``"<strategy>, learned noise"``:
             the run's strategy with a learned noise level, on the same data).
+        jammed: ``[n, r]`` bool, runs of ``kpi_replicates`` whose discharge jammed (None: not
+            recorded); noise: ``[M, M]`` pooled covariance of one run (``noise: pooled``) or None.
+            With them another strategy's data follow from ``kpi_replicates`` (:func:`_objective_data`).
     """
 
     parameters: tuple[str, ...]
@@ -267,16 +281,21 @@ class SurrogateOutcome:
     reused_points: int = 0
     reuse_note: str = ""
     reused_design_points: int = 0
+    jammed: np.ndarray | None = None
+    noise: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
 class GAOutcome:
-    """Table 8/9: the GA summaries per mode and the calibrated set."""
+    """Table 8/9: the GA summaries per mode and the calibrated set; ``strategy``: the surrogate
+    strategy the GA minimised, ``strategy_note``: why (empty when it is the rounds' own by default)."""
 
     summaries: Mapping[str, GASummary | None]
     notes: Mapping[str, str]
     mode: str
     calibrated: Mapping[str, float]
+    strategy: str = "scalar"
+    strategy_note: str = ""
 
 
 @dataclass(frozen=True)
@@ -748,7 +767,7 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                             rounds=tuple(rounds), stopped_because=reason, points_run=int(X_all.shape[0]) - n0,
                             dropped_points=int((~usable).sum()),
                             strategy_r2={t: tuple(v) for t, v in r2.items()}, reused_points=n0,
-                            reuse_note=reuse_note)
+                            reuse_note=reuse_note, jammed=jam_all[usable], noise=pooled)
 
 
 def _summary_to_json(summary: GASummary) -> dict:
@@ -767,13 +786,41 @@ def _summary_from_json(data: Mapping) -> GASummary:
     return GASummary(repetitions=reps, best_index=int(data["best_index"]), restricted=bool(data["restricted"]))
 
 
+def ga_strategy_for(surrogate: SurrogateOutcome, settings: CalibrationSettings) -> tuple[str, str]:
+    """``(strategy, why)``: the surrogate strategy the GA minimises (``settings.ga_strategy``) and
+    a sentence for the report (empty when it is the rounds' own by default)."""
+    own = settings.surrogate.config.strategy
+    wanted = settings.ga_strategy
+    if wanted is None:
+        return own, ""
+    if wanted != GA_BEST:
+        return wanted, f"The GA minimises the {wanted} surrogate (ga.strategy); the rounds used {own}"
+    r2 = {t: surrogate.strategy_r2.get(t, ()) for t in STRATEGIES}
+    last = {t: v[-1] for t, v in r2.items() if v and math.isfinite(v[-1])}
+    if len(last) < len(STRATEGIES):
+        return own, (f"The GA minimises the {own} surrogate, the only strategy cross-validated (ga.strategy: "
+                     f"best needs surrogate.compare_strategies)")
+    best = max(last, key=lambda t: (last[t], t == own))
+    return best, (f"The GA minimises the {best} surrogate, whose Eq. 7 cross-validated best in the last round "
+                  "(CV R^2 " + ", ".join(f"{t} {v:.3f}" for t, v in last.items()) + "; ga.strategy: best)")
+
+
 def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: ObjectiveSpec,
              settings: CalibrationSettings, echo: Callable[[str], None] = print) -> GAOutcome:
-    """Stage 3: repeated GA on the final surrogate, both modes; cached as a store artifact."""
+    """Stage 3: repeated GA on the final surrogate (of :func:`ga_strategy_for`'s strategy), both
+    modes; cached as a store artifact."""
     st = surrogate.state
-    config = dataclasses.replace(settings.surrogate.config, kernel=surrogate.rounds[-1].kernel)
-    name = "ga/" + _key(st.X.tolist(), np.asarray(st.y).tolist(), None if st.y_var is None else
-                        np.asarray(st.y_var).tolist(), dataclasses.asdict(settings.ga), settings.ga_repetitions,
+    strategy, why = ga_strategy_for(surrogate, settings)
+    config = dataclasses.replace(settings.surrogate.config, kernel=surrogate.rounds[-1].kernel, strategy=strategy)
+    X, y, y_var = st.X, st.y, st.y_var
+    if strategy != settings.surrogate.config.strategy:  # the same points' data for the other strategy
+        usable, y, y_var = _objective_data(surrogate.kpi_replicates, objective, strategy, surrogate.noise,
+                                           min(2, len(settings.surrogate.seeds)), surrogate.jammed)
+        X = st.X[usable]
+    if why:
+        echo(f"      {why}")
+    name = "ga/" + _key(X.tolist(), np.asarray(y).tolist(), None if y_var is None else
+                        np.asarray(y_var).tolist(), dataclasses.asdict(settings.ga), settings.ga_repetitions,
                         settings.seed, config.kernel, config.strategy)
     cached = store.get_artifact(name, None)
     summaries: dict[str, GASummary | None] = {}
@@ -786,9 +833,9 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         for mode in _GA_MODES:
             ga = dataclasses.replace(settings.ga, restricted=(mode == "restricted"))
             try:
-                summaries[mode] = repeated_ga(st.X, st.y, surrogate.bounds, config,
+                summaries[mode] = repeated_ga(X, y, surrogate.bounds, config,
                                               n_repetitions=settings.ga_repetitions, settings=ga,
-                                              seed=settings.seed, y_var=st.y_var, objective=objective,
+                                              seed=settings.seed, y_var=y_var, objective=objective,
                                               names=surrogate.parameters)
             except ConfigError as exc:  # e.g. a lower bound above the restriction limit
                 summaries[mode] = None
@@ -803,9 +850,10 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         notes["choice"] = f"ga_mode {settings.ga_mode!r} could not run ({notes.get(settings.ga_mode)}); used {mode!r}"
     best = summaries[mode].best
     calibrated = {n: float(v) for n, v in zip(surrogate.parameters, best.x)}
-    echo(f"GA ({mode}, {settings.ga_repetitions} surrogate trainings): fitness {best.fitness:.4f} at "
+    echo(f"GA ({mode}, {strategy}, {settings.ga_repetitions} surrogate trainings): fitness {best.fitness:.4f} at "
          + ", ".join(f"{n} = {v:.4g}" for n, v in calibrated.items()))
-    return GAOutcome(summaries=summaries, notes=notes, mode=mode, calibrated=calibrated)
+    return GAOutcome(summaries=summaries, notes=notes, mode=mode, calibrated=calibrated, strategy=strategy,
+                     strategy_note=why)
 
 
 def verify(store: CampaignStore, executor: Executor, stage: str, params: Mapping[str, float],

@@ -53,7 +53,8 @@ def agreement_table(rows: Sequence[KPIAgreement]) -> list[str]:
 
 def _ga_json(result: CalibrationResult) -> dict:
     names = list(result.surrogate.parameters)
-    out = {"mode": result.ga.mode, "notes": dict(result.ga.notes), "calibrated": dict(result.ga.calibrated)}
+    out = {"mode": result.ga.mode, "strategy": result.ga.strategy, "strategy_note": result.ga.strategy_note,
+           "notes": dict(result.ga.notes), "calibrated": dict(result.ga.calibrated)}
     for mode, summary in result.ga.summaries.items():
         out[mode] = None if summary is None else {
             "best_repetition": summary.best_index + 1,
@@ -248,6 +249,8 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
     if len(strategies) > 1:
         lines.append("  (every variant cross-validated on the points the run's strategy sampled)")
     lines += ["", f"![Fig. 13]({files['fig13'].name})", "", "## 3. Genetic algorithm (Tables 8, 9)", ""]
+    if ga.strategy_note:
+        lines += [ga.strategy_note + ".", ""]
     for mode, summary in ga.summaries.items():
         if summary is None:
             lines.append(f"- {mode}: not run ({ga.notes.get(mode, '')})")

@@ -201,6 +201,7 @@ def calibration_settings_from(plain: Mapping[str, Any]):
     mode = ga_cfg.pop("mode", None)
     if mode not in ("restricted", "unrestricted"):
         raise out_of_range("mode", mode, "'restricted' or 'unrestricted'", "ga")
+    ga_strategy = ga_cfg.pop("strategy", None)
     ga = _wrap("ga", lambda: GASettings(**ga_cfg))
     ver = plain.get("verification") or {}
     val = plain.get("validation") or {}
@@ -217,7 +218,7 @@ def calibration_settings_from(plain: Mapping[str, Any]):
         density_recalibration=bool((plain.get("density") or {}).get("recalibrate", True)),
         validation_conditions=conditions, validation_seeds=_seeds(val, "validation", base),
         validate_with_density=bool(val.get("with_density", True)), seed=base,
-        fresh_verification=flag(ver.get("fresh", False), "fresh", "verification"))
+        fresh_verification=flag(ver.get("fresh", False), "fresh", "verification"), ga_strategy=ga_strategy)
     return _wrap("", settings.validate)
 
 
