@@ -55,8 +55,8 @@ def known_kpis(params: dict, seed: int, condition: str, noise: bool = True) -> d
         "max_heap_height_m": 0.12 / rho * (1.0 + 0.3 * friction) + e(0.0005),
         # the sinter-rich condition's runs stand for runs stopped before their discharge ended
         "discharge_ended": 0.0 if condition.startswith("25-75") else 1.0,
-        # and the pellet-rich condition's runs for runs whose discharge jammed
-        "discharge_jammed": 1.0 if condition.startswith("75-25") else 0.0,
+        # and the pellet-rich condition's first run for a run whose discharge jammed
+        "discharge_jammed": 1.0 if condition.startswith("75-25") and seed == 0 else 0.0,
     }
 
 

@@ -142,6 +142,27 @@ def test_agreement_compares_full_box_kpis_with_the_lab():
     assert aor.dem_std == pytest.approx(np.std([30.0, 31.0], ddof=1))
 
 
+def test_a_jammed_run_is_counted_not_averaged_in_the_agreement():
+    """A verification run whose grains arched over the slot (flow 0, shear angle 0 deg) is left
+    out of every KPI's mean and counted; the report's table says so. Without the jam column
+    every run is averaged, as before."""
+    from bo.calibration.pipeline import JAMMED
+    from bo.calibration.report import agreement_table
+
+    kpis = ["shear_angle_deg", "mass_flow_rate_full_kg_s", JAMMED]
+    reps = np.array([[42.0, 10.0, 0.0], [0.0, 0.0, 1.0], [41.0, 10.4, 0.0]])
+    lab = {"shear_angle_deg": KPIValue(42.51, 1.62, "deg"), "mass_flow_rate_kg_s": KPIValue(10.29, 0.35, "kg/s")}
+    shear, flow = agreement(reps, kpis, lab)
+    assert shear.dem_mean == 41.5 and flow.dem_mean == pytest.approx(10.2)
+    assert shear.n == flow.n == 2 and shear.jammed == flow.jammed == 1
+    assert shear.within_ci and flow.within_ci
+    assert "1 of 3 runs jammed (the grains arched over the slot) and are left out of these means." \
+        in agreement_table((shear, flow))
+    averaged = agreement(reps[:, :2], kpis[:2], lab)
+    assert averaged[0].dem_mean == pytest.approx(83 / 3) and averaged[0].jammed == 0 and not averaged[0].within_ci
+    assert not any("jammed" in line for line in agreement_table(averaged))
+
+
 def test_density_parameters_set_the_member_mixtures_densities():
     mix = pellet_sinter_mixture(0.5, total_mass=4.0)
     model = DrawDownModel({"50-50": mix}, DrawDownGeometry(slice_depth=0.04), RunSettings(),
@@ -250,9 +271,12 @@ def test_report_files_and_counts_match_the_store(known_campaign):
     cut = len(result.settings.validation_seeds)
     assert result.discharge_not_ended == {"validation": cut}
     assert f"Runs stopped while the upper box still emptied" in md and f"validation {cut}." in md
-    # and its 75-25 runs a discharge that jammed
-    assert result.discharge_jammed == {"validation": cut}
+    # and its first 75-25 run a discharge that jammed: counted, and left out of that condition's means
+    assert result.discharge_jammed == {"validation": 1}
     assert "Runs whose discharge jammed" in md
+    assert all(a.jammed == 1 and a.n == cut - 1 for a in result.validation["75-25"])
+    assert all(a.jammed == 0 and a.n == cut for a in result.validation["25-75"])
+    assert f"1 of {cut} runs jammed (the grains arched over the slot) and are left out of these means." in md
 
 
 def test_report_sets_the_campaign_beside_the_papers_tables(known_campaign, tmp_path):

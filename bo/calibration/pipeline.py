@@ -230,6 +230,7 @@ class KPIAgreement:
             one value). n: finite replicates. measured_mean, measured_ci95: the lab's.
         relative_error_pct: ``(dem_mean - measured_mean) / measured_mean * 100``.
         within_ci: ``|dem_mean - measured_mean| <= measured_ci95``.
+        jammed: runs left out because their discharge jammed (:func:`agreement`).
     """
 
     kpi: str
@@ -240,6 +241,7 @@ class KPIAgreement:
     measured_ci95: float
     relative_error_pct: float
     within_ci: bool
+    jammed: int = 0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -372,13 +374,21 @@ def _run_batch(store: CampaignStore, executor: Executor, stage: str, key: str,
 
 
 def agreement(replicates: np.ndarray, kpis: Sequence[str], measured: Mapping) -> tuple[KPIAgreement, ...]:
-    """Per KPI with a measurement: DEM mean/std over ``replicates [r, M]`` vs the lab."""
+    """Per KPI with a measurement: DEM mean/std over ``replicates [r, M]`` vs the lab.
+
+    When ``kpis`` holds ``JAMMED``, the runs whose discharge jammed are left out of every KPI and
+    counted (``KPIAgreement.jammed``): their grains arched over the slot, so they measured no
+    discharge (flow 0, level surfaces 0 deg), and a lab whose test arched would repeat it. Averaged
+    in, one such run of five moves the flow by a fifth; left out, the report says how often the set
+    jams beside what it gives when it flows."""
     lab = measured_for(kpis, measured)
+    jam = (replicates[:, list(kpis).index(JAMMED)] == 1) if JAMMED in kpis \
+        else np.zeros(replicates.shape[0], dtype=bool)
     out = []
     for j, kpi in enumerate(kpis):
         if kpi not in lab:
             continue
-        v = replicates[:, j]
+        v = replicates[~jam, j]
         v = v[np.isfinite(v)]
         mean = float(v.mean()) if v.size else math.nan
         std = float(v.std(ddof=1)) if v.size > 1 else math.nan
@@ -386,7 +396,7 @@ def agreement(replicates: np.ndarray, kpis: Sequence[str], measured: Mapping) ->
         mm, ci = float(m.mean), float(m.ci95)
         out.append(KPIAgreement(kpi=kpi, dem_mean=mean, dem_std=std, n=int(v.size), measured_mean=mm,
                                 measured_ci95=ci, relative_error_pct=(mean - mm) / mm * 100.0,
-                                within_ci=bool(abs(mean - mm) <= ci)))
+                                within_ci=bool(abs(mean - mm) <= ci), jammed=int(jam.sum())))
     return tuple(out)
 
 
@@ -879,6 +889,8 @@ def density_stage(store: CampaignStore, executor: Executor, settings: Calibratio
             f"the measured data have no {HEAP_HEIGHT_KPI!r} for condition {settings.condition!r} (the paper "
             f"reports only the ratio H_DEM/H_Exp = 0.93 of its own DEM, Fig. 15)"))
     heights = verification[:, list(kpis).index(HEAP_HEIGHT_KPI)]
+    if JAMMED in kpis:  # a jammed run's lower box holds a few kilograms: no heap of the test
+        heights = heights[verification[:, list(kpis).index(JAMMED)] != 1]
     heights = heights[np.isfinite(heights)]
     if heights.size == 0:
         return DensityOutcome(skipped_because="no verification run measured a heap height")
@@ -985,7 +997,8 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     ga = ga_stage(store, surrogate, objective, settings, echo)
     lap("ga")
     kpis = tuple(dict.fromkeys(list(objective.kpi_names) + [HEAP_HEIGHT_KPI]
-                               + [k for k in settings.screening.kpis if k in measured_for(settings.screening.kpis, lab)]))
+                               + [k for k in settings.screening.kpis if k in measured_for(settings.screening.kpis, lab)]
+                               + [JAMMED]))  # jammed runs are counted, not averaged (agreement)
     echo(f"[4/6] verification: {len(settings.verification_seeds)} replicates of the calibrated set")
     ver = verify(store, executor, "verification", ga.calibrated, settings.verification_seeds, [settings.condition],
                  kpis)[settings.condition]

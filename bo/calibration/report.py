@@ -42,12 +42,17 @@ __all__ = ["write_calibration_report", "calibration_payload", "agreement_table",
 
 
 def agreement_table(rows: Sequence[KPIAgreement]) -> list[str]:
-    """Markdown rows: KPI, measured mean +- CI, DEM mean +- std (n), relative error, in CI."""
+    """Markdown rows: KPI, measured mean +- CI, DEM mean +- std (n), relative error, in CI; below
+    them how many runs jammed and were left out, if any."""
     lines = ["| KPI | measured (95 % CI) | DEM mean +- std (n) | relative error | within CI |",
              "| --- | --- | --- | ---: | :---: |"]
     for a in rows:
         lines.append(f"| {a.kpi} | {a.measured_mean:.4g} +- {a.measured_ci95:.3g} | {a.dem_mean:.4g} +- "
                      f"{a.dem_std:.2g} ({a.n}) | {a.relative_error_pct:+.2f} % | {'yes' if a.within_ci else 'no'} |")
+    jammed = max((a.jammed for a in rows), default=0)
+    if jammed:
+        lines += ["", f"{jammed} of {jammed + max(a.n for a in rows)} runs jammed (the grains arched over the slot) "
+                  "and are left out of these means."]
     return lines
 
 
@@ -133,12 +138,14 @@ def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
     dem = paper["dem_vs_experiment"]
     table8 = paper["ga_calibration"][paper["ga_calibration"]["selected"]]
 
-    def errors(rows: Sequence[KPIAgreement]) -> dict[str, float]:
-        return {measured_name(a.kpi): a.relative_error_pct for a in rows}
+    def errors(rows: Sequence[KPIAgreement]) -> dict[str, float | None]:
+        # None: no run measured it (every run jammed or failed)
+        return {measured_name(a.kpi): a.relative_error_pct if math.isfinite(a.relative_error_pct) else None
+                for a in rows}
 
     ours_val = {c: errors(rows) for c, rows in result.validation.items()}
     paper_val = {c: v["relative_error_percent"] for c, v in dem["validation"]["conditions"].items()}
-    worst = [abs(e) for c, row in ours_val.items() for k, e in row.items() if k in paper_val.get(c, {})]
+    worst = [abs(e) for c, row in ours_val.items() for k, e in row.items() if k in paper_val.get(c, {}) and e is not None]
     verification = result.fresh_verification if result.fresh_verification is not None else result.verification
     return {
         "parameters": {n: {"ours": result.final_parameters.get(n), "table8": table8.get(n)}
@@ -150,6 +157,7 @@ def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
                                if k.startswith("density_")} or dict(result.density.densities),
                       "table_a5": paper["bulk_density_recalibration"]["particle_density_kg_m3"]},
         "validation": {"ours": ours_val, "table_a6": paper_val},
+        "unmeasured_validation": [f"{c} {k}" for c, row in ours_val.items() for k, e in row.items() if e is None],
         "largest_validation_error_pct": {"ours": max(worst) if worst else None,
                                          "table_a6": max(abs(e) for row in paper_val.values() for e in row.values())},
         "dem_runs": {"ours": result.evaluations.get("total"), "paper": PAPER_DEM_RUNS},
@@ -174,8 +182,10 @@ def _paper_markdown(c: Mapping) -> list[str]:
         lines += [f"| {cond} | {k} | {f(val['ours'].get(cond, {}).get(k), '+.2f')} % | {f(v, '+.2f')} % |"
                   for k, v in row.items()]
     worst, runs = c["largest_validation_error_pct"], c["dem_runs"]
-    lines += ["", f"Largest validation |error|: this campaign {f(worst['ours'], '.2f')} %, the paper {worst['table_a6']:.2f} %. "
-              f"DEM runs: this campaign {runs['ours']}, the paper about {runs['paper']} (whole box).", ""]
+    missing = c.get("unmeasured_validation") or []
+    lines += ["", f"Largest validation |error|: this campaign {f(worst['ours'], '.2f')} %, the paper {worst['table_a6']:.2f} %"
+              + (f" (left out, measured by no run: every run jammed or failed: {', '.join(missing)})" if missing else "")
+              + f". DEM runs: this campaign {runs['ours']}, the paper about {runs['paper']} (whole box).", ""]
     return lines
 
 

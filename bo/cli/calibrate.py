@@ -287,7 +287,8 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     for label, rows in (("verification", result.verification), ("fresh       ", result.fresh_verification or ())):
         for a in rows:
             echo(f"  {label} {a.kpi:28s} DEM {a.dem_mean:.4g} vs lab {a.measured_mean:.4g} +- {a.measured_ci95:.3g}: "
-                 f"{a.relative_error_pct:+.2f} %" + ("" if a.within_ci else " (outside the lab's 95 % CI)"))
+                 f"{a.relative_error_pct:+.2f} %" + ("" if a.within_ci else " (outside the lab's 95 % CI)")
+                 + (f"; {a.jammed} jammed runs left out" if a.jammed else ""))
     echo(f"DEM evaluations {result.evaluations['total']}; wall {wall:.1f} s; wrote "
          f"{', '.join(sorted(p.name for p in files.values()))} to {out}")
     return {"store": str(path), "out_dir": str(out), "wall_time_s": round(wall, 2),
