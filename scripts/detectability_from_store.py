@@ -47,9 +47,10 @@ import numpy as np
 
 from bo.discovery.detectable import detection_power, distinguishing_power, smallest_detectable
 from bo.screening.pipeline import measured_name
+from torchdem.drawdown import CALIBRATION_KPIS_DEM
 from torchdem.measured import load_measured
 
-KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
+KPIS = CALIBRATION_KPIS_DEM
 
 
 def runs(store: str, condition: str, parameter: str, null: float, effect: float) -> tuple[np.ndarray, np.ndarray]:

@@ -23,9 +23,10 @@ import numpy as np
 import torch
 
 from bo.cli.calibrate import calibration_model_for
+from torchdem.drawdown import CALIBRATION_KPIS_DEM
 from torchdem.errors import ConfigError
 
-KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
+KPIS = CALIBRATION_KPIS_DEM
 
 
 def parameter_set(store: str, stage: str) -> dict[str, float]:

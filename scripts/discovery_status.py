@@ -11,9 +11,10 @@ from __future__ import annotations
 import argparse
 
 from bo.discovery.status import discovery_status, format_status
+from torchdem.drawdown import CALIBRATION_KPIS_DEM
 from torchdem.measured import load_measured
 
-KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
+KPIS = CALIBRATION_KPIS_DEM
 
 
 def main() -> None:

@@ -27,10 +27,11 @@ from bo.campaign.progress import open_read_only
 from bo.screening.pipeline import measured_name
 from bo.surrogate.gp import objective_noise_variance, r2_ceiling
 from bo.surrogate.objective import ObjectiveSpec
+from torchdem.drawdown import CALIBRATION_KPIS_DEM
 from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
 
-KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
+KPIS = CALIBRATION_KPIS_DEM
 
 
 def _rows(path: Path, sql: str, args: tuple = ()) -> list:

@@ -32,10 +32,11 @@ from scipy import optimize
 from bo.discovery.detectable import detection_power, distinguishing_power, smallest_detectable
 from bo.screening.effects import main_effects
 from bo.screening.pipeline import measured_name, stored_screening
+from torchdem.drawdown import CALIBRATION_KPIS_DEM
 from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
 
-KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
+KPIS = CALIBRATION_KPIS_DEM
 SHORT = ("AoR", "shear", "flow", "lower box")
 
 

@@ -80,6 +80,10 @@ KPI_UNITS = {
     "fill_mass_kg": "kg", "fill_mass_full_kg": "kg", "discharge_duration_s": "s", "discharge_ended": "1",
     "discharge_jammed": "1", "fill_bulk_density_kg_m3": "kg/m^3",
 }
+#: The DEM names of the four KPIs the paper calibrates on (``torchdem.measured.CALIBRATION_KPIS``), the
+#: masses those of the whole box (a slice or half box scales its own up).
+CALIBRATION_KPIS_DEM: tuple[str, ...] = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s",
+                                         "mass_lower_box_full_kg")
 
 #: The discharge has ended when the upper-box mass stays within this share of the fill mass of its
 #: final value (the lab's 0.2 kg of 40 kg; :class:`kpi.loadcell.DischargeConfig` ``end_tolerance_kg``).
