@@ -19,7 +19,7 @@ import pytest
 from _campaign_worker import (CAMPAIGN_BATCH_SIZE, CAMPAIGN_CONDITIONS, CAMPAIGN_SEEDS, N_INITIAL,
                               N_ROUND, task_key)
 from bo.campaign.executor import EvalOutcome, EvalTask, InProcessExecutor, run_pending
-from bo.campaign.store import CampaignStore, default_code_version
+from bo.campaign.store import CampaignStore, copy_store, default_code_version
 from torchdem.errors import ConfigError
 
 WORKER = str(Path(__file__).with_name("_campaign_worker.py"))
@@ -63,6 +63,21 @@ def test_batch_stores_points_once_and_reuses_them(tmp_path):
     raw = sqlite3.connect(store.path).execute("SELECT params FROM evaluations ORDER BY task_id LIMIT 1").fetchone()[0]
     assert raw == '{"e_pp":0.5,"mu_s_pp":0.3}'
     assert store.batch_keys() == [("initial", "k")]
+
+
+def test_copy_store_copies_the_source_as_it_is_now_every_time(tmp_path):
+    """A copy made again to the same target holds what the source holds then (a copy is never
+    remembered from an earlier call), and the source is left as it was."""
+    source, target = tmp_path / "s.sqlite", tmp_path / "copies" / "t.sqlite"
+    store = CampaignStore(source, "h")
+    store.put_artifact("a", {"v": 1})
+    copy_store(source, target)
+    assert CampaignStore(target, "h").get_artifact("a", None) == {"v": 1}
+    store.put_artifact("b", {"v": 2})
+    copy_store(source, target)
+    again = CampaignStore(target, "h")
+    assert again.get_artifact("a", None) == {"v": 1} and again.get_artifact("b", None) == {"v": 2}
+    assert store.get_artifact("b", None) == {"v": 2}
 
 
 def test_near_batch_finds_the_same_experiment_within_the_tolerance_the_closest_first(tmp_path):

@@ -373,6 +373,14 @@ def _run_batch(store: CampaignStore, executor: Executor, stage: str, key: str,
     return points
 
 
+def _jammed_runs(replicates: np.ndarray, kpis: Sequence[str]) -> np.ndarray:
+    """``[r]`` bool: the runs of ``replicates [r, M]`` whose discharge jammed (none when ``kpis``
+    lacks ``JAMMED``)."""
+    if JAMMED not in kpis:
+        return np.zeros(replicates.shape[0], dtype=bool)
+    return replicates[:, list(kpis).index(JAMMED)] == 1
+
+
 def agreement(replicates: np.ndarray, kpis: Sequence[str], measured: Mapping) -> tuple[KPIAgreement, ...]:
     """Per KPI with a measurement: DEM mean/std over ``replicates [r, M]`` vs the lab.
 
@@ -382,8 +390,7 @@ def agreement(replicates: np.ndarray, kpis: Sequence[str], measured: Mapping) ->
     in, one such run of five moves the flow by a fifth; left out, the report says how often the set
     jams beside what it gives when it flows."""
     lab = measured_for(kpis, measured)
-    jam = (replicates[:, list(kpis).index(JAMMED)] == 1) if JAMMED in kpis \
-        else np.zeros(replicates.shape[0], dtype=bool)
+    jam = _jammed_runs(replicates, kpis)
     out = []
     for j, kpi in enumerate(kpis):
         if kpi not in lab:
@@ -888,9 +895,8 @@ def density_stage(store: CampaignStore, executor: Executor, settings: Calibratio
         return DensityOutcome(skipped_because=(
             f"the measured data have no {HEAP_HEIGHT_KPI!r} for condition {settings.condition!r} (the paper "
             f"reports only the ratio H_DEM/H_Exp = 0.93 of its own DEM, Fig. 15)"))
-    heights = verification[:, list(kpis).index(HEAP_HEIGHT_KPI)]
-    if JAMMED in kpis:  # a jammed run's lower box holds a few kilograms: no heap of the test
-        heights = heights[verification[:, list(kpis).index(JAMMED)] != 1]
+    # a jammed run's lower box holds a few kilograms: no heap of the test
+    heights = verification[~_jammed_runs(verification, kpis), list(kpis).index(HEAP_HEIGHT_KPI)]
     heights = heights[np.isfinite(heights)]
     if heights.size == 0:
         return DensityOutcome(skipped_because="no verification run measured a heap height")

@@ -166,7 +166,6 @@ CREATE TABLE IF NOT EXISTS artifacts (
 _MISSING = object()
 
 
-@functools.lru_cache(maxsize=1)
 def copy_store(source: Path, target: Path) -> None:
     """Copy the campaign store file ``source`` to ``target`` (replaced if it exists), consistent even
     while another process writes the source (SQLite's backup API; the source is opened read-only)."""
@@ -180,6 +179,7 @@ def copy_store(source: Path, target: Path) -> None:
         read.close()
 
 
+@functools.lru_cache(maxsize=1)
 def default_code_version() -> str:
     """The git commit of the repo holding this package (``+dirty`` if tracked files changed),
     else the installed torchdem version, else ``"unknown"``."""

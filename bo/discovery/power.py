@@ -286,7 +286,7 @@ def reanalyse(store: CampaignStore, model: DrawDownModel, baseline: Mapping[str,
     with tempfile.TemporaryDirectory(prefix="reanalyse-") as tmp:
         copies = itertools.count()
 
-        def fresh() -> CampaignStore:  # a new file each time: SQLite in this process may still hold the last one
+        def fresh() -> CampaignStore:  # a file of its own: no connection to an earlier copy sees it
             copy = Path(tmp) / f"{next(copies)}-{store.path.name}"
             copy_store(store.path, copy)
             return CampaignStore(copy, store.config_hash, extra_stages=store.extra_stages,
