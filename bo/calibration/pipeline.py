@@ -67,6 +67,7 @@ from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.model import DENSITY_PREFIX
 from bo.campaign.executor import Executor, run_pending
 from bo.surrogate.ga import GASettings, GASummary, repeated_ga
+from bo.surrogate.jam import JamModel, fit_jam_model
 from bo.surrogate.objective import ObjectiveSpec
 from bo.screening.pipeline import (ScreeningReport, ScreenSettings, analyse_and_report, json_ready, measured_for,
                                    run_screening)
@@ -290,7 +291,10 @@ class SurrogateOutcome:
 @dataclass(frozen=True)
 class GAOutcome:
     """Table 8/9: the GA summaries per mode and the calibrated set; ``strategy``: the surrogate
-    strategy the GA minimised, ``strategy_note``: why (empty when it is the rounds' own by default)."""
+    strategy the GA minimised, ``strategy_note``: why (empty when it is the rounds' own by default).
+    ``jam_note``: when runs of the surrogate stage jammed, how the GA weighed the risk
+    (:func:`_jam_model`); ``jam_probability``: the chance that one run of the calibrated set jams,
+    by that model (None when no run jammed)."""
 
     summaries: Mapping[str, GASummary | None]
     notes: Mapping[str, str]
@@ -298,6 +302,8 @@ class GAOutcome:
     calibrated: Mapping[str, float]
     strategy: str = "scalar"
     strategy_note: str = ""
+    jam_note: str = ""
+    jam_probability: float | None = None
 
 
 @dataclass(frozen=True)
@@ -822,6 +828,19 @@ def ga_strategy_for(surrogate: SurrogateOutcome, settings: CalibrationSettings) 
                   "(CV R^2 " + ", ".join(f"{t} {v:.3f}" for t, v in last.items()) + "; ga.strategy: best)")
 
 
+def _jam_model(surrogate: SurrogateOutcome, objective: ObjectiveSpec) -> tuple[JamModel | None, float, np.ndarray | None]:
+    """``(model, jammed objective, flags)``: ``P(jam | x)`` fitted on the surrogate stage's runs
+    (``flags [n, r]``: 1 jammed, 0 flowed, NaN not made) and Eq. 7 of the jammed runs' mean KPIs;
+    ``(None, 1.0, None)`` when no run jammed. The runs of a point that every run of jammed are
+    among them when the rounds' strategy is scalar (per_kpi rounds drop such points)."""
+    if surrogate.jammed is None or not surrogate.jammed.any():
+        return None, 1.0, None
+    reps = surrogate.kpi_replicates
+    flags = np.where(np.isfinite(reps).all(axis=2), surrogate.jammed, np.nan)
+    model = fit_jam_model(surrogate.state.X, flags, surrogate.bounds)
+    return model, float(objective(reps[surrogate.jammed].mean(axis=0))), flags
+
+
 def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: ObjectiveSpec,
              settings: CalibrationSettings, echo: Callable[[str], None] = print) -> GAOutcome:
     """Stage 3: repeated GA on the final surrogate (of :func:`ga_strategy_for`'s strategy), both
@@ -836,9 +855,17 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         X = st.X[usable]
     if why:
         echo(f"      {why}")
+    jam, jammed_objective, flags = _jam_model(surrogate, objective)
+    jam_note = "" if jam is None else (
+        f"{jam.n_jammed} of the surrogate stage's {jam.n_runs} runs jammed (Eq. 7 of a jammed run "
+        f"{jammed_objective:.2f}), so the GA minimises the expected Eq. 7 of one run, (1 - p) f + p "
+        f"{jammed_objective:.2f}, with p the chance that it jams by a GP classifier of those runs")
+    if jam_note:
+        echo(f"      {jam_note}")
     name = "ga/" + _key(X.tolist(), np.asarray(y).tolist(), None if y_var is None else
                         np.asarray(y_var).tolist(), dataclasses.asdict(settings.ga), settings.ga_repetitions,
-                        settings.seed, config.kernel, config.strategy)
+                        settings.seed, config.kernel, config.strategy,
+                        *(() if flags is None else ("jam", np.nan_to_num(flags, nan=-1.0).tolist())))
     cached = store.get_artifact(name, None)
     summaries: dict[str, GASummary | None] = {}
     notes: dict[str, str] = {}
@@ -853,7 +880,8 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
                 summaries[mode] = repeated_ga(X, y, surrogate.bounds, config,
                                               n_repetitions=settings.ga_repetitions, settings=ga,
                                               seed=settings.seed, y_var=y_var, objective=objective,
-                                              names=surrogate.parameters)
+                                              names=surrogate.parameters, jam=jam,
+                                              jammed_objective=jammed_objective)
             except ConfigError as exc:  # e.g. a lower bound above the restriction limit
                 summaries[mode] = None
                 notes[mode] = str(exc)
@@ -867,10 +895,12 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         notes["choice"] = f"ga_mode {settings.ga_mode!r} could not run ({notes.get(settings.ga_mode)}); used {mode!r}"
     best = summaries[mode].best
     calibrated = {n: float(v) for n, v in zip(surrogate.parameters, best.x)}
+    p_jam = None if jam is None else float(jam.probability(best.x[None, :])[0])
     echo(f"GA ({mode}, {strategy}, {settings.ga_repetitions} surrogate trainings): fitness {best.fitness:.4f} at "
-         + ", ".join(f"{n} = {v:.4g}" for n, v in calibrated.items()))
+         + ", ".join(f"{n} = {v:.4g}" for n, v in calibrated.items())
+         + ("" if p_jam is None else f"; P(jam) {p_jam:.3f}"))
     return GAOutcome(summaries=summaries, notes=notes, mode=mode, calibrated=calibrated, strategy=strategy,
-                     strategy_note=why)
+                     strategy_note=why, jam_note=jam_note, jam_probability=p_jam)
 
 
 def verify(store: CampaignStore, executor: Executor, stage: str, params: Mapping[str, float],

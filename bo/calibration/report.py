@@ -59,6 +59,7 @@ def agreement_table(rows: Sequence[KPIAgreement]) -> list[str]:
 def _ga_json(result: CalibrationResult) -> dict:
     names = list(result.surrogate.parameters)
     out = {"mode": result.ga.mode, "strategy": result.ga.strategy, "strategy_note": result.ga.strategy_note,
+           "jam_note": result.ga.jam_note, "jam_probability": result.ga.jam_probability,
            "notes": dict(result.ga.notes), "calibrated": dict(result.ga.calibrated)}
     for mode, summary in result.ga.summaries.items():
         out[mode] = None if summary is None else {
@@ -261,6 +262,8 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
     lines += ["", f"![Fig. 13]({files['fig13'].name})", "", "## 3. Genetic algorithm (Tables 8, 9)", ""]
     if ga.strategy_note:
         lines += [ga.strategy_note + ".", ""]
+    if ga.jam_note:
+        lines += [ga.jam_note + f"; at the calibrated set p = {ga.jam_probability:.3f}.", ""]
     for mode, summary in ga.summaries.items():
         if summary is None:
             lines.append(f"- {mode}: not run ({ga.notes.get(mode, '')})")

@@ -26,7 +26,8 @@ is. Unrestricted: the whole box.
 times (training seeds ``seed + i``, see ``fit_surrogate``) and runs the GA on each (GA seed
 ``seed + i``); ``GASummary`` lists per repetition the best parameters and fitness, and
 ``best`` is the repetition with the lowest fitness (Table 9). ``GASummary.to_text(names)``
-prints the table.
+prints the table. With ``jam=`` (a :class:`bo.surrogate.jam.JamModel`, when runs of the data
+jammed) the fitness is the expected objective of one run, ``(1 - p) f + p jammed_objective``.
 """
 from __future__ import annotations
 
@@ -47,6 +48,7 @@ from pymoo.termination.robust import RobustTermination
 
 from bo.surrogate.objective import ObjectiveSpec
 from bo.surrogate.gp import Surrogate, SurrogateConfig, as_bounds, fit_surrogate
+from bo.surrogate.jam import JamModel, expected_objective
 from torchdem.errors import ConfigError, out_of_range
 
 __all__ = ["GASettings", "GAResult", "GARepetition", "GASummary", "ga_bounds",
@@ -254,14 +256,18 @@ def minimise_surrogate(fitness: Surrogate | Callable[[np.ndarray], np.ndarray], 
 def repeated_ga(X, y, bounds, config: SurrogateConfig = SurrogateConfig(), *,
                 n_repetitions: int = 10, settings: GASettings = GASettings(), seed: int = 0,
                 y_var=None, objective: ObjectiveSpec | None = None,
-                names: Sequence[str] | None = None) -> GASummary:
-    """Table 9: ``n_repetitions`` surrogate trainings, a GA on each, lowest fitness wins."""
+                names: Sequence[str] | None = None, jam: JamModel | None = None,
+                jammed_objective: float = 1.0) -> GASummary:
+    """Table 9: ``n_repetitions`` surrogate trainings, a GA on each, lowest fitness wins.
+    ``jam``: the probability that a run jams (:mod:`bo.surrogate.jam`); the GA then minimises the
+    expected objective of one run, ``(1 - p) f + p jammed_objective``."""
     _require_int("n_repetitions", n_repetitions, 1, "repeated_ga")
     reps = []
     for i in range(n_repetitions):
         surrogate = fit_surrogate(X, y, bounds, config, y_var=y_var, objective=objective,
                                   seed=seed + i)
-        res = minimise_surrogate(surrogate, bounds, settings, seed=seed + i, names=names)
+        fitness = surrogate if jam is None else expected_objective(surrogate.predict_mean, jam, jammed_objective)
+        res = minimise_surrogate(fitness, bounds, settings, seed=seed + i, names=names)
         reps.append(GARepetition(index=i, seed=seed + i, x=res.x, fitness=res.fitness,
                                  n_generations=res.n_generations))
     best = int(np.argmin([r.fitness for r in reps]))
