@@ -402,6 +402,28 @@ def test_the_ga_minimises_the_strategy_that_cross_validated_best(tmp_path):
                       echo=lambda s: None)
         assert ga.strategy == expected and (ga.strategy_note == "") == (wanted is None)
     assert store.counts()["done"] == runs
+    assert result.ga.jam_note == "" and result.ga.jam_probability is None  # no run jammed
+    # The runs nearest the optimum jam (their KPIs those of a box that did not flow): the GA then
+    # minimises the expected Eq. 7 of one run and leaves them; a second call reads the store.
+    from bo.surrogate.jam import fit_jam_model
+
+    sur = result.surrogate
+    unit = lambda x: (np.asarray(x) - b[0]) / (b[1] - b[0])  # noqa: E731
+    dist = np.linalg.norm(unit(sur.state.X) - unit(x), axis=1)
+    jammed = np.zeros_like(sur.jammed)
+    jammed[dist <= np.quantile(dist, 0.15), 0] = True
+    reps = sur.kpi_replicates.copy()
+    reps[jammed] = 0.0
+    jam_sur = dataclasses.replace(sur, jammed=jammed, kpi_replicates=reps)
+    ga = ga_stage(store, jam_sur, result.objective, settings, echo=lambda s: None)
+    assert ga.jam_note.startswith(f"{int(jammed.sum())} of the surrogate stage's {int(np.isfinite(reps).all(2).sum())} runs")
+    model = fit_jam_model(sur.state.X, np.where(np.isfinite(reps).all(2), jammed, np.nan), b)
+    x_jam = [ga.calibrated[n] for n in sur.parameters]
+    assert ga.jam_probability == pytest.approx(float(model.probability([x_jam])[0]), rel=1e-9)
+    assert ga.jam_probability < 0.5 * float(model.probability([x])[0])
+    again = ga_stage(store, jam_sur, result.objective, settings, echo=lambda s: None)
+    assert (again.calibrated, again.jam_probability, again.jam_note) == (ga.calibrated, ga.jam_probability, ga.jam_note)
+    assert store.counts()["done"] == runs
 
 
 def test_screening_limits_stop_the_extension_in_the_calibration(tmp_path):

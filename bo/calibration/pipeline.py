@@ -67,7 +67,7 @@ from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.model import DENSITY_PREFIX
 from bo.campaign.executor import Executor, run_pending
 from bo.surrogate.ga import GASettings, GASummary, repeated_ga
-from bo.surrogate.jam import JamModel, fit_jam_model
+from bo.surrogate.jam import fit_jam_model
 from bo.surrogate.objective import ObjectiveSpec
 from bo.screening.pipeline import (ScreeningReport, ScreenSettings, analyse_and_report, json_ready, measured_for,
                                    run_screening)
@@ -293,7 +293,7 @@ class GAOutcome:
     """Table 8/9: the GA summaries per mode and the calibrated set; ``strategy``: the surrogate
     strategy the GA minimised, ``strategy_note``: why (empty when it is the rounds' own by default).
     ``jam_note``: when runs of the surrogate stage jammed, how the GA weighed the risk
-    (:func:`_jam_model`); ``jam_probability``: the chance that one run of the calibrated set jams,
+    (:func:`_jam_flags`); ``jam_probability``: the chance that one run of the calibrated set jams,
     by that model (None when no run jammed)."""
 
     summaries: Mapping[str, GASummary | None]
@@ -828,17 +828,16 @@ def ga_strategy_for(surrogate: SurrogateOutcome, settings: CalibrationSettings) 
                   "(CV R^2 " + ", ".join(f"{t} {v:.3f}" for t, v in last.items()) + "; ga.strategy: best)")
 
 
-def _jam_model(surrogate: SurrogateOutcome, objective: ObjectiveSpec) -> tuple[JamModel | None, float, np.ndarray | None]:
-    """``(model, jammed objective, flags)``: ``P(jam | x)`` fitted on the surrogate stage's runs
-    (``flags [n, r]``: 1 jammed, 0 flowed, NaN not made) and Eq. 7 of the jammed runs' mean KPIs;
-    ``(None, 1.0, None)`` when no run jammed. The runs of a point that every run of jammed are
-    among them when the rounds' strategy is scalar (per_kpi rounds drop such points)."""
+def _jam_flags(surrogate: SurrogateOutcome, objective: ObjectiveSpec) -> tuple[np.ndarray | None, float]:
+    """``(flags, jammed objective)``: the surrogate stage's runs as ``flags [n, r]`` (1 jammed,
+    0 flowed, NaN not made) and Eq. 7 of the jammed runs' mean KPIs; ``(None, 1.0)`` when no run
+    jammed. The points whose every run jammed are among them when the rounds' strategy is scalar
+    (per_kpi rounds drop such points)."""
     if surrogate.jammed is None or not surrogate.jammed.any():
-        return None, 1.0, None
+        return None, 1.0
     reps = surrogate.kpi_replicates
     flags = np.where(np.isfinite(reps).all(axis=2), surrogate.jammed, np.nan)
-    model = fit_jam_model(surrogate.state.X, flags, surrogate.bounds)
-    return model, float(objective(reps[surrogate.jammed].mean(axis=0))), flags
+    return flags, float(objective(reps[surrogate.jammed].mean(axis=0)))
 
 
 def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: ObjectiveSpec,
@@ -855,10 +854,10 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         X = st.X[usable]
     if why:
         echo(f"      {why}")
-    jam, jammed_objective, flags = _jam_model(surrogate, objective)
-    jam_note = "" if jam is None else (
-        f"{jam.n_jammed} of the surrogate stage's {jam.n_runs} runs jammed (Eq. 7 of a jammed run "
-        f"{jammed_objective:.2f}), so the GA minimises the expected Eq. 7 of one run, (1 - p) f + p "
+    flags, jammed_objective = _jam_flags(surrogate, objective)
+    jam_note = "" if flags is None else (
+        f"{int(np.nansum(flags))} of the surrogate stage's {int(np.isfinite(flags).sum())} runs jammed (Eq. 7 of "
+        f"a jammed run {jammed_objective:.2f}), so the GA minimises the expected Eq. 7 of one run, (1 - p) f + p "
         f"{jammed_objective:.2f}, with p the chance that it jams by a GP classifier of those runs")
     if jam_note:
         echo(f"      {jam_note}")
@@ -873,7 +872,9 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         for mode in _GA_MODES:
             summaries[mode] = _summary_from_json(cached[mode]) if cached[mode] is not None else None
         notes = dict(cached["notes"])
+        p_jam = dict(cached.get("jam_probability") or {})
     else:
+        jam = None if flags is None else fit_jam_model(st.X, flags, surrogate.bounds)
         for mode in _GA_MODES:
             ga = dataclasses.replace(settings.ga, restricted=(mode == "restricted"))
             try:
@@ -885,8 +886,11 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
             except ConfigError as exc:  # e.g. a lower bound above the restriction limit
                 summaries[mode] = None
                 notes[mode] = str(exc)
+        # the chance that one run of each mode's optimum jams, kept so a resumed campaign needs no refit
+        p_jam = {} if jam is None else {m: float(jam.probability(v.best.x[None, :])[0])
+                                        for m, v in summaries.items() if v is not None}
         store.put_artifact(name, {m: (_summary_to_json(v) if v is not None else None) for m, v in summaries.items()}
-                           | {"notes": notes})
+                           | {"notes": notes, "jam_probability": p_jam})
     mode = settings.ga_mode if summaries.get(settings.ga_mode) is not None else next(
         (m for m in _GA_MODES if summaries[m] is not None), None)
     if mode is None:
@@ -895,7 +899,7 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         notes["choice"] = f"ga_mode {settings.ga_mode!r} could not run ({notes.get(settings.ga_mode)}); used {mode!r}"
     best = summaries[mode].best
     calibrated = {n: float(v) for n, v in zip(surrogate.parameters, best.x)}
-    p_jam = None if jam is None else float(jam.probability(best.x[None, :])[0])
+    p_jam = p_jam.get(mode)
     echo(f"GA ({mode}, {strategy}, {settings.ga_repetitions} surrogate trainings): fitness {best.fitness:.4f} at "
          + ", ".join(f"{n} = {v:.4g}" for n, v in calibrated.items())
          + ("" if p_jam is None else f"; P(jam) {p_jam:.3f}"))
