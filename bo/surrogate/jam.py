@@ -20,7 +20,10 @@ the base rate the constant mean learned, never to an overconfident 0.
 :func:`expected_objective` composes it with an objective surrogate: one run at ``x`` is a flowing
 run of objective ``f(x)`` with probability ``1 - p(x)`` and a jammed one of objective ``f_jam``
 (Eq. 7 of the jammed runs' KPIs) with probability ``p(x)``, so the expected objective of a run is
-``(1 - p) f + p f_jam``. The GA minimises that (``bo.surrogate.ga.repeated_ga(jam=...)``).
+``(1 - p) f + p f_jam``. The GA minimises that (``bo.surrogate.ga.repeated_ga(jam=...)``). A
+scalar surrogate of Eq. 7 already scores a point with a jammed run as the worst miss of those that
+flowed (``bo.calibration.pipeline._objective_data``); the expected objective adds the risk on top
+of that, so on the scalar strategy the GA keeps further from the jams than the risk alone asks.
 """
 
 from __future__ import annotations
