@@ -313,7 +313,9 @@ def test_run_pending_renews_leases_while_a_batch_runs(tmp_path):
         return [EvalOutcome.success({"angle_of_repose": 30.0}, 0.45) for _ in tasks]
 
     run_pending(store, InProcessExecutor(slow, batch_size=1))
-    assert seen["claimed_at"] > seen["start"] + 0.1  # the lease was refreshed during the batch
+    # The claim precedes the batch, so a claim time after its start is a renewal made during it. (Not
+    # start + 0.1: on a loaded machine the renewing thread's first turn came 0.093 s into the batch.)
+    assert seen["claimed_at"] > seen["start"]
     assert store.records()[0].attempts == 1 and store.counts()["done"] == 1
 
 
