@@ -872,7 +872,7 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         for mode in _GA_MODES:
             summaries[mode] = _summary_from_json(cached[mode]) if cached[mode] is not None else None
         notes = dict(cached["notes"])
-        p_jam = dict(cached.get("jam_probability") or {})
+        jam_p = dict(cached.get("jam_probability") or {})
     else:
         jam = None if flags is None else fit_jam_model(st.X, flags, surrogate.bounds)
         for mode in _GA_MODES:
@@ -887,10 +887,10 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
                 summaries[mode] = None
                 notes[mode] = str(exc)
         # the chance that one run of each mode's optimum jams, kept so a resumed campaign needs no refit
-        p_jam = {} if jam is None else {m: float(jam.probability(v.best.x[None, :])[0])
+        jam_p = {} if jam is None else {m: float(jam.probability(v.best.x[None, :])[0])
                                         for m, v in summaries.items() if v is not None}
         store.put_artifact(name, {m: (_summary_to_json(v) if v is not None else None) for m, v in summaries.items()}
-                           | {"notes": notes, "jam_probability": p_jam})
+                           | {"notes": notes, "jam_probability": jam_p})
     mode = settings.ga_mode if summaries.get(settings.ga_mode) is not None else next(
         (m for m in _GA_MODES if summaries[m] is not None), None)
     if mode is None:
@@ -899,7 +899,7 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         notes["choice"] = f"ga_mode {settings.ga_mode!r} could not run ({notes.get(settings.ga_mode)}); used {mode!r}"
     best = summaries[mode].best
     calibrated = {n: float(v) for n, v in zip(surrogate.parameters, best.x)}
-    p_jam = p_jam.get(mode)
+    p_jam = jam_p.get(mode)  # the chance per mode (jam_p) -> the chosen mode's
     echo(f"GA ({mode}, {strategy}, {settings.ga_repetitions} surrogate trainings): fitness {best.fitness:.4f} at "
          + ", ".join(f"{n} = {v:.4g}" for n, v in calibrated.items())
          + ("" if p_jam is None else f"; P(jam) {p_jam:.3f}"))

@@ -54,14 +54,14 @@ ITERATIONS = 400
 class _Classifier(ApproximateGP):
     def __init__(self, inducing: torch.Tensor):
         d = inducing.shape[1]
+        prior = _lengthscale_prior(d)
         strategy = VariationalStrategy(self, inducing, CholeskyVariationalDistribution(inducing.shape[0]),
                                        learn_inducing_locations=False)
         super().__init__(strategy)
         self.mean_module = ConstantMean()
         self.covar_module = ScaleKernel(MaternKernel(
-            nu=2.5, ard_num_dims=d, lengthscale_prior=_lengthscale_prior(d),
-            lengthscale_constraint=GreaterThan(_MIN_LENGTHSCALE, transform=None,
-                                               initial_value=_lengthscale_prior(d).mode)))
+            nu=2.5, ard_num_dims=d, lengthscale_prior=prior,
+            lengthscale_constraint=GreaterThan(_MIN_LENGTHSCALE, transform=None, initial_value=prior.mode)))
 
     def forward(self, x):
         return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
