@@ -603,7 +603,7 @@ def test_a_campaign_whose_bounds_change_reuses_the_runs_of_its_earlier_design(tm
 # -- make run: a shipped store, resumed, with the verification made again ----------------------
 
 def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(known_campaign, tmp_path):
-    """What `make run` does with campaigns/table2/lab_4s.sqlite, on the known-answer campaign: the
+    """What `make run` does with campaigns/table2/lab.sqlite, on the known-answer campaign: the
     shipped store is copied (and left as it is), every stage resumes from it, and the only DEM
     runs made are the verification's, again, in a batch that takes nothing from the store."""
     import functools
