@@ -240,3 +240,41 @@ def test_the_pellet_wall_friction_is_calibrated_on_the_evidence_of_both_replicat
     assert fits["shear_angle_deg"].params[j] > 0.5 and fits["shear_angle_deg"].pvalues[j] < 1e-3
     assert fits["mass_lower_box_full_kg"].params[j] < 0 and fits["mass_lower_box_full_kg"].pvalues[j] < 1e-3
     assert fits["mass_flow_rate_full_kg_s"].pvalues[j] > 0.5
+
+
+def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch):
+    """`make run`'s campaign (profile=lab, store_from=campaigns/table2/lab.sqlite) resumes from a copy of
+    the shipped store and sends nothing to the DEM but the verification made again: every stage,
+    the GA included, is read from the store, and the calibrated set is the one the shipped
+    campaigns/table2/calibration_lab.json (the discovery's input) records."""
+    import contextlib
+    import json
+    from pathlib import Path
+
+    from bo.campaign.executor import InProcessExecutor
+    from bo.cli import calibrate as app
+
+    root = Path(__file__).resolve().parents[1]
+    shipped = root / "campaigns" / "table2" / "lab.sqlite"
+    before = shipped.stat().st_mtime_ns
+    sent = []
+
+    def nothing_runs(tasks):
+        sent.extend(tasks)
+        raise AssertionError(f"the shipped lab campaign is complete; {len(tasks)} task(s) were sent to the DEM")
+
+    monkeypatch.setattr(app, "executor_from",
+                        lambda *a, **k: contextlib.nullcontext(InProcessExecutor(nothing_runs, 1)))
+    plain = _plain(f"store_from={shipped}", f"store={tmp_path / 'run.sqlite'}")
+    summary = app.calibrate(plain, tmp_path / "out", echo=lambda s: None)
+    assert not sent
+    assert summary["dem_evaluations"]["total"] == 224
+    recorded = json.loads((root / "campaigns" / "table2" / "calibration_lab.json").read_text())
+    assert summary["calibrated_parameters"] == recorded["calibrated_parameters"]
+    assert shipped.stat().st_mtime_ns == before                       # the shipped file is left as it is
+    # verification.fresh (make run) asks the DEM for the 5 verification runs again, and nothing else
+    # (refused here, they are stored as failed in the run's own store and the report says so)
+    app.calibrate(_plain(f"store_from={shipped}", f"store={tmp_path / 'run2.sqlite'}", "verification.fresh=true"),
+                  tmp_path / "out2", echo=lambda s: None)
+    assert len(sent) == 5 and len({t.seed for t in sent}) == 5
+    assert all(dict(t.params) == recorded["calibrated_parameters"] and t.condition == "50-50" for t in sent)
