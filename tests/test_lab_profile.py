@@ -251,7 +251,7 @@ def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch)
     import json
     from pathlib import Path
 
-    from bo.campaign.executor import InProcessExecutor
+    from bo.campaign.executor import EvalOutcome, InProcessExecutor
     from bo.cli import calibrate as app
 
     root = Path(__file__).resolve().parents[1]
@@ -259,9 +259,9 @@ def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch)
     before = shipped.stat().st_mtime_ns
     sent = []
 
-    def nothing_runs(tasks):
+    def nothing_runs(tasks):  # records what reaches the DEM and refuses it (stored as failed runs)
         sent.extend(tasks)
-        raise AssertionError(f"the shipped lab campaign is complete; {len(tasks)} task(s) were sent to the DEM")
+        return [EvalOutcome.failure("refused: the test runs no DEM", 0.0) for _ in tasks]
 
     monkeypatch.setattr(app, "executor_from",
                         lambda *a, **k: contextlib.nullcontext(InProcessExecutor(nothing_runs, 1)))
@@ -273,7 +273,6 @@ def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch)
     assert summary["calibrated_parameters"] == recorded["calibrated_parameters"]
     assert shipped.stat().st_mtime_ns == before                       # the shipped file is left as it is
     # verification.fresh (make run) asks the DEM for the 5 verification runs again, and nothing else
-    # (refused here, they are stored as failed in the run's own store and the report says so)
     app.calibrate(_plain(f"store_from={shipped}", f"store={tmp_path / 'run2.sqlite'}", "verification.fresh=true"),
                   tmp_path / "out2", echo=lambda s: None)
     assert len(sent) == 5 and len({t.seed for t in sent}) == 5
