@@ -95,7 +95,15 @@ def test_status_recomputes_spans_noise_and_held_out_chi2_by_hand(tmp_path):
     base = [z(36.0, 3, 40.0, 1.0, "shear_angle_deg"), z(9.0, 3, 10.0, 0.3, "mass_flow_rate_full_kg_s")]
     assert h.baseline_chi2 == pytest.approx(sum(x * x for x in base), rel=1e-10)
     assert h.chi2 < h.baseline_chi2  # the knob predicts A far better than the calibrated set
+    # the design's mean shift: A's shear points 31, 33 (sd sqrt 2) against the calibrated set's 36 (3 runs)
+    shift, se = spans[("knob", "A")].shifts["shear_angle_deg"]
+    assert shift == pytest.approx(32.0 - 36.0, abs=1e-12)
+    assert se == pytest.approx(math.sqrt(2.0 / 2 + var["shear_angle_deg"] / 3), rel=1e-12)
+    # B's flow has one design point left: no shift
+    assert "mass_flow_rate_full_kg_s" not in spans[("knob", "B")].shifts
+    assert spans[("knob", "B")].shifts["shear_angle_deg"][0] == pytest.approx(33.0 - 38.0, abs=1e-12)
     text = format_status(status, measured)
+    assert f"| A | -4 ({se:.2g}) |" in text and "| B | -5 (" in text
     assert "| A | knob 2.5 | 2 |" in text and "31-33 (40)" in text and "| B | 38 (" in text
 
 

@@ -5,7 +5,9 @@ the candidates only once every one of them has run. What the store already holds
 the question earlier:
 
 * each candidate's design: per condition, how many runs are done and the span of every KPI over
-  the design points, beside the measurement (can the candidate reach the lab at all?);
+  the design points, beside the measurement (can the candidate reach the lab at all?), and the
+  mean over the design points less the calibrated set's mean, with its standard error (does the
+  candidate move the KPI at all, on average over its prior?);
 * each candidate's held-out runs: per left-out condition, the parameters fitted without it, the
   KPI means, their z against the measurement and the condition's chi^2, beside the calibrated
   model's chi^2 on the same condition (does the candidate predict what it was not fitted to?).
@@ -19,6 +21,7 @@ store is opened read-only, so a running campaign is not disturbed.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections import defaultdict
@@ -38,12 +41,22 @@ STAGE_PREFIX = "discovery-"
 
 @dataclass(frozen=True)
 class DesignSpan:
-    """A candidate's design runs on one condition: ``runs`` done, each KPI's (min, max) over them."""
+    """A candidate's design runs on one condition.
+
+    Attributes:
+        runs: runs done. spans: per KPI, (min, max) over the design points' means.
+        shifts: per KPI with at least 2 design points and a calibrated-set mean, (mean over the
+            design points - the calibrated set's mean, its standard error): ``sqrt(s_d^2 / n_d +
+            s^2 / n_c)`` with ``s_d`` the sample sd of the ``n_d`` design points' means (it holds the
+            prior's spread as well as the DEM noise) and ``s`` the pooled replicate noise of the
+            calibrated set's ``n_c`` runs.
+    """
 
     candidate: str
     condition: str
     runs: int
     spans: Mapping[str, tuple[float, float]]
+    shifts: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -95,6 +108,21 @@ def _chi2(cells: Sequence[Cell]) -> float:
     return float(sum(c.z ** 2 for c in cells if math.isfinite(c.z)))
 
 
+def _shifts(means: np.ndarray, base: np.ndarray | None, noise: ReplicateNoise,
+            kpis: Sequence[str]) -> dict[str, tuple[float, float]]:
+    """Per KPI, (mean of the design points' means - the calibrated set's mean, its standard error)
+    (:class:`DesignSpan`); KPIs with fewer than 2 design points or no calibrated-set run are left out."""
+    out = {}
+    for j, k in enumerate(kpis):
+        d = means[:, j][np.isfinite(means[:, j])]
+        c = base[:, j][np.isfinite(base[:, j])] if base is not None and len(base) else np.empty(0)
+        if len(d) < 2 or len(c) == 0:
+            continue
+        se = math.sqrt(float(np.var(d, ddof=1)) / len(d) + noise.variance(k) / len(c))
+        out[k] = (float(d.mean() - c.mean()), se)
+    return out
+
+
 def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[str]) -> DiscoveryStatus:
     """The store's discrepancy, design and held-out runs against ``measured`` (module docstring)."""
     kpis = tuple(kpis)
@@ -143,7 +171,8 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
                              for runs in points.values()], kpis)
         spans = {k: (float(np.nanmin(means[:, j])), float(np.nanmax(means[:, j])))
                  for j, k in enumerate(kpis) if np.isfinite(means[:, j]).any()}
-        designs.append(DesignSpan(name, condition, sum(len(r) for r in points.values()), spans))
+        designs.append(DesignSpan(name, condition, sum(len(r) for r in points.values()), spans,
+                                  _shifts(means, baseline.get(condition), noise, kpis)))
     held_out = []
     for (name, condition), reps in in_order(held_reps.items()):
         if condition not in conditions:
@@ -185,6 +214,13 @@ def format_status(status: DiscoveryStatus, measured: MeasuredData) -> str:
                 lines.append(f"| {d.condition} | {d.runs} | " + " | ".join(
                     (f"{d.spans[k][0]:.4g}-{d.spans[k][1]:.4g}" if k in d.spans else "-")
                     + (f" ({lab[(d.condition, k)][0]:.4g})" if (d.condition, k) in lab else "") for k in status.kpis)
+                    + " |")
+            lines += ["", "Design mean less the calibrated set's (its standard error): what the candidate does on "
+                      "average over its prior.", "",
+                      "| condition | " + " | ".join(status.kpis) + " |", "| --- |" + " ---: |" * len(status.kpis)]
+            for d in spans:
+                lines.append(f"| {d.condition} | " + " | ".join(
+                    f"{d.shifts[k][0]:+.3g} ({d.shifts[k][1]:.2g})" if k in d.shifts else "-" for k in status.kpis)
                     + " |")
         held = [h for h in status.held_out if h.candidate == name]
         if held:
