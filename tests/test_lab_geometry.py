@@ -8,6 +8,9 @@ Checks:
   between the boxes too: bodies escaped through it when the plane only replaced the walls); its
   pairs with every particle material have mu_s = mu_r = 0, e = 1 and no rolling damping; the
   front walls keep the geometry material; mass KPIs scale by depth / slice_depth = 2;
+- the front_back_walls candidate on the mirrored geometry: the real front walls take its material
+  and each particle material's own friction on them, the mirror stays frictionless and the other
+  walls keep the geometry's friction;
 - geometry variants of a condition name (``50-50|mirror=True|slice_depth=0.1``) reach the model;
 - a task parameter ``geometry_outlet_width`` (the outlet_width candidate of discovery) moves the
   built system's slot edges and gate; sets of one ensemble must agree on it, a campaign batch
@@ -29,6 +32,7 @@ from torchdem.drawdown import PAPER_REFERENCE, DrawDownTest, RunSettings
 from torchdem.errors import ConfigError
 from torchdem.geometry import MIRROR_MATERIAL, DrawDownGeometry
 from torchdem.materials import interaction_table
+from torchdem.mechanisms import front_back_walls
 from torchdem.model import DrawDownModel, condition_geometry, variant
 from torchdem.mixture import Mixture, ParticleMaterial, SieveClass
 from torchdem.simulation import GuardSettings, Simulation
@@ -105,6 +109,28 @@ def test_mirror_walls_and_pairs_are_wired_into_the_draw_down_system():
         assert float(t.beta[0, k, mirror]) == 0.0 and float(t.rolling_damping[0, k, mirror]) == 0.0
         assert float(t.mu_s[0, k, geometry]) > 0
     assert g.depth_scale == 0.5 and g.periodic == (False, False, False)
+
+
+def test_front_back_walls_candidate_gives_the_mirrored_geometry_a_front_of_its_own():
+    mix, g = _mini(mirror=True)
+    model = front_back_walls.MECHANISM.apply(DrawDownModel({"50-50": mix}, g, SETTINGS, fixed=PAPER_REFERENCE))
+    assert model.geometry.mirror
+    test = model.test_for("50-50", [{"mu_s_pw": 0.2, "mu_s_sw": 0.95}])
+    system, _, _ = test.build([0], [0])
+    material_names = [m.name for m in test._materials()]
+    wall_material = {w: material_names[k] for w, k in zip(system.walls.names, system.walls.material.tolist())}
+    assert wall_material["upper_front"] == wall_material["lower_front"] == "front_back"
+    assert wall_material["mirror"] == MIRROR_MATERIAL and "upper_back" not in wall_material
+    assert all(m == SETTINGS.geometry_material.name for w, m in wall_material.items()
+               if w not in ("upper_front", "lower_front", "mirror"))
+    t = system.tables
+    col = {m: material_names.index(m) for m in material_names}
+    for particle, front in (("pellet", 0.2), ("sinter", 0.95)):
+        k = col[particle]
+        assert float(t.mu_s[0, k, col["front_back"]]) == pytest.approx(front)
+        assert float(t.mu_s[0, k, col[MIRROR_MATERIAL]]) == 0.0
+        assert float(t.mu_s[0, k, col[SETTINGS.geometry_material.name]]) == pytest.approx(
+            PAPER_REFERENCE[f"mu_s_{particle[0]}g"])
 
 
 def test_geometry_variants_of_a_condition_reach_the_model():

@@ -6,8 +6,10 @@ rest of the geometry.
 On a slice the walls stand depth / slice_depth times closer together than in the lab's box (5x
 for the default 0.04 m slice of the 0.20 m box), so they hold back that much more material per
 unit of wall friction: the fitted friction is then an effective value of the slice, not the
-walls' own. Score this candidate on the whole box (geometry=drawdown_full) to read it as the
-walls' friction."""
+walls' own. Score this candidate on the whole box (geometry=drawdown_full) or on the lab geometry
+(drawdown_lab: the real front wall, and a mirror plane at mid-depth that stands for the back wall)
+to read it as the walls' friction: the side walls, the floors and the slot's edges keep the
+calibrated geometry friction (mu_s_pg, mu_s_sg), and the front and back take their own."""
 import dataclasses
 
 from torchdem.mechanisms import Mechanism
