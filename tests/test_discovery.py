@@ -36,6 +36,7 @@ from scipy import stats
 from bo.cli.calibrate import calibration_model_from
 from bo.cli.discover import calibrated_from, discover, discovery_settings_from, extension_command
 from bo.cli.common import plain_config
+from bo.discovery.report import write_discovery_report
 from bo.discovery.pipeline import PARAMETERS, DiscoverySettings, discovery_stages, model_context, run_discovery
 from bo.campaign.executor import InProcessExecutor
 from torchdem.mechanisms import apply_extension, registry
@@ -553,6 +554,82 @@ def test_a_hypothesis_whose_held_out_runs_fail_cannot_be_the_cause(tmp_path):
     assert all(v == math.inf for v in density.held_out_chi2.values()) and density.score == math.inf
     assert result.cause is None and "No candidate" in result.explanation
     # with the same design runs and working held-out runs the same data name density (the test above)
+
+
+#: What a run whose grains arched over the slot reports (torchdem.drawdown.JAM_FRACTION).
+JAMMED_KPIS = {"angle_of_repose_deg": 0.0, "shear_angle_deg": 0.0, "mass_flow_rate_full_kg_s": 0.0,
+               "mass_lower_box_full_kg": 0.3, "discharge_jammed": 1.0}
+
+
+def _jams(calibrated: dict, tasks):
+    """known_batch, except that these runs jam: the calibrated set's seed 1 on 75-25, every design
+    run of a point whose sinter is 10 % or more above nominal on 25-75, and every held-out run on
+    50-50 (a batch of one parameter set other than the calibrated one)."""
+    sets = {tuple(sorted(t.params.items())) for t in tasks}
+    held_out = len(sets) == 1 and dict(next(iter(sets))) != calibrated
+    out = km.known_batch(tasks)
+    for i, t in enumerate(tasks):
+        calibrated_run = {k: float(v) for k, v in t.params.items()} == calibrated
+        heavy = t.params.get("density_sinter", 0.0) >= 1.10 * km.NOMINAL_DENSITY["sinter"]
+        if ((calibrated_run and t.condition == "75-25" and t.seed == 1)
+                or (not held_out and not calibrated_run and heavy and t.condition == "25-75")
+                or (held_out and t.condition == "50-50")):
+            out[i] = dataclasses.replace(out[i], kpis={**out[i].kpis, **JAMMED_KPIS})
+        else:
+            out[i] = dataclasses.replace(out[i], kpis={**out[i].kpis, "discharge_jammed": 0.0})
+    return out
+
+
+def test_jammed_runs_are_left_out_of_means_fits_and_noise_and_counted(tmp_path):
+    """A jammed run measured no discharge (flow 0, level surfaces 0 deg). Averaged in, one of three
+    calibrated runs on 75-25 would move its flow by a third and the pooled scatter of every KPI many
+    times over. It is left out of the cells, the GPs' data and the noise, and counted; a condition
+    whose held-out runs all jammed has no prediction (infinite chi^2), as for failed runs."""
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    calibrated = {**_known_model().fixed, **km.TRUE}
+    # no refinement round: every held-out run in the store is then one the verdict scores
+    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1), candidates=("density_per_material",),
+                                 escalations=0)
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    batch = functools.partial(_jams, {k: float(v) for k, v in calibrated.items()})
+    lines = []
+    result = run_discovery(store, lambda model: InProcessExecutor(batch, batch_size=12), _known_model(), calibrated,
+                           lab, settings, echo=lines.append)
+    d = result.discrepancy
+    assert d.jammed == {"75-25": 1} and d.significant  # averaged in, the jammed run hid it (docs/discovery.md)
+    flow = {c.condition: c for c in d.cells if c.kpi == "mass_flow_rate_full_kg_s"}
+    assert flow["75-25"].n == 2 and flow["50-50"].n == 3
+    honest = [km.known_kpis(calibrated, s, "75-25")["mass_flow_rate_full_kg_s"] for s in (0, 2)]
+    assert flow["75-25"].dem_mean == pytest.approx(np.mean(honest), rel=1e-12)
+    # the noise is pooled over the runs that flowed only: every done run that did not jam, by group
+    groups: dict[tuple, list] = {}
+    for stage in discovery_stages(["density_per_material"]):
+        for r in store.records(stage, status="done"):
+            if not r.kpis.get("discharge_jammed"):
+                groups.setdefault((stage, r.batch_key, r.point_index, r.condition), []).append(r.kpis)
+    for i, k in enumerate(KPIS):
+        runs = [[x[k] for x in g] for g in groups.values()]
+        dof = sum(len(v) - 1 for v in runs)
+        var = sum(((np.array(v) - np.mean(v)) ** 2).sum() for v in runs) / dof
+        assert d.noise.dof[i] == dof and d.noise.variance(k) == pytest.approx(var)
+    density = next(h for h in result.hypotheses if h.name == "density_per_material")
+    heavy = [r for r in store.records("discovery-density_per_material", status="done")
+             if r.batch_key.startswith("lhs/") and r.condition == "25-75"
+             and r.params["density_sinter"] >= 1.10 * km.NOMINAL_DENSITY["sinter"]]
+    assert heavy and density.jammed_design == {"25-75": len(heavy)}
+    assert density.jammed_held_out == {"50-50": 3}
+    assert "every run's discharge jammed (3 of 3)" in density.held_out_failures["50-50"]
+    assert density.held_out_chi2["50-50"] == math.inf and density.score == math.inf
+    assert set(density.held_out_failures) == {"50-50"}  # the other held-out conditions flowed and scored
+    assert all(math.isfinite(density.held_out_chi2[c]) for c in ("75-25", "25-75"))
+    assert result.cause is None
+    assert any("jammed" in line and "25-75 " + str(len(heavy)) in line for line in lines)
+    out = tmp_path / "report"
+    write_discovery_report(result, out)
+    text = (out / "discovery.md").read_text()
+    assert "75-25 1." in text and "density_per_material: runs whose discharge jammed" in text
+    payload = json.loads((out / "discovery.json").read_text())
+    assert payload["discrepancy"]["jammed_runs"] == {"75-25": 1}
 
 
 def _fails_on_the_design(tasks):

@@ -1,7 +1,8 @@
 """The status of a discovery campaign read from its store (bo/discovery/status.py,
 scripts/discovery_status.py): a store written through the campaign API with known KPI values;
 the design spans, the pooled noise, the held-out z and chi^2 and the calibrated set's chi^2 are
-recomputed here by hand; the store is not written."""
+recomputed here by hand; the store is not written. Runs whose discharge jammed are counted and
+left out of every figure; a refinement batch's points are points of their own."""
 from __future__ import annotations
 
 import math
@@ -105,6 +106,34 @@ def test_status_recomputes_spans_noise_and_held_out_chi2_by_hand(tmp_path):
     text = format_status(status, measured)
     assert f"| A | -4 ({se:.2g}) |" in text and "| B | -5 (" in text
     assert "| A | knob 2.5 | 2 |" in text and "31-33 (40)" in text and "| B | 38 (" in text
+
+
+JAMMED = {"shear_angle_deg": 0.0, "mass_flow_rate_full_kg_s": 0.0, "discharge_jammed": 1.0}
+
+
+def test_jammed_runs_are_counted_and_left_out_and_refined_points_kept_apart(tmp_path):
+    path = _store(tmp_path)
+    measured = _measured()
+    before = discovery_status(path, measured, KPIS)
+    store = CampaignStore(path, "hash", extra_stages=discovery_stages(["knob"]))
+    _run(store, "discrepancy", "calibrated/A/more", [CALIBRATED], [7], ["A"], lambda p, s, c: JAMMED)
+    # a refinement batch: its point 0 is another point than the design's point 0; one of its runs jammed
+    _run(store, "discovery-knob", "refine/1", [{**CALIBRATED, "knob": 5.0}], [0, 1], ["A"],
+         lambda p, s, c: JAMMED if s == 1 else {"shear_angle_deg": 35.0, "mass_flow_rate_full_kg_s": 14.0})
+    _run(store, "discovery-knob", "held-out/B/1", [{**CALIBRATED, "knob": 2.0}], [0], ["B"], lambda p, s, c: JAMMED)
+    status = discovery_status(path, measured, KPIS)
+    assert status.baseline_jammed == {"A": 1}
+    assert status.baseline == before.baseline and status.noise == before.noise  # the jammed runs change nothing
+    spans = {(d.candidate, d.condition): d for d in status.designs}
+    a = spans[("knob", "A")]
+    assert a.jammed == 1 and a.runs == 3  # design points 1 and 3 (one run each) and the refined point 5 (one)
+    assert a.spans["shear_angle_deg"] == (31.0, 35.0) and a.spans["mass_flow_rate_full_kg_s"] == (10.0, 14.0)
+    held = {(h.candidate, h.condition): h for h in status.held_out}
+    assert held[("knob", "B")].runs == 0 and held[("knob", "B")].jammed == 1
+    assert held[("knob", "B")].parameters == {"knob": 2.0}
+    assert all(not math.isfinite(c.z) for c in held[("knob", "B")].cells)
+    text = format_status(status, measured)
+    assert "| A | 3 (+1 jammed) |" in text and "calibrated set whose discharge jammed, left out: A 1" in text
 
 
 def test_script_prints_the_status_and_names_a_missing_store(tmp_path):

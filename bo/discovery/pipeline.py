@@ -77,6 +77,15 @@ returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model
    step 1: error per KPI and condition before and after, each with its uncertainty. The
    mechanism's values fitted on all conditions are the extension (``DiscoveryResult.extension``).
 
+Jammed runs. A run whose discharge jammed (``discharge_jammed`` 1: the grains arched over the slot,
+:data:`torchdem.drawdown.JAM_FRACTION`) measured no discharge: its flow and level surfaces read 0. As
+in the calibration's verification (``bo.calibration.pipeline.agreement``), such a run is left out of
+every KPI mean, of the GPs' data and of the pooled noise, and counted (``Discrepancy.jammed``,
+``HypothesisScore.jammed_design`` and ``jammed_held_out``, condition -> runs); averaged in, one such
+run would move a held-out flow by a third and the pooled replicate scatter of every KPI many times
+over, and with it every z of every hypothesis. A condition whose held-out runs all jammed has no
+prediction: its held-out chi^2 is infinite, as for runs that failed.
+
 Everything returned is plain data; ``bo.discovery.report`` writes ``discovery.json`` and figures.
 """
 from __future__ import annotations
@@ -92,6 +101,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 from scipy import stats
 
+from kpi.loadcell import discharge_jammed
 from bo.surrogate.acquisition import latin_hypercube
 from torchdem.model import DrawDownModel
 from bo.campaign.executor import Executor, run_pending
@@ -277,6 +287,7 @@ class Discrepancy:
     significant: bool
     noise: ReplicateNoise
     chi2_equivalent: float = math.nan
+    jammed: Mapping[str, int] = dataclasses.field(default_factory=dict)  # condition -> runs left out: jammed
 
 
 @dataclass(frozen=True)
@@ -321,6 +332,9 @@ class HypothesisScore:
             not computed: pruning off, or the fit unresolved). pruned: why its held-out runs were not made (the probability was below
             ``prune_probability``), else None; a pruned candidate's score is its GP's prediction
             and it can be neither named nor tied.
+        jammed_design, jammed_held_out: condition -> runs of the design (its refinements included)
+            and of the held-out runs whose discharge jammed, left out of the GPs' data and the
+            means (module docstring); only conditions with such runs.
     """
 
     name: str
@@ -347,6 +361,8 @@ class HypothesisScore:
     astray: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
     win_probability: float = math.nan
     pruned: str | None = None
+    jammed_design: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    jammed_held_out: Mapping[str, int] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -464,14 +480,26 @@ def _run_together(store: CampaignStore, executor: Executor, stage: str,
 
 def _collect(store: CampaignStore, stage: str, key: str, n_points: int, seeds: Sequence[int],
              conditions: Sequence[str], kpis: Sequence[str]) -> np.ndarray:
-    """The stored KPIs of a batch, ``[n_points, n_conditions, r, K]`` (NaN: failed/unmeasured)."""
+    """The stored KPIs of a batch, ``[n_points, n_conditions, r, K]`` (NaN: failed, unmeasured or
+    jammed: a jammed run measured no discharge, module docstring)."""
     out = np.full((n_points, len(conditions), len(seeds), len(kpis)), np.nan)
     ci = {c: i for i, c in enumerate(conditions)}
     si = {s: i for i, s in enumerate(seeds)}
     for rec in store.records(stage, batch_key=key, status="done"):
-        if rec.condition in ci and rec.seed in si and rec.kpis is not None:
+        if rec.condition in ci and rec.seed in si and rec.kpis is not None and not discharge_jammed(rec.kpis):
             out[rec.point_index, ci[rec.condition], si[rec.seed]] = [rec.kpis.get(k, math.nan) for k in kpis]
     out[~np.isfinite(out)] = np.nan
+    return out
+
+
+def _jams(store: CampaignStore, stage: str, keys: Sequence[str]) -> dict[str, int]:
+    """Condition -> done runs of the batches ``keys`` of ``stage`` whose discharge jammed (only
+    conditions with such runs)."""
+    out: dict[str, int] = {}
+    for key in keys:
+        for rec in store.records(stage, batch_key=key, status="done"):
+            if rec.kpis is not None and discharge_jammed(rec.kpis):
+                out[rec.condition] = out.get(rec.condition, 0) + 1
     return out
 
 
@@ -504,13 +532,14 @@ def _unmeasured(reps: np.ndarray, condition: str, kpis: Sequence[str],
 
 def _discrepancy(reps: np.ndarray, conditions: Sequence[str], kpis: Sequence[str],
                  lab: Mapping[tuple[str, str], tuple[float, float]], noise: ReplicateNoise,
-                 alpha: float) -> Discrepancy:
+                 alpha: float, jammed_runs: Mapping[str, int] | None = None) -> Discrepancy:
     cells = _cells(reps, conditions, kpis, lab, noise)
     finite = [c for c in cells if math.isfinite(c.z)]
     chi2 = float(sum(c.z ** 2 for c in finite))
     equivalent = float(sum(chi2_equivalent(c.z, c.dof) for c in finite))
     p = float(stats.chi2.sf(equivalent, len(finite))) if finite else math.nan
-    return Discrepancy(tuple(cells), chi2, len(finite), p, bool(finite) and p < alpha, noise, equivalent)
+    return Discrepancy(tuple(cells), chi2, len(finite), p, bool(finite) and p < alpha, noise, equivalent,
+                       dict(jammed_runs or {}))
 
 
 # --------------------------------------------------------------------------------------------
@@ -551,14 +580,17 @@ def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Ma
     adopted = [c for c in conditions if len(given.get(c, ())) >= BASELINE_RUNS]
     ran = [c for c in conditions if c not in adopted]
     parts: dict[str, np.ndarray] = {}
+    keys: list[str] = []
     if ran:
         key = "calibrated/" + _key(sorted(calibrated.items()), list(settings.seeds), ran)
+        keys.append(key)
         reps = _run(store, executor, "discrepancy", key, [dict(calibrated)], settings.seeds, ran,
                     settings.kpis)[0]
         parts.update({c: reps[i] for i, c in enumerate(ran)})
     for c in adopted:
         seeds = sorted(r.seed for r in given[c])
         key = "calibrated/" + _key(sorted(calibrated.items()), seeds, [c], "adopted")
+        keys.append(key)
         store.batch("discrepancy", key, lambda: [dict(calibrated)], seeds=seeds, conditions=[c])
         store.adopt("discrepancy", key, given[c], source)
         parts[c] = _collect(store, "discrepancy", key, 1, seeds, [c], settings.kpis)[0, 0]
@@ -567,7 +599,8 @@ def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Ma
     for i, c in enumerate(conditions):
         reps[i, :len(parts[c])] = parts[c]
     discrepancy = _discrepancy(reps, conditions, settings.kpis, _lab(measured, settings.kpis),
-                               ReplicateNoise.of(settings.kpis, [reps]), settings.alpha)
+                               ReplicateNoise.of(settings.kpis, [reps]), settings.alpha,
+                               _jams(store, "discrepancy", keys))
     if not discrepancy.dof:
         failed = store.records("discrepancy", batch_key=key, status="failed")
         if failed:  # the runs failed: say so (and why), not that the KPIs do not match
@@ -725,11 +758,15 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
             warnings.simplefilter("ignore", RuntimeWarning)
             Y = np.stack([np.nanmean(reps[:, i, :, j], axis=1) for i, _, j, _ in cells], axis=1)
         usable = (counts >= min(2, len(settings.fit_seeds))).all(axis=1) & np.isfinite(Y).all(axis=1)
+        jammed_design = _jams(store, f"discovery-{name}", design_keys)
         if usable.sum() < max(4, len(names) + 2):
             failed = [r for k in design_keys for r in store.records(f"discovery-{name}", batch_key=k, status="failed")]
             first = (f"; {len(failed)} run(s) failed, the first ({failed[0].condition}, seed {failed[0].seed}, "
                      + ", ".join(f"{n} = {failed[0].params[n]:.4g}" for n in names if n in failed[0].params)
                      + f"): {failed[0].error}") if failed else ""
+            if jammed_design:
+                first += ("; runs whose discharge jammed (left out): "
+                          + ", ".join(f"{c} {n}" for c, n in jammed_design.items()))
             raise ConfigError(f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points "
                               f"have every KPI measured on every condition{first} (all runs in {store.path})")
         V = None
@@ -806,13 +843,21 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                      f"{beat:.1f}; running them ({sum(len(v[2]) for v in held_out.values())} runs)")
             with executor_for(hyp_model) as executor:  # every condition's runs at once (_run_together)
                 runs = _run_together(store, executor, f"discovery-{name}", list(held_out.values()), kpis)
+        jammed_held_out: dict[str, int] = {}
         for (c, (key, *_)), reps_c in zip(held_out.items(), runs):
             held[c] = reps_c[0, 0]
+            jams = _jams(store, f"discovery-{name}", [key]).get(c, 0)
+            if jams:
+                jammed_held_out[c] = jams
             missing = _unmeasured(held[c], c, kpis, lab)
             if missing:  # the fitted parameters could not be simulated here: no prediction, no score
                 failed = store.records(f"discovery-{name}", batch_key=key, status="failed")
-                failures[c] = (f"{', '.join(missing)} not measured in any run"
-                               + (f"; first error: {failed[0].error}" if failed else ""))
+                failures[c] = (f"every run's discharge jammed ({jams} of {len(settings.seeds)}): the fitted "
+                               f"parameters arch the grains over the slot, where the lab's discharge flowed"
+                               if jams and not failed else
+                               f"{', '.join(missing)} not measured in any run"
+                               + (f"; first error: {failed[0].error}" if failed else "")
+                               + (f"; {jams} run(s) jammed" if jams else ""))
         # A left-out fit astray: its DEM runs miss the held-out condition by far more than its GP
         # predicted there, so the GP misjudged the point, and the verdict must not hinge on it.
         astray = {}
@@ -840,6 +885,10 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                       f"max(margin, 2 x the gain's noise sd) and {settings.penalty:g} per added parameter); its GP "
                       f"predicts a held-out chi^2 of "
                       f"{sum(predicted.values()):.1f}, so its held-out runs were not made")
+    if jammed_design or jammed_held_out:
+        echo(f"  {name}: runs whose discharge jammed, left out of the fit and the means: design "
+             + (", ".join(f"{c} {n}" for c, n in jammed_design.items()) or "none") + "; held out "
+             + (", ".join(f"{c} {n}" for c, n in jammed_held_out.items()) or "none"))
     echo(f"  {name}: {len(names)} parameters, {n_points} points fitted; surrogate held-out chi^2 "
          + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items())
          + (f"; pruned: {why_pruned}" if why_pruned else ""))
@@ -847,7 +896,8 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                                  len(extra), {}, without, every, in_sample, math.nan, n_points,
                                  predicted_chi2=predicted, held_out_failures=failures,
                                  fit_misfit_chi2=misfit, fit_surrogate_chi2=surrogate_chi2, fit_cells=len(cells),
-                                 astray=astray, win_probability=p_win, pruned=why_pruned)
+                                 astray=astray, win_probability=p_win, pruned=why_pruned,
+                                 jammed_design=jammed_design, jammed_held_out=jammed_held_out)
     keys = [(c, k) for _, c, _, k in cells]
     wanted = [(c, k) for c in conditions for k in read[len(kpis):]] + [(c, k) for c in unmeasured for k in kpis]
     proposed, proposed_sd = _proposed_models(name, every_run, conditions + unmeasured, read, wanted,
@@ -956,6 +1006,9 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         taken = {c: len(v) for c, v in baseline[1].items() if len(v) >= BASELINE_RUNS}
         echo(f"discrepancy: the calibrated set's runs taken from {baseline[0]}: "
              + (", ".join(f"{c} {n}" for c, n in taken.items()) or "none matched"))
+    if discrepancy.jammed:
+        echo("discrepancy: runs of the calibrated set whose discharge jammed, left out of the means and the noise: "
+             + ", ".join(f"{c} {n}" for c, n in discrepancy.jammed.items()))
     echo(f"discrepancy: chi^2 {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} "
          f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise; noise pooled "
          f"over these runs)")
@@ -989,7 +1042,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         noise = discrepancy.noise
         for f in fitted:
             noise = noise.pooled(ReplicateNoise.of(kpis, f.groups))
-        discrepancy = _discrepancy(reps, conditions, kpis, lab, noise, settings.alpha)
+        discrepancy = _discrepancy(reps, conditions, kpis, lab, noise, settings.alpha, discrepancy.jammed)
         echo("DEM replicate noise pooled over every run (sd, dof): "
              + ", ".join(f"{k} {v['sd']:.3g} ({v['dof']})" for k, v in noise.to_dict().items())
              + f"; discrepancy chi^2 {discrepancy.chi2:.1f}, p = {discrepancy.p_value:.3g}")

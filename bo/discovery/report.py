@@ -50,7 +50,7 @@ def discovery_payload(result: DiscoveryResult) -> dict:
         "tied": list(result.tied),
         "unresolved": list(result.unresolved),
         "discrepancy": {"chi2": d.chi2, "chi2_equivalent": d.chi2_equivalent, "dof": d.dof, "p_value": d.p_value,
-                        "significant": d.significant,
+                        "significant": d.significant, "jammed_runs": dict(d.jammed),
                         "dem_noise": d.noise.to_dict(), "cells": [c.to_dict() for c in d.cells]},
         "candidates": [{"name": h.name, "description": h.description, "parameters": list(h.parameters),
                         "bounds": {k: list(v) for k, v in h.bounds.items()}, "added_parameters": h.added,
@@ -65,6 +65,7 @@ def discovery_payload(result: DiscoveryResult) -> dict:
                         "design_points": h.points, "skipped": h.skipped, "pruned": h.pruned,
                         "win_probability": h.win_probability,
                         "held_out_failures": dict(h.held_out_failures),
+                        "jammed_runs": {"design": dict(h.jammed_design), "held_out": dict(h.jammed_held_out)},
                         "held_out_cells": [c.to_dict() for c in h.held_out_cells],
                         "detectable": dict(h.detectable), "separable": dict(h.separable)}
                        for h in result.hypotheses],
@@ -147,6 +148,9 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
     for c in d.cells:
         lines.append(f"| {c.condition} | {c.kpi} | {c.measured_mean:.4g} +- {c.measured_u:.2g} | {c.dem_mean:.4g} +- "
                      f"{c.dem_se:.2g} ({c.n}) | {c.relative_error_pct:+.1f} % | {c.z:+.2f}{' *' if abs(c.z) > 2 else ''} |")
+    if d.jammed:
+        lines += ["", "Runs of the calibrated set whose discharge jammed (the grains arched over the slot), left out of "
+                  "the means and the noise: " + ", ".join(f"{c} {n}" for c, n in d.jammed.items()) + "."]
     lines += ["", "![discrepancy](discrepancy.png)", "", "## 2. Candidate causes (leave-one-condition-out)", ""]
     if not result.hypotheses:
         lines.append("None fitted: " + ("no candidate was asked for (discovery.candidates = [])."
@@ -178,6 +182,10 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                    f"{v[0]:.1f} where its GP predicted {v[1]:.1f}" for h in result.hypotheses for c, v in h.astray.items()]
         failed += [f"- {h.name}: not run on its held-out conditions: {h.pruned}" for h in result.hypotheses
                    if h.pruned]
+        failed += [f"- {h.name}: runs whose discharge jammed, left out of its GPs and means: design "
+                   + (", ".join(f"{c} {n}" for c, n in h.jammed_design.items()) or "none") + "; held out "
+                   + (", ".join(f"{c} {n}" for c, n in h.jammed_held_out.items()) or "none")
+                   for h in result.hypotheses if h.jammed_design or h.jammed_held_out]
         lines += [""] + failed if failed else []
         scored = [h for h in result.hypotheses[1:] if h.skipped is None and h.held_out_cells]
         best = min(scored, key=lambda h: h.score) if scored else None

@@ -16,8 +16,10 @@ Contract: :func:`discovery_status` ``(store path, measured data, KPIs) -> Discov
 :func:`format_status` turns it into markdown (``scripts/discovery_status.py``). The z and chi^2
 are those of the pipeline (``bo.discovery.pipeline._cells``) with the DEM replicate noise pooled
 over the calibrated set's runs and every held-out condition's runs in the store; the pipeline's
-final score pools over every run of every candidate, so its figures can differ slightly. The
-store is opened read-only, so a running campaign is not disturbed.
+final score pools over every run of every candidate, so its figures can differ slightly. Runs
+whose discharge jammed are left out of every figure and counted, as the pipeline does
+(``kpi.loadcell.discharge_jammed``). The store is opened read-only, so a running campaign is not
+disturbed.
 """
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ import numpy as np
 
 from bo.campaign.progress import open_read_only
 from bo.discovery.pipeline import Cell, _cells, _lab
+from kpi.loadcell import discharge_jammed
 from bo.discovery.replicate_noise import ReplicateNoise
 from torchdem.measured import MeasuredData
 
@@ -57,6 +60,7 @@ class DesignSpan:
     runs: int
     spans: Mapping[str, tuple[float, float]]
     shifts: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    jammed: int = 0  # runs done whose discharge jammed (not in runs, spans or shifts)
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,7 @@ class HeldOutStatus:
     cells: tuple[Cell, ...]
     chi2: float
     baseline_chi2: float
+    jammed: int = 0  # runs done whose discharge jammed (not in runs or cells)
 
 
 @dataclass(frozen=True)
@@ -89,6 +94,7 @@ class DiscoveryStatus:
     designs: tuple[DesignSpan, ...]
     held_out: tuple[HeldOutStatus, ...]
     counts: Mapping[str, Mapping[str, int]]
+    baseline_jammed: Mapping[str, int] = dataclasses.field(default_factory=dict)  # condition -> jammed runs
 
 
 def _replicates(runs: Sequence[Mapping[str, float]], kpis: Sequence[str]) -> np.ndarray:
@@ -134,15 +140,26 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
         conn.close()
     counts: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     baseline_runs: dict[str, list] = defaultdict(list)
-    design: dict[tuple[str, str], dict[int, list]] = defaultdict(lambda: defaultdict(list))
+    design: dict[tuple[str, str], dict[tuple[str, int], list]] = defaultdict(lambda: defaultdict(list))
     held: dict[tuple[str, str], list] = defaultdict(list)
     params_of: dict[tuple[str, str], dict[str, float]] = {}
     calibrated: dict[str, float] = {}
+    jams: dict[tuple[str, str, str], int] = defaultdict(int)  # (what, candidate, condition) -> jammed runs
     for stage, key, point, params, condition, status, values in rows:
         counts[stage][status] += 1
         if status != "done" or values is None:
             continue
         values = {k: math.nan if v is None else float(v) for k, v in json.loads(values).items()}  # null: not measured
+        if discharge_jammed(values):
+            name = stage[len(STAGE_PREFIX):] if stage.startswith(STAGE_PREFIX) else ""
+            what = "baseline" if stage == "discrepancy" else ("held" if key.startswith("held-out/") else "design")
+            jams[(what, name, condition)] += 1
+            if what == "held":
+                params_of[(name, condition)] = json.loads(params)
+                held.setdefault((name, condition), [])
+            elif what == "design":
+                design[(name, condition)]  # listed, though every run of it may have jammed
+            continue
         if stage == "discrepancy":
             baseline_runs[condition].append(values)
             calibrated.update(json.loads(params))
@@ -152,7 +169,7 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
                 held[(name, condition)].append(values)
                 params_of[(name, condition)] = json.loads(params)
             else:  # the design (lhs/...) and its refinement rounds (refine/...)
-                design[(name, condition)][point].append(values)
+                design[(name, condition)][(key, point)].append(values)
     conditions = list(measured.names)
     lab = _lab(measured, kpis)
     baseline = {c: _replicates(baseline_runs.get(c, []), kpis) for c in conditions}
@@ -170,9 +187,10 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
         means = _replicates([{k: _mean([run.get(k, math.nan) for run in runs]) for k in kpis}
                              for runs in points.values()], kpis)
         spans = {k: (float(np.nanmin(means[:, j])), float(np.nanmax(means[:, j])))
-                 for j, k in enumerate(kpis) if np.isfinite(means[:, j]).any()}
+                 for j, k in enumerate(kpis) if len(means) and np.isfinite(means[:, j]).any()}
         designs.append(DesignSpan(name, condition, sum(len(r) for r in points.values()), spans,
-                                  _shifts(means, baseline.get(condition), noise, kpis)))
+                                  _shifts(means, baseline.get(condition), noise, kpis),
+                                  jams.get(("design", name, condition), 0)))
     held_out = []
     for (name, condition), reps in in_order(held_reps.items()):
         if condition not in conditions:
@@ -181,9 +199,10 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
         fitted = {k: v for k, v in params_of[(name, condition)].items()
                   if k not in calibrated or not math.isclose(v, calibrated[k], rel_tol=1e-9)}
         held_out.append(HeldOutStatus(name, condition, fitted, len(reps), cells, _chi2(cells),
-                                      _chi2(base_cells[condition])))
+                                      _chi2(base_cells[condition]), jams.get(("held", name, condition), 0)))
     return DiscoveryStatus(str(path), kpis, tuple(c for cs in base_cells.values() for c in cs), noise,
-                           tuple(designs), tuple(held_out), {s: dict(v) for s, v in counts.items()})
+                           tuple(designs), tuple(held_out), {s: dict(v) for s, v in counts.items()},
+                           {c: n for (what, _, c), n in jams.items() if what == "baseline"})
 
 
 def format_status(status: DiscoveryStatus, measured: MeasuredData) -> str:
@@ -203,6 +222,9 @@ def format_status(status: DiscoveryStatus, measured: MeasuredData) -> str:
         by_condition[c.condition].append(c)
     for condition, cells in by_condition.items():
         lines.append(f"| {condition} | " + " | ".join(_cell(cells, k) for k in status.kpis) + f" | {_chi2(cells):.1f} |")
+    if status.baseline_jammed:
+        lines += ["", "Runs of the calibrated set whose discharge jammed, left out: "
+                  + ", ".join(f"{c} {n}" for c, n in status.baseline_jammed.items())]
     for name in sorted({d.candidate for d in status.designs} | {h.candidate for h in status.held_out}):
         lines += ["", f"### {name}", ""]
         spans = [d for d in status.designs if d.candidate == name]
@@ -211,7 +233,7 @@ def format_status(status: DiscoveryStatus, measured: MeasuredData) -> str:
                       "| condition | runs | " + " | ".join(status.kpis) + " |",
                       "| --- | ---: |" + " ---: |" * len(status.kpis)]
             for d in spans:
-                lines.append(f"| {d.condition} | {d.runs} | " + " | ".join(
+                lines.append(f"| {d.condition} | {d.runs}{_jammed_note(d.jammed)} | " + " | ".join(
                     (f"{d.spans[k][0]:.4g}-{d.spans[k][1]:.4g}" if k in d.spans else "-")
                     + (f" ({lab[(d.condition, k)][0]:.4g})" if (d.condition, k) in lab else "") for k in status.kpis)
                     + " |")
@@ -231,12 +253,16 @@ def format_status(status: DiscoveryStatus, measured: MeasuredData) -> str:
                       "| --- | --- | ---: |" + " ---: |" * (len(status.kpis) + 2)]
             for h in held:
                 fitted = ", ".join(f"{k} {v:.4g}" for k, v in sorted(h.parameters.items())) or "-"
-                lines.append(f"| {h.condition} | {fitted} | {h.runs} | "
+                lines.append(f"| {h.condition} | {fitted} | {h.runs}{_jammed_note(h.jammed)} | "
                              + " | ".join(_cell(h.cells, k) for k in status.kpis)
                              + f" | {h.chi2:.1f} | {h.baseline_chi2:.1f} |")
             lines.append(f"| all {len(held)} conditions | | | " + " | " * (len(status.kpis) - 1)
                          + f" | {sum(h.chi2 for h in held):.1f} | {sum(h.baseline_chi2 for h in held):.1f} |")
     return "\n".join(lines) + "\n"
+
+
+def _jammed_note(n: int) -> str:
+    return f" (+{n} jammed)" if n else ""
 
 
 def _cell(cells: Sequence[Cell], kpi: str) -> str:
