@@ -492,6 +492,19 @@ def _collect(store: CampaignStore, stage: str, key: str, n_points: int, seeds: S
     return out
 
 
+def jam_counts(counts: Mapping[str, int]) -> str:
+    """``"50-50 2, 25-75 1"`` for condition -> jammed runs (``"none"`` when empty)."""
+    return ", ".join(f"{c} {n}" for c, n in counts.items()) or "none"
+
+
+def jammed_runs_note(h: "HypothesisScore") -> str:
+    """Where a hypothesis's runs jammed, for the echo and the report (empty when none did)."""
+    if not (h.jammed_design or h.jammed_held_out):
+        return ""
+    return (f"{h.name}: runs whose discharge jammed, left out of its GPs and means: design "
+            f"{jam_counts(h.jammed_design)}; held out {jam_counts(h.jammed_held_out)}")
+
+
 def _jams(store: CampaignStore, stage: str, keys: Sequence[str]) -> dict[str, int]:
     """Condition -> done runs of the batches ``keys`` of ``stage`` whose discharge jammed (only
     conditions with such runs)."""
@@ -765,8 +778,7 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                      + ", ".join(f"{n} = {failed[0].params[n]:.4g}" for n in names if n in failed[0].params)
                      + f"): {failed[0].error}") if failed else ""
             if jammed_design:
-                first += ("; runs whose discharge jammed (left out): "
-                          + ", ".join(f"{c} {n}" for c, n in jammed_design.items()))
+                first += f"; runs whose discharge jammed (left out): {jam_counts(jammed_design)}"
             raise ConfigError(f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points "
                               f"have every KPI measured on every condition{first} (all runs in {store.path})")
         V = None
@@ -885,10 +897,6 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                       f"max(margin, 2 x the gain's noise sd) and {settings.penalty:g} per added parameter); its GP "
                       f"predicts a held-out chi^2 of "
                       f"{sum(predicted.values()):.1f}, so its held-out runs were not made")
-    if jammed_design or jammed_held_out:
-        echo(f"  {name}: runs whose discharge jammed, left out of the fit and the means: design "
-             + (", ".join(f"{c} {n}" for c, n in jammed_design.items()) or "none") + "; held out "
-             + (", ".join(f"{c} {n}" for c, n in jammed_held_out.items()) or "none"))
     echo(f"  {name}: {len(names)} parameters, {n_points} points fitted; surrogate held-out chi^2 "
          + ", ".join(f"{c} {v:.1f}" for c, v in predicted.items())
          + (f"; pruned: {why_pruned}" if why_pruned else ""))
@@ -898,6 +906,8 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                                  fit_misfit_chi2=misfit, fit_surrogate_chi2=surrogate_chi2, fit_cells=len(cells),
                                  astray=astray, win_probability=p_win, pruned=why_pruned,
                                  jammed_design=jammed_design, jammed_held_out=jammed_held_out)
+    if jammed_runs_note(hypothesis):
+        echo(f"  {jammed_runs_note(hypothesis)}")
     keys = [(c, k) for _, c, _, k in cells]
     wanted = [(c, k) for c in conditions for k in read[len(kpis):]] + [(c, k) for c in unmeasured for k in kpis]
     proposed, proposed_sd = _proposed_models(name, every_run, conditions + unmeasured, read, wanted,
@@ -1008,7 +1018,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
              + (", ".join(f"{c} {n}" for c, n in taken.items()) or "none matched"))
     if discrepancy.jammed:
         echo("discrepancy: runs of the calibrated set whose discharge jammed, left out of the means and the noise: "
-             + ", ".join(f"{c} {n}" for c, n in discrepancy.jammed.items()))
+             + jam_counts(discrepancy.jammed))
     echo(f"discrepancy: chi^2 {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} "
          f"({'beyond' if discrepancy.significant else 'within'} measurement uncertainty and DEM noise; noise pooled "
          f"over these runs)")

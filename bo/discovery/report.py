@@ -35,7 +35,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from bo.discovery.pipeline import DiscoveryResult, gain_rows
+from bo.discovery.pipeline import DiscoveryResult, gain_rows, jam_counts, jammed_runs_note
 from bo.report.plots import save_png
 from bo.screening.pipeline import json_ready
 
@@ -150,7 +150,7 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                      f"{c.dem_se:.2g} ({c.n}) | {c.relative_error_pct:+.1f} % | {c.z:+.2f}{' *' if abs(c.z) > 2 else ''} |")
     if d.jammed:
         lines += ["", "Runs of the calibrated set whose discharge jammed (the grains arched over the slot), left out of "
-                  "the means and the noise: " + ", ".join(f"{c} {n}" for c, n in d.jammed.items()) + "."]
+                  "the means and the noise: " + jam_counts(d.jammed) + "."]
     lines += ["", "![discrepancy](discrepancy.png)", "", "## 2. Candidate causes (leave-one-condition-out)", ""]
     if not result.hypotheses:
         lines.append("None fitted: " + ("no candidate was asked for (discovery.candidates = [])."
@@ -182,10 +182,7 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                    f"{v[0]:.1f} where its GP predicted {v[1]:.1f}" for h in result.hypotheses for c, v in h.astray.items()]
         failed += [f"- {h.name}: not run on its held-out conditions: {h.pruned}" for h in result.hypotheses
                    if h.pruned]
-        failed += [f"- {h.name}: runs whose discharge jammed, left out of its GPs and means: design "
-                   + (", ".join(f"{c} {n}" for c, n in h.jammed_design.items()) or "none") + "; held out "
-                   + (", ".join(f"{c} {n}" for c, n in h.jammed_held_out.items()) or "none")
-                   for h in result.hypotheses if h.jammed_design or h.jammed_held_out]
+        failed += [f"- {jammed_runs_note(h)}" for h in result.hypotheses if jammed_runs_note(h)]
         lines += [""] + failed if failed else []
         scored = [h for h in result.hypotheses[1:] if h.skipped is None and h.held_out_cells]
         best = min(scored, key=lambda h: h.score) if scored else None
