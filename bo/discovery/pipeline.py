@@ -39,8 +39,11 @@ returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model
    discrepancy runs. Score = sum of held-out chi^2 + ``penalty`` x (parameters it adds beyond the
    ``parameters`` hypothesis) (an AIC-like penalty). Every held-out chi^2, and the discrepancy
    reported, use one noise estimate ``s_k`` pooled over every run of the discovery (discrepancy,
-   design points, held-out runs of every hypothesis), so no hypothesis is scored with a luckier
-   noise estimate than another. The GP's noise is the design's pooled ``s_k^2 / fit replicates``
+   design and refinement points, held-out runs of every hypothesis), so no hypothesis is scored with
+   a luckier noise estimate than another. One exception: when a fit is refined (step 3), the held-out
+   runs of the round its refinement replaced are not pooled, only those of the round it is scored
+   on (rules 1-5; pooling them too would add their degrees of freedom and change stored outcomes,
+   so it would be a new rules version). The GP's noise is the design's pooled ``s_k^2 / fit replicates``
    (learned by the GP when the design runs each point once). The fits minimise the chi^2 the
    held-out runs are scored by: per cell ``((mu - y)^2 + sigma_GP^2) / (s_k^2 / r + u^2)`` with r
    the held-out replicates and ``s_k`` pooled over the discrepancy runs and the design's replicates.
