@@ -909,8 +909,9 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                                  fit_misfit_chi2=misfit, fit_surrogate_chi2=surrogate_chi2, fit_cells=len(cells),
                                  astray=astray, win_probability=p_win, pruned=why_pruned,
                                  jammed_design=jammed_design, jammed_held_out=jammed_held_out)
-    if jammed_runs_note(hypothesis):
-        echo(f"  {jammed_runs_note(hypothesis)}")
+    jam_note = jammed_runs_note(hypothesis)
+    if jam_note:
+        echo(f"  {jam_note}")
     keys = [(c, k) for _, c, _, k in cells]
     wanted = [(c, k) for c in conditions for k in read[len(kpis):]] + [(c, k) for c in unmeasured for k in kpis]
     proposed, proposed_sd = _proposed_models(name, every_run, conditions + unmeasured, read, wanted,

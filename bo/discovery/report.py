@@ -182,7 +182,7 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                    f"{v[0]:.1f} where its GP predicted {v[1]:.1f}" for h in result.hypotheses for c, v in h.astray.items()]
         failed += [f"- {h.name}: not run on its held-out conditions: {h.pruned}" for h in result.hypotheses
                    if h.pruned]
-        failed += [f"- {jammed_runs_note(h)}" for h in result.hypotheses if jammed_runs_note(h)]
+        failed += [f"- {note}" for note in map(jammed_runs_note, result.hypotheses) if note]
         lines += [""] + failed if failed else []
         scored = [h for h in result.hypotheses[1:] if h.skipped is None and h.held_out_cells]
         best = min(scored, key=lambda h: h.score) if scored else None

@@ -34,7 +34,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bo.campaign.progress import open_read_only
-from bo.discovery.pipeline import Cell, _cells, _lab
+from bo.discovery.pipeline import Cell, _cells, _lab, jam_counts
 from kpi.loadcell import discharge_jammed
 from bo.discovery.replicate_noise import ReplicateNoise
 from torchdem.measured import MeasuredData
@@ -224,7 +224,7 @@ def format_status(status: DiscoveryStatus, measured: MeasuredData) -> str:
         lines.append(f"| {condition} | " + " | ".join(_cell(cells, k) for k in status.kpis) + f" | {_chi2(cells):.1f} |")
     if status.baseline_jammed:
         lines += ["", "Runs of the calibrated set whose discharge jammed, left out: "
-                  + ", ".join(f"{c} {n}" for c, n in status.baseline_jammed.items())]
+                  + jam_counts(status.baseline_jammed)]
     for name in sorted({d.candidate for d in status.designs} | {h.candidate for h in status.held_out}):
         lines += ["", f"### {name}", ""]
         spans = [d for d in status.designs if d.candidate == name]
