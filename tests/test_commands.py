@@ -131,6 +131,9 @@ def test_extension_reaches_the_model(extension):
                                                                                    values["density_sinter"]],
         "fill_friction": lambda: test._fill_friction([0]) == [values["fill_friction"]] != plain_test._fill_friction([0]),
         "free_interaction": lambda: test.parameter_sets[0]["mu_s_ps"] == values["mu_s_ps"],
+        "geometry_friction": lambda: ([test.parameter_sets[0][k] for k in ("mu_s_pg", "mu_s_sg")]
+                                      == [values["mu_s_pg"], values["mu_s_sg"]]
+                                      != [plain_test.parameter_sets[0][k] for k in ("mu_s_pg", "mu_s_sg")]),
         "front_back_walls": lambda: (test.settings.front_back_material is not None
                                      and plain_test.settings.front_back_material is None),
         "outlet_width": lambda: (test.geometry.outlet_width == values["geometry_outlet_width"]
