@@ -1,5 +1,6 @@
 """Where a discovery campaign stands, from its store alone (``bo.discovery.status``): each
-candidate's design span per condition beside the measurement, and its held-out runs' z and chi^2
+candidate's design span per condition beside the measurement, its mean shift and a least-squares
+plane of each KPI on its parameters over the design points, and its held-out runs' z and chi^2
 beside the calibrated set's, before ``torchdem-discover`` has scored the candidates. The store is
 only read, so it may be run beside the campaign.
 

@@ -136,6 +136,38 @@ def test_jammed_runs_are_counted_and_left_out_and_refined_points_kept_apart(tmp_
     assert "| A | 3 (+1 jammed) |" in text and "calibrated set whose discharge jammed, left out: A 1" in text
 
 
+def test_the_design_plane_recovers_each_parameters_slope(tmp_path):
+    """Five design points on two knobs: the shear angle is a known plane plus a residual; the flow is
+    measured at three points only, one fewer than a plane of two knobs and an intercept needs."""
+    path = _store(tmp_path)
+    store = CampaignStore(path, "hash", extra_stages=discovery_stages(["two"]))
+    knobs = [(0.1, 0.9), (0.4, 0.2), (0.6, 0.7), (0.9, 0.4), (0.3, 0.5)]
+    residual = [0.3, -0.2, 0.0, -0.4, 0.3]
+    design = [{**CALIBRATED, "a": a, "b": b} for a, b in knobs]
+    shear = {(a, b): 35.0 + 2.0 * a - 4.0 * b + r for (a, b), r in zip(knobs, residual)}
+    _run(store, "discovery-two", "lhs/2", design, [0], ["A"],
+         lambda p, s, c: {"shear_angle_deg": shear[(p["a"], p["b"])],
+                          "mass_flow_rate_full_kg_s": 10.0 if p["a"] < 0.5 else math.nan})
+    status = discovery_status(path, _measured(), KPIS)
+    (d,) = [d for d in status.designs if d.candidate == "two"]
+    X = np.array([[1.0, a, b] for a, b in knobs])
+    y = np.array([shear[k] for k in knobs])
+    inverse = np.linalg.inv(X.T @ X)  # the normal equations, by hand
+    beta = inverse @ X.T @ y
+    s2 = float(((y - X @ beta) ** 2).sum()) / (len(y) - 3)
+    assert set(d.slopes) == {"shear_angle_deg"}  # the flow's 3 points leave no degree of freedom
+    for i, name in enumerate(("a", "b"), start=1):
+        slope, se = d.slopes["shear_angle_deg"][name]
+        assert slope == pytest.approx(beta[i], rel=1e-10) and se == pytest.approx(math.sqrt(s2 * inverse[i, i]), rel=1e-8)
+    assert d.plane_sd["shear_angle_deg"] == pytest.approx(math.sqrt(s2), rel=1e-10)
+    assert abs(d.slopes["shear_angle_deg"]["a"][0] - 2.0) < 3 * d.slopes["shear_angle_deg"]["a"][1]
+    # the knob store's designs have two points: no plane, and mu_s_pp, the same at every point, is no slope
+    assert all(not k.slopes for k in status.designs if k.candidate == "knob")
+    text = format_status(status, _measured())
+    slope_a, se_a = d.slopes["shear_angle_deg"]["a"]
+    assert f"| A | a | {slope_a:+.3g} ({se_a:.2g}) | - |" in text and "| A | residual sd |" in text
+
+
 def test_script_prints_the_status_and_names_a_missing_store(tmp_path):
     path = _store(tmp_path)
     data = tmp_path / "lab.json"

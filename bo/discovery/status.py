@@ -7,7 +7,9 @@ the question earlier:
 * each candidate's design: per condition, how many runs are done and the span of every KPI over
   the design points, beside the measurement (can the candidate reach the lab at all?), and the
   mean over the design points less the calibrated set's mean, with its standard error (does the
-  candidate move the KPI at all, on average over its prior?);
+  candidate move the KPI at all, on average over its prior?), and a least-squares plane of every
+  KPI through the design points on the candidate's parameters (which way, and how far per unit,
+  does each parameter push the KPI?);
 * each candidate's held-out runs: per left-out condition, the parameters fitted without it, the
   KPI means, their z against the measurement and the condition's chi^2, beside the calibrated
   model's chi^2 on the same condition (does the candidate predict what it was not fitted to?).
@@ -53,6 +55,10 @@ class DesignSpan:
             s^2 / n_c)`` with ``s_d`` the sample sd of the ``n_d`` design points' means (it holds the
             prior's spread as well as the DEM noise) and ``s`` the pooled replicate noise of the
             calibrated set's ``n_c`` runs.
+        slopes: per KPI, per parameter varied over the design points, (slope, standard error) of an
+            ordinary least-squares plane through the design points' means (an intercept and one
+            slope per parameter; only with more points than coefficients), KPI units per unit of
+            the parameter. plane_sd: per KPI, that plane's residual sd (compare the DEM noise).
     """
 
     candidate: str
@@ -61,6 +67,8 @@ class DesignSpan:
     spans: Mapping[str, tuple[float, float]]
     shifts: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
     jammed: int = 0  # runs done whose discharge jammed (not in runs, spans or shifts)
+    slopes: Mapping[str, Mapping[str, tuple[float, float]]] = dataclasses.field(default_factory=dict)
+    plane_sd: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -129,6 +137,29 @@ def _shifts(means: np.ndarray, base: np.ndarray | None, noise: ReplicateNoise,
     return out
 
 
+def _planes(params: Sequence[Mapping[str, float]], means: np.ndarray, kpis: Sequence[str]):
+    """Per KPI, the least-squares plane of the design points' means on the parameters that vary
+    over them (:class:`DesignSpan`): ``({kpi: {parameter: (slope, se)}}, {kpi: residual sd})``."""
+    shared = set.intersection(*(set(p) for p in params)) if params else set()
+    names = sorted(k for k in shared if not math.isclose(min(float(q[k]) for q in params),
+                                                         max(float(q[k]) for q in params)))
+    slopes, sds = {}, {}
+    if not names:
+        return slopes, sds
+    X = np.array([[1.0] + [float(p[n]) for n in names] for p in params])
+    for j, k in enumerate(kpis):
+        ok = np.isfinite(means[:, j])
+        dof = int(ok.sum()) - X.shape[1]
+        if dof < 1:
+            continue
+        beta, *_ = np.linalg.lstsq(X[ok], means[ok, j], rcond=None)
+        s2 = float(((X[ok] @ beta - means[ok, j]) ** 2).sum()) / dof
+        se = np.sqrt(s2 * np.diag(np.linalg.pinv(X[ok].T @ X[ok])))
+        slopes[k] = {n: (float(beta[i + 1]), float(se[i + 1])) for i, n in enumerate(names)}
+        sds[k] = math.sqrt(s2)
+    return slopes, sds
+
+
 def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[str]) -> DiscoveryStatus:
     """The store's discrepancy, design and held-out runs against ``measured`` (module docstring)."""
     kpis = tuple(kpis)
@@ -141,6 +172,7 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
     counts: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     baseline_runs: dict[str, list] = defaultdict(list)
     design: dict[tuple[str, str], dict[tuple[str, int], list]] = defaultdict(lambda: defaultdict(list))
+    design_params: dict[tuple[str, str], dict[tuple[str, int], dict[str, float]]] = defaultdict(dict)
     held: dict[tuple[str, str], list] = defaultdict(list)
     params_of: dict[tuple[str, str], dict[str, float]] = {}
     calibrated: dict[str, float] = {}
@@ -170,6 +202,7 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
                 params_of[(name, condition)] = json.loads(params)
             else:  # the design (lhs/...) and its refinement rounds (refine/...)
                 design[(name, condition)][(key, point)].append(values)
+                design_params[(name, condition)][(key, point)] = json.loads(params)
     conditions = list(measured.names)
     lab = _lab(measured, kpis)
     baseline = {c: _replicates(baseline_runs.get(c, []), kpis) for c in conditions}
@@ -188,9 +221,10 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
                              for runs in points.values()], kpis)
         spans = {k: (float(np.nanmin(means[:, j])), float(np.nanmax(means[:, j])))
                  for j, k in enumerate(kpis) if len(means) and np.isfinite(means[:, j]).any()}
+        slopes, plane_sd = _planes([design_params[(name, condition)][p] for p in points], means, kpis)
         designs.append(DesignSpan(name, condition, sum(len(r) for r in points.values()), spans,
                                   _shifts(means, baseline.get(condition), noise, kpis),
-                                  jams.get(("design", name, condition), 0)))
+                                  jams.get(("design", name, condition), 0), slopes, plane_sd))
     held_out = []
     for (name, condition), reps in in_order(held_reps.items()):
         if condition not in conditions:
@@ -244,6 +278,19 @@ def format_status(status: DiscoveryStatus, measured: MeasuredData) -> str:
                 lines.append(f"| {d.condition} | " + " | ".join(
                     f"{d.shifts[k][0]:+.3g} ({d.shifts[k][1]:.2g})" if k in d.shifts else "-" for k in status.kpis)
                     + " |")
+            planes = [d for d in spans if d.slopes]
+            if planes:
+                lines += ["", "A least-squares plane through the design points: each KPI's change per unit of each "
+                          "parameter (its standard error), and the plane's residual sd (compare the DEM noise above).",
+                          "", "| condition | per unit of | " + " | ".join(status.kpis) + " |",
+                          "| --- | --- |" + " ---: |" * len(status.kpis)]
+                for d in planes:
+                    for n in sorted({n for v in d.slopes.values() for n in v}):
+                        lines.append(f"| {d.condition} | {n} | " + " | ".join(
+                            f"{d.slopes[k][n][0]:+.3g} ({d.slopes[k][n][1]:.2g})" if k in d.slopes else "-"
+                            for k in status.kpis) + " |")
+                    lines.append(f"| {d.condition} | residual sd | " + " | ".join(
+                        f"{d.plane_sd[k]:.3g}" if k in d.plane_sd else "-" for k in status.kpis) + " |")
         held = [h for h in status.held_out if h.candidate == name]
         if held:
             lines += ["", "Held out: each condition run with the parameters fitted without it (DEM mean, z); "
