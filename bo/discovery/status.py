@@ -39,6 +39,7 @@ from bo.campaign.progress import open_read_only
 from bo.discovery.pipeline import Cell, _cells, _lab, jam_counts
 from kpi.loadcell import discharge_jammed
 from bo.discovery.replicate_noise import ReplicateNoise
+from bo.screening.effects import least_squares
 from torchdem.measured import MeasuredData
 
 STAGE_PREFIX = "discovery-"
@@ -149,12 +150,10 @@ def _planes(params: Sequence[Mapping[str, float]], means: np.ndarray, kpis: Sequ
     X = np.array([[1.0] + [float(p[n]) for n in names] for p in params])
     for j, k in enumerate(kpis):
         ok = np.isfinite(means[:, j])
-        dof = int(ok.sum()) - X.shape[1]
-        if dof < 1:
+        fit = least_squares(X[ok], means[ok, j])
+        if fit is None:  # too few points for a plane, or parameters that move together
             continue
-        beta, *_ = np.linalg.lstsq(X[ok], means[ok, j], rcond=None)
-        s2 = float(((X[ok] @ beta - means[ok, j]) ** 2).sum()) / dof
-        se = np.sqrt(s2 * np.diag(np.linalg.pinv(X[ok].T @ X[ok])))
+        beta, se, s2, _ = fit
         slopes[k] = {n: (float(beta[i + 1]), float(se[i + 1])) for i, n in enumerate(names)}
         sds[k] = math.sqrt(s2)
     return slopes, sds

@@ -40,7 +40,7 @@ from scipy import stats
 from bo.screening.stepwise import ScreeningResults
 from torchdem.errors import ConfigError, out_of_range
 
-__all__ = ["MainEffects", "main_effects"]
+__all__ = ["MainEffects", "main_effects", "least_squares"]
 
 
 @dataclass(frozen=True)
@@ -126,18 +126,15 @@ def main_effects(results: ScreeningResults) -> MainEffects:
         finite = np.isfinite(y)
         rows = np.repeat(np.arange(runs)[:, None], r, axis=1)[finite]
         xj, yj = x[rows], y[finite]
-        dof = len(yj) - (1 + k)
-        if dof < 1 or np.linalg.matrix_rank(xj) < 1 + k:
+        fit = least_squares(xj, yj)
+        if fit is None:
             raise out_of_range(f"finite runs of {results.kpi_names[j]}", len(yj),
                                f"enough for {1 + k} coefficients and one residual degree of freedom",
                                results.source)
-        beta, *_ = np.linalg.lstsq(xj, yj, rcond=None)
-        resid = yj - xj @ beta
-        s2 = float(resid @ resid) / dof
-        cov = s2 * np.linalg.inv(xj.T @ xj)
+        beta, se, s2, dof = fit
         intercept[j] = beta[0]
         effect[:, j] = 2.0 * beta[1:]
-        effect_se[:, j] = 2.0 * np.sqrt(np.diag(cov)[1:])
+        effect_se[:, j] = 2.0 * se[1:]
         residual_sd[j], residual_dof[j], n_runs[j] = np.sqrt(s2), dof, len(yj)
     replicate_sd, replicate_dof = _pure_error(values)
     lack_dof = residual_dof - replicate_dof
@@ -151,6 +148,19 @@ def main_effects(results: ScreeningResults) -> MainEffects:
                        low=low, high=high, effect=effect, effect_se=effect_se, intercept=intercept,
                        replicate_sd=replicate_sd, replicate_dof=replicate_dof, residual_sd=residual_sd,
                        residual_dof=residual_dof, n_runs=n_runs, lack_of_fit_p=lack_of_fit_p, source=results.source)
+
+
+def least_squares(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int] | None:
+    """Ordinary least squares of ``y [n]`` on the columns of ``x [n, p]``: ``(coefficients [p], their
+    standard errors [p], residual variance, residual degrees of freedom)``, or None when ``x`` has
+    rank below ``p`` or no residual degree of freedom is left."""
+    dof = len(y) - x.shape[1]
+    if dof < 1 or np.linalg.matrix_rank(x) < x.shape[1]:
+        return None
+    beta, *_ = np.linalg.lstsq(x, y, rcond=None)
+    resid = y - x @ beta
+    s2 = float(resid @ resid) / dof
+    return beta, np.sqrt(s2 * np.diag(np.linalg.inv(x.T @ x))), s2, dof
 
 
 def _pure_error(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
