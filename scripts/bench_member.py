@@ -11,11 +11,14 @@ each in turn (two git worktrees, ``PYTHONPATH`` set to each), several times, alt
 
 Usage::
 
-    python scripts/bench_member.py [--lobe-spacing 0.3] [--start 1.3] [--steps 1000] [--json]
+    python scripts/bench_member.py [--lobe-spacing 0.3] [--start 1.3] [--steps 1000] [--moved-share 0.25] [--json]
+
+``--moved-share 0`` makes every neighbour rebuild search every sphere (``System.moved_share``).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -47,19 +50,25 @@ def main() -> None:
     parser.add_argument("--start", type=float, default=1.3, help="simulated time before timing, s")
     parser.add_argument("--warm", type=int, default=20, help="untimed steps first")
     parser.add_argument("--steps", type=int, default=1000, help="timed steps")
+    parser.add_argument("--moved-share", type=float, default=None,
+                        help="System.moved_share (default: the system's; 0: whole rebuilds)")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON too")
     args = parser.parse_args()
     torch.set_num_threads(1)
     sim = flowing_member(args.lobe_spacing, args.seed, args.start)
+    if args.moved_share is not None:
+        sim.system = dataclasses.replace(sim.system, moved_share=args.moved_share)
     sim.advance(args.warm)
     rebuilds = sim.state.rebuilds
     started = time.thread_time()
     sim.advance(args.steps)
     cpu = time.thread_time() - started
-    out = {"lobe_spacing": args.lobe_spacing, "spheres": sim.system.n_spheres, "steps": args.steps,
+    out = {"lobe_spacing": args.lobe_spacing, "moved_share": sim.system.moved_share,
+           "spheres": sim.system.n_spheres, "steps": args.steps,
            "ms_per_step": 1e3 * cpu / args.steps, "steps_per_rebuild": args.steps / max(sim.state.rebuilds - rebuilds, 1)}
     print(f"lab member, lobe spacing {args.lobe_spacing:g}, {out['spheres']} spheres, from t = {args.start:g} s: "
-          f"{out['ms_per_step']:.2f} ms a step (CPU time, one thread), {out['steps_per_rebuild']:.1f} steps a rebuild")
+          f"{out['ms_per_step']:.2f} ms a step (CPU time, one thread), {out['steps_per_rebuild']:.1f} steps a rebuild, "
+          f"moved share {out['moved_share']:g}")
     if args.json:
         print(json.dumps(out))
 

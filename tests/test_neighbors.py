@@ -5,6 +5,8 @@ below r_i + r_j + skin, found by brute force over all pairs. The cell list must 
 exactly that set (no missed pair, no extra pair), for random polydisperse packings,
 including spheres outside the domain box (clamped into border cells) and padding spheres.
 """
+import dataclasses
+
 import pytest
 import torch
 
@@ -408,3 +410,172 @@ def test_search_grid_splits_only_where_small_spheres_dominate():
     with pytest.raises(ConfigError, match=r"search_split = 1.5.*\[0, 1\)"):
         build_system(torch.zeros(1, 1, 3, dtype=F64), torch.zeros(1, 1, dtype=torch.long), mats, table,
                      radius=torch.full((1, 1), 0.01, dtype=F64), search_split=1.5)
+
+
+def _bimodal(dtype):
+    def radius(g, n):
+        lobe = torch.rand(n, generator=g) < 0.8
+        return torch.where(lobe, 0.0015 + 0.001 * torch.rand(n, generator=g),
+                           0.004 + 0.004 * torch.rand(n, generator=g)).to(dtype)
+    return radius
+
+
+@pytest.mark.parametrize("periodic", [(False, False, False), (False, True, False)])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_partial_search_equals_the_whole_search_at_the_new_references(periodic, dtype):
+    """A partial search (the moved spheres searched anew, the last list's other pairs kept) returns
+    exactly the whole search's list at the positions where the moved spheres are now and the others
+    were at the last build: torch path and C++ kernel, one grid and two, 1 and 3 threads. A third
+    of the spheres moved (some by several cells), some went inactive since the build, one moved
+    sphere's position is not finite; no sphere moved keeps the list as it was."""
+    from torchdem import _ext
+    from torchdem.neighbors import with_split
+
+    N = 2500
+    pos, rad, body, active = _scattered(6, N, dtype, _bimodal(dtype))
+    skin = 0.002
+    grid = cell_grid((0, 0, 0), SCATTER_BOX, float(2 * rad.max() + skin), periodic=periodic, dtype=dtype)
+    built = find_pairs(pos, rad, body, active, N, grid, skin, use_extension=False)
+    gen = torch.Generator().manual_seed(9)
+    moved = torch.rand(3 * N, generator=gen) < 0.3
+    jump = torch.where(torch.rand(3 * N, 1, generator=gen) < 0.2, 0.03, 0.003)
+    now = torch.where(moved[:, None], pos + (jump * torch.randn(3 * N, 3, generator=gen)).to(dtype), pos)
+    now[torch.nonzero(moved)[0, 0]] = float("nan")
+    active = active & (torch.rand(3 * N, generator=gen) > 0.03)
+    whole = find_pairs(now, rad, body, active, N, grid, skin, use_extension=False)
+    assert whole[0].numel() > 5000
+    kept = (~moved[built[0]] & ~moved[built[1]]).sum()
+    assert 0 < int(kept) < whole[0].numel()  # both kept and new pairs
+    grids = [grid, with_split(grid, 0.5 * float(rad.max()), skin)]
+    assert grids[1].split > 0
+    paths = [False] + ([True] if _ext.cpu_kernels() is not None else [])
+    threads = torch.get_num_threads()
+    try:
+        for g in grids:
+            for use_extension in paths:
+                for n in (1, 3):
+                    torch.set_num_threads(n)
+                    a = find_pairs(now, rad, body, active, N, g, skin, use_extension, moved=moved, keep=built)
+                    assert torch.equal(a[0], whole[0]) and torch.equal(a[1], whole[1]), (g.split, use_extension, n)
+                    still = torch.zeros(3 * N, dtype=torch.bool)
+                    b = find_pairs(pos, rad, body, active, N, g, skin, use_extension, moved=still, keep=built)
+                    ref = find_pairs(pos, rad, body, active, N, g, skin, use_extension=False)
+                    assert torch.equal(b[0], ref[0]) and torch.equal(b[1], ref[1])
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_partial_wall_search_equals_the_whole_search_at_the_new_references():
+    """The sphere-wall list of a partial search equals the whole search's at the new references
+    (torch path and C++ kernel): moved spheres tested anew, the others keep their walls, a sphere
+    gone inactive loses them."""
+    from torchdem import _ext
+    from torchdem.neighbors import find_wall_pairs
+    from torchdem.walls import WallSpec, box_walls, make_walls
+
+    gen = torch.Generator().manual_seed(11)
+    S = 3000
+    pos = torch.rand(S, 3, generator=gen, dtype=F64) * torch.tensor([0.2, 0.1, 0.12], dtype=F64)
+    rad = 0.002 + 0.006 * torch.rand(S, generator=gen, dtype=F64)
+    active = torch.rand(S, generator=gen) > 0.1
+    specs = box_walls("box", (0.0, 0.0, 0.0), (0.2, 0.1, 0.12), "steel") + [
+        WallSpec("plate", (0.1, 0.05, 0.06), (0, 0, 1), (1, 0, 0), 0.03, 0.02, "steel")]
+    walls = make_walls(specs, {"steel": 0}, dtype=F64)
+    shift = torch.zeros(walls.n, 3, dtype=F64)
+    live = torch.ones(walls.n, dtype=torch.bool)
+    skin = 0.004
+    built = find_wall_pairs(pos, rad, active, walls, shift, live, skin, use_extension=False)
+    moved = torch.rand(S, generator=gen) < 0.3
+    now = torch.where(moved[:, None], pos + 0.01 * torch.randn(S, 3, generator=gen, dtype=F64), pos)
+    active = active & (torch.rand(S, generator=gen) > 0.05)
+    whole = find_wall_pairs(now, rad, active, walls, shift, live, skin, use_extension=False)
+    assert whole[0].numel() > 300
+    for use_extension in [False] + ([True] if _ext.cpu_kernels() is not None else []):
+        a = find_wall_pairs(now, rad, active, walls, shift, live, skin, use_extension, moved=moved, keep=built)
+        assert torch.equal(a[0], whole[0]) and torch.equal(a[1], whole[1]), use_extension
+
+
+def _clumps_falling_on_a_bed(moved_share):
+    """Two members: a bed of 48 bodies at rest on the floor of a box and 48 above it falling at
+    2 m/s, every third a trilobe clump, float64."""
+    from conftest import glass, steel
+    from torchdem.clumps import SPHERE
+    from torchdem.materials import interaction_table
+    from torchdem.mixture import trilobe_template
+    from torchdem.system import build_system
+    from torchdem.walls import box_walls
+
+    B, N = 2, 96
+    mats = [glass(), steel()]
+    pp = dict(mu_s=[0.3, 0.6], mu_r=[0.02, 0.1], restitution=[0.4, 0.8], rolling_damping=0.3)
+    table = interaction_table(mats, {("glass", "glass"): pp, ("glass", "steel"): pp}, batch=B)
+    k = torch.arange(N)
+    lattice = torch.stack([k % 4, (k // 4) % 4, k // 16], -1).to(F64) * 0.0125 + 0.007
+    lattice[48:, 2] += 0.02
+    gen = torch.Generator().manual_seed(2)
+    pos = lattice + 0.002 * (torch.rand(B, N, 3, generator=gen, dtype=F64) - 0.5)
+    vel = torch.zeros(B, N, 3, dtype=F64)
+    vel[:, 48:, 2] = -2.0
+    u = torch.rand(B, N, generator=gen, dtype=F64)
+    clump = (torch.arange(N) % 3 == 0).expand(B, N)
+    system, state = build_system(pos, torch.zeros(B, N, dtype=torch.long), mats, table,
+                                 templates=[SPHERE, trilobe_template(0.15)], template_index=clump.long(),
+                                 scale=torch.where(clump, 0.009 + 0.001 * u, 0.004 + 0.001 * u), velocity=vel,
+                                 walls=box_walls("box", (0, 0, 0), (0.05, 0.05, 0.3), "steel"),
+                                 dt=2e-5, domain=((-0.01, -0.01, -0.01), (0.06, 0.06, 0.31)))
+    return dataclasses.replace(system, moved_share=moved_share), state
+
+
+def test_partial_rebuilds_list_every_touching_pair_and_change_no_trajectory(monkeypatch):
+    """With partial rebuilds (moved_share 0.25) every pair and wall contact touching now is listed
+    at every step while clumps and spheres fall onto a resting bed, some rebuilds search only a
+    part of the spheres, and the run is the one with whole rebuilds bit for bit (one thread): the
+    lists differ only in pairs that do not touch, which add nothing."""
+    import torchdem.integrate as integrate
+    from torchdem.integrate import sphere_positions
+    from torchdem.simulation import Simulation
+
+    searched = []  # per rebuild, the share of the spheres searched anew
+    whole_rebuild = integrate.rebuild
+
+    def rebuild(system, state, xs, time, values=True, moved=None):
+        searched.append(1.0 if moved is None else float(moved.float().mean()))
+        return whole_rebuild(system, state, xs, time, values, moved)
+
+    monkeypatch.setattr(integrate, "rebuild", rebuild)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        runs = {}
+        for share in (0.0, 0.25):
+            system, state = _clumps_falling_on_a_bed(share)
+            sim = Simulation(system, state)
+            S = system.batch * system.n_spheres
+            radius, body = system.sphere_radius.reshape(-1), system.sphere_body_flat
+            active = radius > 0
+            searched.clear()
+            touching = set()
+            for step in range(1200):
+                sim.advance(1)
+                xs = sphere_positions(system, sim.state.bodies)
+                if share and step % 4 == 0:
+                    listed = set(zip(sim.state.pairs.i.tolist(), sim.state.pairs.j.tolist()))
+                    now = _oracle(xs, radius, body, active, system.n_spheres, 0.0)
+                    assert now <= listed, step
+                    touching |= now
+                    walls = system.walls
+                    gap = ((xs[:, None, :] - walls.centre[None]) * torch.cross(walls.axis_u, walls.axis_v, dim=-1)[None]
+                           ).sum(-1).abs() - radius[:, None]
+                    s, w = torch.nonzero((gap < 0) & active[:, None], as_tuple=True)
+                    assert set(zip(s.tolist(), w.tolist())) <= set(zip(sim.state.walls.sphere.tolist(),
+                                                                       sim.state.walls.wall.tolist())), step
+            runs[share] = (sim, list(searched))
+        (whole, whole_searched), (part, part_searched) = runs[0.0], runs[0.25]
+        member_body = part.system.sphere_body.reshape(-1)  # as built: partial runs do not reorder
+        assert any((int(member_body[i]) < 48) != (int(member_body[j]) < 48) for i, j in touching)  # it landed
+        assert whole.state.rebuilds > 10 and set(whole_searched) == {1.0}
+        assert sum(0 < f < 0.7 for f in part_searched) >= 5, part_searched  # the bed is not searched again
+        assert torch.equal(part.state.bodies.position, whole.state.bodies.position)
+        assert torch.equal(part.state.bodies.angular_momentum, whole.state.bodies.angular_momentum)
+    finally:
+        torch.set_num_threads(threads)

@@ -46,15 +46,23 @@ def sphere_active(system: System, bodies: Bodies) -> Tensor:
     return bodies.active.reshape(-1)[system.sphere_body_flat] & (system.sphere_radius.reshape(-1) > 0)
 
 
-def rebuild(system: System, state: State, xs: Tensor, time: float, values: bool = True) -> tuple[State, Tensor]:
+def rebuild(system: System, state: State, xs: Tensor, time: float, values: bool = True,
+            moved: Tensor | None = None) -> tuple[State, Tensor]:
     """Rebuild both neighbour lists at the current positions and carry contact history.
 
     On periodic axes, body positions are wrapped back into the domain first; returns the new
     state and the (wrapped) sphere positions ``[B * Ns, 3]``. ``values=False``: the pairs' per-pair
     constants are left None (:class:`PairContacts`), for the C++ kernels, which look them up per sphere.
+
+    ``moved`` (``[B * Ns]`` bool): a partial rebuild. The moved spheres take their current position
+    as their reference and are searched anew; the others keep their reference and their pairs
+    (nothing is wrapped). The lists are then those of a whole rebuild at the new references, so
+    the skin criterion (:func:`neighbors.lists_expired`, which bounds how far two spheres closed
+    in from their references, whenever each was last searched) holds as after a whole rebuild.
+    The walls must be as at the last build (shift and presence).
     """
     B, Ns = system.batch, system.n_spheres
-    if system.grid.is_periodic:
+    if moved is None and system.grid.is_periodic:
         x = state.bodies.position
         xw = neighbors.wrap(x, system.grid.lower, system.grid.period)
         xs = xs + (xw - x).reshape(-1, 3)[system.sphere_body_flat]
@@ -67,7 +75,9 @@ def rebuild(system: System, state: State, xs: Tensor, time: float, values: bool 
     mass, inertia_r, pair_row = system.sphere_mass, system.sphere_rolling_inertia, system.sphere_pair_row
     t = system.tables
 
-    i, j = neighbors.find_pairs(xs, radius, body, active, Ns, system.grid, system.skin)
+    found_at = xs if moved is None else torch.where(moved[:, None], xs, state.reference)
+    keep = None if moved is None else (state.pairs.i, state.pairs.j)
+    i, j = neighbors.find_pairs(found_at, radius, body, active, Ns, system.grid, system.skin, moved=moved, keep=keep)
     constants = pair_constants(i, j, radius, mass, inertia_r, body, pair_row, mat, t, values=values)
     tang, roll = neighbors.carry_history(state.pairs.key, [state.pairs.tangential, state.pairs.rolling],
                                          constants["key"])
@@ -76,14 +86,17 @@ def rebuild(system: System, state: State, xs: Tensor, time: float, values: bool 
     W = system.walls.n
     shift = system.walls.shift(time)
     wall_active = system.walls.active_at(time)
-    s, w = neighbors.find_wall_pairs(xs, radius, active, system.walls, shift, wall_active, system.skin)
+    keep = None if moved is None else (state.walls.sphere, state.walls.wall)
+    s, w = neighbors.find_wall_pairs(found_at, radius, active, system.walls, shift, wall_active, system.skin,
+                                     moved=moved, keep=keep)
     wkey = s * max(W, 1) + w
     wt, wr = neighbors.carry_history(state.walls.key, [state.walls.tangential, state.walls.rolling], wkey)
     wall_contacts = WallContacts(
         sphere=s, body=body[s], wall=w, key=wkey, tangential=wt, rolling=wr, radius=radius[s], mass_eff=mass[s],
         rolling_inertia=inertia_r[s], **t.gather(pair_row[s] + system.walls.material[w]),
     )
-    state = state.set(pairs=pairs, walls=wall_contacts, reference=xs.clone(), wall_shift=shift,
+    state = state.set(pairs=pairs, walls=wall_contacts, reference=xs.clone() if moved is None else found_at,
+                      wall_shift=shift,
                       wall_active=wall_active, rebuilds=state.rebuilds + 1)
     return state, xs
 
@@ -433,8 +446,23 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
             wall_move = float((system.walls.shift(time) - state.wall_shift).norm(dim=-1).max())
             rebuild_now = neighbors.lists_expired(displacement, system.skin, wall_move)
     if rebuild_now:  # the C++ kernels look the per-pair constants up per sphere
-        state, xs = rebuild(system, state, xs, time, values=kernels.extension(xs) is None)
+        state, xs = rebuild(system, state, xs, time, values=kernels.extension(xs) is None,
+                            moved=moved_spheres(system, state, xs, time))
     return forces_and_kick(system, state, xs, omega, time, kernels)
+
+
+def moved_spheres(system: System, state: State, xs: Tensor, time: float) -> Tensor | None:
+    """``[B * Ns]`` bool: the spheres farther than ``system.moved_share`` of the skin from their
+    reference (a non-finite position counts as moved), which a partial rebuild searches anew; None
+    where a rebuild must be whole: ``moved_share`` 0, a periodic grid (a whole rebuild wraps the
+    bodies back into the domain), or walls that moved or came or went since the last build."""
+    if not system.moved_share > 0 or system.grid.is_periodic:
+        return None
+    if system.walls.n and not (torch.equal(system.walls.active_at(time), state.wall_active)
+                               and torch.equal(system.walls.shift(time), state.wall_shift)):
+        return None
+    threshold = system.moved_share * system.skin
+    return ~((xs - state.reference).square().sum(-1) <= threshold * threshold)
 
 
 KERNEL_BACKENDS = ("auto", "cpp", "torch")

@@ -138,18 +138,26 @@ def _stencil(device) -> Tensor:
 
 
 def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n_per_member: int,
-               grid: CellGrid, skin: float, use_extension: bool = True) -> tuple[Tensor, Tensor]:
+               grid: CellGrid, skin: float, use_extension: bool = True, moved: Tensor | None = None,
+               keep: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """All sphere pairs within contact distance plus skin.
 
     On CPU the candidate scan runs in the C++ kernel of :mod:`torchdem._ext` (same list,
     about two orders of magnitude faster on polydisperse packings) unless ``use_extension``
     is False or it cannot be built.
 
+    Partial search (``moved`` given): only the pairs with at least one moved sphere are searched;
+    the pairs of ``keep`` (the last build's list) whose two spheres did not move and are active
+    are kept. When the spheres that did not move are where they were at that build, the list is
+    the whole search's at ``position``, pair for pair.
+
     Args:
         position: ``[S, 3]`` flat sphere positions (S = B * Ns), m.
         radius: ``[S]`` m. body: ``[S]`` flat body index (spheres of one body never pair).
         active: ``[S]`` bool. n_per_member: Ns (flat index // Ns is the member).
         grid: the cell grid. skin: m.
+        moved: ``[S]`` bool, the spheres to search for (None: all). keep: ``i, j`` ``[K]`` int64,
+            the last build's list (with ``moved`` only; None: keep none).
     Returns:
         i, j: ``[P]`` int64 flat sphere indices with i < j, sorted by ``i * S + j``.
     """
@@ -164,7 +172,7 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
         fine = (grid.fine_cell_size.tolist(), list(grid.fine_dims)) if grid.split > 0 else ([], [])
         return ext.cell_pairs(position, radius, body, active, grid.lower.tolist(), grid.cell_size.tolist(),
                               list(grid.dims), [float(p) for p in grid.period.tolist()], int(n_per_member),
-                              float(skin), float(grid.split), *fine)
+                              float(skin), float(grid.split), *fine, moved, *(keep or (None, None)))
     cell = torch.floor((position - grid.lower) / grid.cell_size).long()
     cell = torch.minimum(cell.clamp_min(0), dims - 1)
     cell = torch.where(torch.isfinite(position).all(-1, keepdim=True), cell, torch.zeros_like(cell))
@@ -175,7 +183,7 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
     hashes = torch.where(active, member * n_cells + linear, torch.full_like(linear, int(sentinel)))
     sorted_hash, order = torch.sort(hashes)
 
-    act = torch.nonzero(active).squeeze(1)
+    act = torch.nonzero(active if moved is None else active & moved).squeeze(1)  # the query spheres
     nb = cell[act][:, None, :] + _stencil(device)[None, :, :]              # [A, 27, 3]
     nb = torch.where(periodic_axis, torch.remainder(nb, dims), nb)
     inside = ((nb >= 0) & (nb < dims)).all(-1)
@@ -186,24 +194,28 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
     count = torch.where(inside, end - start, torch.zeros_like(start))
     flat_count = count.reshape(-1)
     total = int(flat_count.sum())
-    if total == 0:
-        empty = torch.zeros(0, dtype=torch.long, device=device)
-        return empty, empty
     query = torch.repeat_interleave(act.repeat_interleave(27), flat_count)
     first = torch.repeat_interleave(start.reshape(-1), flat_count)
     offset = torch.arange(total, device=device) - torch.repeat_interleave(
         torch.cumsum(flat_count, 0) - flat_count, flat_count)
     other = order[first + offset]
-    keep = query < other
-    i, j = query[keep], other[keep]
-    keep = body[i] != body[j]
-    i, j = i[keep], j[keep]
+    if moved is None:
+        take = query < other
+    else:  # a pair of two moved spheres is found from both: kept from the lower index
+        take = (query != other) & (~moved[other] | (query < other))
+    i, j = torch.minimum(query, other)[take], torch.maximum(query, other)[take]
+    take = body[i] != body[j]
+    i, j = i[take], j[take]
     d = position[i] - position[j]
     if grid.is_periodic:
         d = minimum_image(d, grid.period)
     cutoff = radius[i] + radius[j] + skin
-    keep = d.square().sum(-1) < cutoff * cutoff
-    i, j = i[keep], j[keep]
+    take = d.square().sum(-1) < cutoff * cutoff
+    i, j = i[take], j[take]
+    if moved is not None and keep is not None:
+        ki, kj = keep
+        still = ~moved[ki] & ~moved[kj] & active[ki] & active[kj]
+        i, j = torch.cat([i, ki[still]]), torch.cat([j, kj[still]])
     key = i * S + j
     if grid.is_periodic and min(g for g, p in zip(grid.dims, periodic_axis.tolist()) if p) < 3:
         key = torch.unique(key)  # fewer than 3 cells on a periodic axis: a cell is seen twice
@@ -213,11 +225,14 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
 
 
 def find_wall_pairs(position: Tensor, radius: Tensor, active: Tensor, walls: Walls, shift: Tensor,
-                    wall_active: Tensor, skin: float, use_extension: bool = True) -> tuple[Tensor, Tensor]:
+                    wall_active: Tensor, skin: float, use_extension: bool = True, moved: Tensor | None = None,
+                    keep: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """All (sphere, wall) pairs with gap below the skin.
 
     On CPU the scan runs in the C++ kernel of :mod:`torchdem._ext` (same list) unless
-    ``use_extension`` is False or it cannot be built.
+    ``use_extension`` is False or it cannot be built. Partial (``moved`` ``[S]`` bool and ``keep``,
+    the last build's ``sphere, wall`` list, sorted, built with the same walls): only the moved
+    spheres are tested; an active sphere that did not move keeps its pairs with live walls.
 
     Returns:
         sphere, wall: ``[Q]`` int64, sorted by ``sphere * W + wall``.
@@ -227,10 +242,18 @@ def find_wall_pairs(position: Tensor, radius: Tensor, active: Tensor, walls: Wal
     if W == 0 or position.shape[0] == 0:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return empty, empty
+    if moved is not None and keep is None:
+        raise ValueError("find_wall_pairs: a partial search (moved) needs the last build's list (keep)")
     ext = _ext.kernels_for(device, use_extension)
     if ext is not None:
         return ext.wall_pairs(position, radius, active, walls.centre + shift, walls.axis_u, walls.axis_v,
-                              walls.half_u, walls.half_v, wall_active, float(skin))
+                              walls.half_u, walls.half_v, wall_active, float(skin), moved, *(keep or (None, None)))
+    if moved is not None:
+        s, w = find_wall_pairs(position, radius, active & moved, walls, shift, wall_active, skin, False)
+        ks, kw = keep
+        still = ~moved[ks] & active[ks] & wall_active[kw]
+        key, order = torch.sort(torch.cat([s * W + w, ks[still] * W + kw[still]]))
+        return key // W, key % W
     act = torch.nonzero(active).squeeze(1)
     live = torch.nonzero(wall_active).squeeze(1)
     # every active sphere against every live wall, broadcast [A, L] (the closest-point rule of

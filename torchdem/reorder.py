@@ -14,12 +14,11 @@ the cache. LIGGGHTS sorts its atoms by spatial bin for the same reason (``atom_m
   tensor of the :class:`~torchdem.system.System` and of the :class:`~torchdem.state.State` is
   gathered (a body's spheres follow it, kept in their order), ``sphere_body`` is renumbered,
   and ``State.body_id`` / ``State.sphere_id`` record each slot's body and sphere as built, so
-  outputs keep naming a body (a sphere) by the same id. The neighbour lists are rebuilt in the new numbering, with the history carried over:
-  a listed pair whose two spheres swap order (i < j in the new numbering) has its tangential
-  spring and rolling torque negated, since both are defined from i towards j. The lists are
-  built from positions only, so after a reorder at a step where they were just built they hold
-  the same contacts with the same history; only the order of the force sums changes, by
-  round-off.
+  outputs keep naming a body (a sphere) by the same id. The neighbour lists are renumbered, not
+  searched again: they hold the same pairs with the same history and the same reference
+  positions. A listed pair whose two spheres swap order (i < j in the new numbering) has its
+  tangential spring and rolling torque negated, since both are defined from i towards j. Only
+  the order of the force sums changes, by round-off.
 - :func:`permute_system` alone maps a system as built onto a saved state's order
   (``Simulation.load``).
 """
@@ -120,7 +119,7 @@ def reorder(system: System, state: State, body_perm: Tensor | None = None) -> tu
     """Renumber bodies and spheres (default order: :func:`spatial_permutation`) and rebuild the
     neighbour lists in the new numbering, history carried (see the module docstring). The
     rebuild counter is left as it was."""
-    from torchdem.integrate import rebuild, sphere_positions
+    from torchdem.integrate import rebuild
 
     if body_perm is None:
         body_perm = spatial_permutation(system, state)
@@ -142,19 +141,27 @@ def reorder(system: System, state: State, body_perm: Tensor | None = None) -> tu
     i, j = sphere_new[p.i], sphere_new[p.j]
     swap = i > j
     sign = torch.where(swap, -1.0, 1.0).to(p.tangential.dtype)[:, None]
-    key = torch.minimum(i, j) * S + torch.maximum(i, j)
+    lo, hi = torch.minimum(i, j), torch.maximum(i, j)
+    key = lo * S + hi
     order = torch.argsort(key)
-    pairs = p.set(key=key[order], tangential=(p.tangential * sign)[order], rolling=(p.rolling * sign)[order])
+    pairs = p.set(i=lo[order], j=hi[order], key=key[order], tangential=(p.tangential * sign)[order],
+                  rolling=(p.rolling * sign)[order])
     w = state.walls
     W = max(system.walls.n, 1)
-    wkey = sphere_new[w.sphere] * W + w.wall
+    wsphere = sphere_new[w.sphere]
+    wkey = wsphere * W + w.wall
     worder = torch.argsort(wkey)
-    walls = w.set(key=wkey[worder], tangential=w.tangential[worder], rolling=w.rolling[worder])
+    walls = w.set(sphere=wsphere[worder], wall=w.wall[worder], key=wkey[worder], tangential=w.tangential[worder],
+                  rolling=w.rolling[worder])
 
-    moved = state.set(bodies=bodies, pairs=pairs, walls=walls, body_id=body_id, sphere_id=sphere_id)
-    rebuilt, _ = rebuild(new_system, moved, sphere_positions(new_system, bodies), state.step * system.dt,
-                         values=p.radius_i is not None)  # per-pair constants as the state had them
-    # the skin criterion keeps measuring from the last regular build (the same positions when the
-    # reorder follows a rebuild, as in Simulation), so the rebuild schedule does not change
-    return new_system, rebuilt.set(rebuilds=state.rebuilds, reference=state.reference[old_sphere],
-                                   wall_shift=state.wall_shift, wall_active=state.wall_active)
+    # The lists keep every pair under the new numbering: a partial rebuild in which no sphere moved
+    # (no search); the skin criterion keeps measuring from the references, so the rebuild schedule
+    # does not change.
+    reference = state.reference[old_sphere]
+    renumbered = state.set(bodies=bodies, pairs=pairs, walls=walls, body_id=body_id, sphere_id=sphere_id,
+                           reference=reference)
+    rebuilt, _ = rebuild(new_system, renumbered, reference, state.step * system.dt,
+                         values=p.radius_i is not None,  # per-pair constants as the state had them
+                         moved=torch.zeros(S, dtype=torch.bool, device=reference.device))
+    return new_system, rebuilt.set(rebuilds=state.rebuilds, wall_shift=state.wall_shift,
+                                   wall_active=state.wall_active)

@@ -55,6 +55,10 @@ class System:
         walls_move: True if any wall has a non-zero velocity and a move window.
         has_cohesion: True if any pair of any member has a cohesion energy density > 0 (the
             SJKR pass runs only then).
+        moved_share: a neighbour rebuild searches anew only the spheres that moved more than this
+            share of the skin since they were last searched; the others keep their pairs
+            (:func:`torchdem.integrate.moved_spheres`). 0: every rebuild searches every sphere.
+            The lists hold the same touching pairs either way, so a run does not change.
     """
 
     sphere_body: Tensor
@@ -78,6 +82,7 @@ class System:
     wall_events: tuple[float, ...] = ()
     walls_move: bool = False
     has_cohesion: bool = False
+    moved_share: float = 0.25
 
     @property
     def batch(self) -> int:

@@ -226,10 +226,12 @@ struct Buckets {
 
 // Buckets of the spheres i with take[i] != 0 (active, finite position, of the wanted size
 // class) on the grid (lower, size, dims, period); a cell outside the grid is clamped into it.
+// by_coordinate false: a cell's spheres stay in index order (for a search without windows,
+// which scans whole cells).
 template <typename scalar_t>
 Buckets bucket(const scalar_t* x, const scalar_t* r, const int64_t* bd, const std::vector<uint8_t>& take, int64_t S,
                int64_t n_per_member, int64_t members, const std::vector<double>& lower, const double* size,
-               const int64_t* dims, const std::vector<double>& period) {
+               const int64_t* dims, const std::vector<double>& period, bool by_coordinate = true) {
   Buckets out;
   Grid& g = out.g;
   for (int a = 0; a < 3; ++a) {
@@ -270,7 +272,7 @@ Buckets bucket(const scalar_t* x, const scalar_t* r, const int64_t* bd, const st
   const int s_ax = axes[2];
   auto& order = out.order;
   const auto& start = out.start;
-  at::parallel_for(0, H, 4096, [&](int64_t h0, int64_t h1) {
+  if (by_coordinate) at::parallel_for(0, H, 4096, [&](int64_t h0, int64_t h1) {
     for (int64_t h = h0; h < h1; ++h)
       if (start[h + 1] - start[h] > 1)
         std::sort(order.begin() + start[h], order.begin() + start[h + 1],
@@ -299,8 +301,18 @@ Buckets bucket(const scalar_t* x, const scalar_t* r, const int64_t* bd, const st
 // window's edges walked from the previous query's; on a periodic sort axis the window wraps).
 // Cells are at least one contact distance wide (find_pairs), so no pair lies outside the
 // neighbouring columns' 3 cells.
-template <bool kHalf, bool kWindow = true>
-void search(const Buckets& q, const Buckets& t, double skin, std::vector<std::vector<int64_t>>& found) {
+//
+// Partial searches (cell_pairs with `moved`) pass `asks(i)`, whether sphere i of q looks for
+// partners (the others are passed over, so q may be t's own bucketing with a full stencil), and
+// `accept(i, j)`, whether to keep a pair found from i.
+struct Everyone {
+  bool operator()(int64_t) const { return true; }
+  bool operator()(int64_t, int64_t) const { return true; }
+};
+
+template <bool kHalf, bool kWindow = true, typename Accept = Everyone, typename Asks = Everyone>
+void search(const Buckets& q, const Buckets& t, double skin, std::vector<std::vector<int64_t>>& found,
+            Accept accept = Accept(), Asks asks = Asks()) {
   const Grid& g = t.g;
   const int* axes = t.axes;
   const int64_t n_sort = t.n_sort, n_columns = t.n_columns;
@@ -336,6 +348,7 @@ void search(const Buckets& q, const Buckets& t, double skin, std::vector<std::ve
         int64_t lo_edge[9][2] = {}, hi_edge[9][2] = {};  // last window per column and run
         for (int64_t p = p0; p < p1; ++p) {
           const int64_t i = q.order[p];
+          if (!asks(i)) continue;
           const Query query{q.x[p], q.y[p], q.z[p], q.r[p], q.body[p]};
           const double key = sq.key[p], reach = (q.r[p] + t.r_max + skin) * (1.0 + 1e-9);
           Run runs[2];
@@ -351,6 +364,7 @@ void search(const Buckets& q, const Buckets& t, double skin, std::vector<std::ve
               if (kHalf && c == 0) q0 = std::max(q0, p + 1);
               st.scan_range(query, q0, q1, [&](int64_t slot) {
                 const int64_t j = t.order[slot];
+                if (!accept(i, j)) return;
                 out.push_back(std::min(i, j));
                 out.push_back(std::max(i, j));
               });
@@ -366,12 +380,24 @@ void search(const Buckets& q, const Buckets& t, double skin, std::vector<std::ve
 // searched among themselves on the fine grid (cells of 2 split + skin: fine_cell_size,
 // fine_dims), the larger ones among themselves and against the small ones on the grid; the
 // list is the same.
+//
+// Partial search (`moved` [S] bool given): only the pairs with at least one moved sphere are
+// searched, each moved sphere looking at every neighbouring column (a full stencil); a pair of
+// two moved spheres is found from both of its spheres and kept from the lower index. The pairs
+// of `keep_i`, `keep_j` (the list of the last build) whose two spheres did not move and are
+// active join them, and the grouping sorts the whole. When the unmoved spheres' positions are
+// those of the last build, the list is the one a whole search at these positions gives, pair for
+// pair (neighbors.find_pairs). Moved large against small: from the large sphere; moved small
+// against unmoved large: from the small one.
 std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const at::Tensor& radius,
                                               const at::Tensor& body, const at::Tensor& active,
                                               std::vector<double> lower, std::vector<double> cell_size,
                                               std::vector<int64_t> dims, std::vector<double> period,
                                               int64_t n_per_member, double skin, double split,
-                                              std::vector<double> fine_cell_size, std::vector<int64_t> fine_dims) {
+                                              std::vector<double> fine_cell_size, std::vector<int64_t> fine_dims,
+                                              const c10::optional<at::Tensor>& moved,
+                                              const c10::optional<at::Tensor>& keep_i,
+                                              const c10::optional<at::Tensor>& keep_j) {
   TORCH_CHECK(position.device().is_cpu(), "cell_pairs: CPU tensors only");
   TORCH_CHECK(lower.size() == 3 && cell_size.size() == 3 && dims.size() == 3 && period.size() == 3,
               "cell_pairs: lower, cell_size, dims and period need 3 entries");
@@ -385,6 +411,10 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
               "need ", S, " entries (one per sphere), got ", radius.numel(), ", ", body.numel(), " and ", active.numel());
   TORCH_CHECK(radius.scalar_type() == position.scalar_type(), "cell_pairs: radius has dtype ", radius.scalar_type(),
               "; expected ", position.scalar_type());
+  const bool partial = moved.has_value();
+  TORCH_CHECK(!partial || moved->numel() == S, "cell_pairs: moved needs ", S, " entries, got ", moved->numel());
+  TORCH_CHECK(keep_i.has_value() == keep_j.has_value() && (partial || !keep_i.has_value()),
+              "cell_pairs: keep_i and keep_j come together, and only with moved");
   auto pos = position.contiguous();
   auto rad = radius.contiguous();
   auto bod = body.contiguous().to(at::kLong);
@@ -392,29 +422,70 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
   const int64_t members = S ? (S + n_per_member - 1) / n_per_member : 0;
   const bool* active_i = act.data_ptr<bool>();
   const int64_t* bd = bod.data_ptr<int64_t>();
+  std::vector<uint8_t> mv;
+  if (partial) {
+    auto m = moved->contiguous().to(at::kBool);
+    const bool* pm = m.data_ptr<bool>();
+    mv.assign(pm, pm + S);
+  }
+  // Spheres with a non-finite position have no pairs (every distance test with one fails).
+  std::vector<uint8_t> small(S, 0), large(S, 0);
   std::vector<std::vector<int64_t>> found;  // (min, max) sphere index pairs, flat, per chunk
   AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "cell_pairs", [&] {
     const scalar_t* x = pos.data_ptr<scalar_t>();
     const scalar_t* r = rad.data_ptr<scalar_t>();
-    // Spheres with a non-finite position have no pairs (every distance test with one fails).
-    std::vector<uint8_t> small(S, 0), large(S, 0);
     for (int64_t i = 0; i < S; ++i) {
       const scalar_t* xi = x + 3 * i;
       if (!active_i[i] || !(std::isfinite(xi[0]) && std::isfinite(xi[1]) && std::isfinite(xi[2]))) continue;
       (static_cast<double>(r[i]) <= split ? small[i] : large[i]) = 1;
     }
-    Buckets coarse = bucket(x, r, bd, large, S, n_per_member, members, lower, cell_size.data(), dims.data(), period);
-    search<true>(coarse, coarse, skin, found);
+    auto grid = [&](const std::vector<uint8_t>& take, bool fine) {
+      return fine ? bucket(x, r, bd, take, S, n_per_member, members, lower, fine_cell_size.data(), fine_dims.data(),
+                           period, false)  // searched without windows
+                  : bucket(x, r, bd, take, S, n_per_member, members, lower, cell_size.data(), dims.data(), period);
+    };
+    Buckets coarse = grid(large, false);
+    if (!partial) {
+      search<true>(coarse, coarse, skin, found);
+      if (split > 0) {
+        {
+          const Buckets fine = grid(small, true);
+          search<true, false>(fine, fine, skin, found);
+        }
+        search<false>(coarse, grid(small, false), skin, found);
+      }
+      return;
+    }
+    const auto once = [&](int64_t a, int64_t b) { return !mv[b] || a < b; };  // a: the moved query
+    const auto unmoved = [&](int64_t, int64_t b) { return !mv[b]; };
+    const auto any = [](int64_t, int64_t) { return true; };
+    const auto asks = [&](int64_t a) { return mv[a] != 0; };
+    search<false>(coarse, coarse, skin, found, once, asks);
     if (split > 0) {
-      Buckets fine = bucket(x, r, bd, small, S, n_per_member, members, lower, fine_cell_size.data(), fine_dims.data(),
-                            period);
-      search<true, false>(fine, fine, skin, found);
-      fine = Buckets();
-      Buckets small_coarse = bucket(x, r, bd, small, S, n_per_member, members, lower, cell_size.data(), dims.data(),
-                                    period);
-      search<false>(coarse, small_coarse, skin, found);
+      {
+        const Buckets fine = grid(small, true);
+        search<false, false>(fine, fine, skin, found, once, asks);
+      }
+      const Buckets small_coarse = grid(small, false);
+      search<false>(coarse, small_coarse, skin, found, any, asks);
+      search<false>(small_coarse, coarse, skin, found, unmoved, asks);
     }
   });
+  if (keep_i.has_value()) {
+    auto ki = keep_i->contiguous().to(at::kLong), kj = keep_j->contiguous().to(at::kLong);
+    TORCH_CHECK(ki.numel() == kj.numel(), "cell_pairs: keep_i has ", ki.numel(), " entries and keep_j ", kj.numel());
+    const int64_t *pi = ki.data_ptr<int64_t>(), *pj = kj.data_ptr<int64_t>();
+    auto& kept = found.emplace_back();
+    kept.reserve(2 * ki.numel());
+    for (int64_t e = 0; e < ki.numel(); ++e) {
+      const int64_t a = pi[e], b = pj[e];
+      TORCH_CHECK(a >= 0 && a < b && b < S, "cell_pairs: kept pair (", a, ", ", b, ") is not i < j in [0, ", S, ")");
+      if (!mv[a] && !mv[b] && (small[a] | large[a]) && (small[b] | large[b])) {
+        kept.push_back(a);
+        kept.push_back(b);
+      }
+    }
+  }
   // Group by i: count, prefix sum, scatter, then sort each sphere's partners.
   std::vector<int64_t> offset(S + 1, 0);
   for (const auto& f : found)
@@ -442,14 +513,41 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
 // sphere centre to the closest point of the wall rectangle, minus the radius) is below the
 // skin, sorted by (sphere, wall): what neighbors.find_wall_pairs computes with an [A, L]
 // broadcast, in one pass over the spheres (parallel over chunks, copied out in order).
+// Partial (`moved` [S] bool given): only the moved spheres are tested; an active sphere that did
+// not move keeps its pairs of `keep_sphere`, `keep_wall` (the last build's list, sorted by
+// sphere) with the walls that are live.
 std::tuple<at::Tensor, at::Tensor> wall_pairs(const at::Tensor& position, const at::Tensor& radius,
                                               const at::Tensor& active, const at::Tensor& centre,
                                               const at::Tensor& axis_u, const at::Tensor& axis_v,
                                               const at::Tensor& half_u, const at::Tensor& half_v,
-                                              const at::Tensor& wall_active, double skin) {
+                                              const at::Tensor& wall_active, double skin,
+                                              const c10::optional<at::Tensor>& moved,
+                                              const c10::optional<at::Tensor>& keep_sphere,
+                                              const c10::optional<at::Tensor>& keep_wall) {
   TORCH_CHECK(position.device().is_cpu(), "wall_pairs: CPU tensors only");
   const int64_t S = position.size(0), W = centre.size(0);
   TORCH_CHECK(radius.numel() == S && active.numel() == S, "wall_pairs: radius/active need ", S, " entries");
+  const bool partial = moved.has_value();
+  TORCH_CHECK(!partial || (moved->numel() == S && keep_sphere.has_value() && keep_wall.has_value() &&
+                           keep_sphere->numel() == keep_wall->numel()),
+              "wall_pairs: moved needs ", S, " entries and the kept list (keep_sphere, keep_wall) of equal length");
+  at::Tensor mv, ks, kw;
+  const bool* pm = nullptr;
+  const int64_t *pks = nullptr, *pkw = nullptr;
+  int64_t Q = 0;
+  if (partial) {
+    mv = moved->contiguous().to(at::kBool);
+    ks = keep_sphere->contiguous().to(at::kLong);
+    kw = keep_wall->contiguous().to(at::kLong);
+    pm = mv.data_ptr<bool>();
+    pks = ks.data_ptr<int64_t>();
+    pkw = kw.data_ptr<int64_t>();
+    Q = ks.numel();
+    for (int64_t e = 0; e < Q; ++e)
+      TORCH_CHECK(pks[e] >= 0 && pks[e] < S && pkw[e] >= 0 && pkw[e] < W && (e == 0 || pks[e] >= pks[e - 1]),
+                  "wall_pairs: the kept list must be sorted by sphere, with spheres in [0, ", S, ") and walls in [0, ",
+                  W, ")");
+  }
   TORCH_CHECK(axis_u.size(0) == W && axis_v.size(0) == W && half_u.numel() == W && half_v.numel() == W &&
                   wall_active.numel() == W, "wall_pairs: wall tensors need ", W, " rows");
   auto pos = position.contiguous().to(at::kDouble);
@@ -483,7 +581,17 @@ std::tuple<at::Tensor, at::Tensor> wall_pairs(const at::Tensor& position, const 
   std::vector<std::vector<int64_t>> chunk_s(n_chunks), chunk_w(n_chunks);
   at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
     for (int64_t ch = c0; ch < c1; ++ch) {
+      int64_t kept = partial ? std::lower_bound(pks, pks + Q, ch * kChunk) - pks : 0;
       for (int64_t i = ch * kChunk; i < std::min(S, (ch + 1) * kChunk); ++i) {
+        while (kept < Q && pks[kept] < i) ++kept;  // the old pairs of moved spheres
+        if (partial && !pm[i]) {
+          for (; kept < Q && pks[kept] == i; ++kept)
+            if (a[i] && l[pkw[kept]]) {
+              chunk_s[ch].push_back(i);
+              chunk_w[ch].push_back(pkw[kept]);
+            }
+          continue;
+        }
         if (!a[i]) continue;
         for (int64_t w = 0; w < W; ++w) {
           if (!l[w]) continue;
@@ -660,10 +768,11 @@ std::vector<at::Tensor> pair_constants(const at::Tensor& i, const at::Tensor& j,
 TORCH_LIBRARY_FRAGMENT(torchdem, m) {
   m.def("cell_pairs(Tensor position, Tensor radius, Tensor body, Tensor active, float[] lower, float[] cell_size, "
         "int[] dims, float[] period, int n_per_member, float skin, float split=0., float[] fine_cell_size=[], "
-        "int[] fine_dims=[]) -> (Tensor, Tensor)");
+        "int[] fine_dims=[], Tensor? moved=None, Tensor? keep_i=None, Tensor? keep_j=None) -> (Tensor, Tensor)");
   m.impl("cell_pairs", c10::DispatchKey::CPU, TORCH_FN(cell_pairs));
   m.def("wall_pairs(Tensor position, Tensor radius, Tensor active, Tensor centre, Tensor axis_u, Tensor axis_v, "
-        "Tensor half_u, Tensor half_v, Tensor wall_active, float skin) -> (Tensor, Tensor)");
+        "Tensor half_u, Tensor half_v, Tensor wall_active, float skin, Tensor? moved=None, Tensor? keep_sphere=None, "
+        "Tensor? keep_wall=None) -> (Tensor, Tensor)");
   m.impl("wall_pairs", c10::DispatchKey::CPU, TORCH_FN(wall_pairs));
   m.def("carry_history(Tensor old_key, Tensor[] old_values, Tensor new_key) -> Tensor[]");
   m.impl("carry_history", c10::DispatchKey::CPU, TORCH_FN(carry_history));
