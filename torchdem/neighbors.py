@@ -16,9 +16,12 @@ Contract:
 - :func:`carry_history` copies spring history from an old list to a new one by matching
   sorted int64 keys (pairs that persist keep their springs; new pairs start at zero).
 - :func:`lists_expired` is the skin criterion: rebuild when the box of a member's sphere
-  displacements since the last build has a diagonal above the skin (two of its spheres may
-  then have closed the skin between them), or, with walls, when the largest displacement plus
-  how far any wall moved is above it.
+  displacements from their reference positions (where each was last searched) has a diagonal
+  above the skin (two of its spheres may then have closed the skin between them), or, with
+  walls, when the largest displacement plus how far any wall moved is above it.
+- With ``moved`` and ``keep``, :func:`find_pairs` and :func:`find_wall_pairs` search only the
+  moved spheres and keep the last build's other pairs (a partial rebuild,
+  :func:`torchdem.integrate.rebuild`).
 """
 from __future__ import annotations
 

@@ -158,7 +158,8 @@ class State(_Replaceable):
     Attributes:
         bodies: rigid-body state.
         pairs, walls: neighbour lists with contact history.
-        reference: ``[B * Ns, 3]`` sphere positions when the lists were last built, m.
+        reference: ``[B * Ns, 3]`` sphere positions at which the lists were last searched for each
+            sphere (a partial rebuild searches only the spheres that moved), m.
         wall_shift: ``[W, 3]`` wall displacement when the lists were last built, m.
         wall_active: ``[W]`` bool, which walls were present when the lists were last built.
         step: number of steps taken since t = 0 (time = step * dt).
