@@ -526,14 +526,22 @@ def _clumps_falling_on_a_bed(moved_share):
     return dataclasses.replace(system, moved_share=moved_share), state
 
 
-def test_partial_rebuilds_list_every_touching_pair_and_change_no_trajectory(monkeypatch):
+@pytest.mark.parametrize("path", ["cpp", "torch"])
+def test_partial_rebuilds_list_every_touching_pair_and_change_no_trajectory(monkeypatch, path):
     """With partial rebuilds (moved_share 0.25) every pair and wall contact touching now is listed
     at every step while clumps and spheres fall onto a resting bed, some rebuilds search only a
     part of the spheres, and the run is the one with whole rebuilds bit for bit (one thread): the
-    lists differ only in pairs that do not touch, which add nothing."""
+    lists differ only in pairs that do not touch, which add nothing. ``torch``: no C++ kernel at
+    all (searches, per-pair constants, contact laws), as on a GPU."""
     import torchdem.integrate as integrate
+    from torchdem import _ext
     from torchdem.integrate import sphere_positions
     from torchdem.simulation import Simulation
+
+    if path == "torch":
+        monkeypatch.setattr(_ext, "kernels_for", lambda device, enabled=True: None)
+    elif _ext.cpu_kernels() is None:
+        pytest.skip("C++ extension unavailable on this machine")
 
     searched = []  # per rebuild, the share of the spheres searched anew
     whole_rebuild = integrate.rebuild
@@ -550,7 +558,6 @@ def test_partial_rebuilds_list_every_touching_pair_and_change_no_trajectory(monk
         for share in (0.0, 0.25):
             system, state = _clumps_falling_on_a_bed(share)
             sim = Simulation(system, state)
-            S = system.batch * system.n_spheres
             radius, body = system.sphere_radius.reshape(-1), system.sphere_body_flat
             active = radius > 0
             searched.clear()
