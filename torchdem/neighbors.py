@@ -204,8 +204,8 @@ def find_pairs(position: Tensor, radius: Tensor, body: Tensor, active: Tensor, n
     other = order[first + offset]
     if moved is None:
         take = query < other
-    else:  # a pair of two moved spheres is found from both: kept from the lower index
-        take = (query != other) & (~moved[other] | (query < other))
+    else:  # a pair of two moved spheres is found from both: kept from the lower index (never itself)
+        take = ~moved[other] | (query < other)
     i, j = torch.minimum(query, other)[take], torch.maximum(query, other)[take]
     take = body[i] != body[j]
     i, j = i[take], j[take]

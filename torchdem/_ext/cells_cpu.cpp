@@ -458,7 +458,6 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
     }
     const auto once = [&](int64_t a, int64_t b) { return !mv[b] || a < b; };  // a: the moved query
     const auto unmoved = [&](int64_t, int64_t b) { return !mv[b]; };
-    const auto any = [](int64_t, int64_t) { return true; };
     const auto asks = [&](int64_t a) { return mv[a] != 0; };
     search<false>(coarse, coarse, skin, found, once, asks);
     if (split > 0) {
@@ -467,7 +466,7 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
         search<false, false>(fine, fine, skin, found, once, asks);
       }
       const Buckets small_coarse = grid(small, false);
-      search<false>(coarse, small_coarse, skin, found, any, asks);
+      search<false>(coarse, small_coarse, skin, found, Everyone(), asks);
       search<false>(small_coarse, coarse, skin, found, unmoved, asks);
     }
   });
