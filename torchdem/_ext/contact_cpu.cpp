@@ -243,21 +243,25 @@ TORCHDEM_INLINE void add_row(int64_t a, const int64_t* body_b, int64_t e, const 
 
 // Adds the packed rows of every block to their bodies: out = in + sum over rows, in contact
 // order. Block k covers contacts [k kBlockContacts, ...), has count[k] rows at
-// rows + width k kBlockContacts and their offsets at sel + k kBlockContacts.
-// Each thread owns a contiguous range of bodies and scans every row, adding only to its own
-// bodies: every body is written by one thread and sums in contact order, whatever the number of
-// threads. Body indices must be in [0, n_bodies).
+// rows + width k kBlockContacts and their offsets at sel + k kBlockContacts; its rows act on
+// bodies in [span[2k], span[2k + 1]] only.
+// Each thread owns a contiguous range of bodies and scans the rows of the blocks whose span meets
+// it, adding only to its own bodies: every body is written by one thread and sums in contact
+// order, whatever the number of threads. In spatial body order most blocks meet one thread's
+// range, so two threads each read about half the rows, not all of them. Body indices must be in
+// [0, n_bodies).
 template <typename T>
 void scatter_to_bodies(const int64_t* __restrict__ body_a, const int64_t* __restrict__ body_b,
                        const T* __restrict__ rows, const int32_t* __restrict__ sel, const int64_t* count,
-                       int width, int64_t n, int64_t n_bodies, const T* force_in, const T* torque_in, T* force_out,
-                       T* torque_out) {
+                       const int64_t* __restrict__ block_span, int width, int64_t n, int64_t n_bodies,
+                       const T* force_in, const T* torque_in, T* force_out, T* torque_out) {
   const int64_t n_blocks = (n + kBlockContacts - 1) / kBlockContacts;
   at::parallel_for(0, n_bodies, 1024, [&](int64_t b0, int64_t b1) {
     const uint64_t span = static_cast<uint64_t>(b1 - b0);
     std::copy(force_in + 3 * b0, force_in + 3 * b1, force_out + 3 * b0);
     std::copy(torque_in + 3 * b0, torque_in + 3 * b1, torque_out + 3 * b0);
     for (int64_t blk = 0; blk < n_blocks; ++blk) {
+      if (block_span[2 * blk + 1] < b0 || block_span[2 * blk] >= b1) continue;  // none of its rows is ours
       const int64_t c0 = blk * kBlockContacts;
       for (int64_t t = 0; t < count[blk]; ++t) {
         const int64_t e = c0 + sel[c0 + t];
@@ -398,10 +402,11 @@ bool per_member(int64_t n_bodies, int64_t members, const T* force_in, const T* t
 
 // Per-contact rows live in buffers of the calling thread that are kept between calls
 // (allocating ~100 bytes per contact afresh each step costs page faults; a buffer is as large
-// as the largest contact list seen by that thread). Slot 0: rows; 1: row offsets; 2: counts.
+// as the largest contact list seen by that thread). Slot 0: rows; 1: row offsets; 2: counts;
+// 3: the blocks' body spans.
 template <typename T>
 T* scratch(int slot, int64_t count) {
-  thread_local std::vector<double> buffers[3];
+  thread_local std::vector<double> buffers[4];
   std::vector<double>& buffer = buffers[slot];
   const size_t doubles = (static_cast<size_t>(count) * sizeof(T) + sizeof(double) - 1) / sizeof(double);
   if (buffer.size() < doubles) buffer.resize(doubles);
@@ -418,15 +423,30 @@ void two_passes(const Pass& pass, int64_t n_bodies, const T* force_in, const T* 
   T* rows = scratch<T>(0, Pass::kWidth * n);
   int32_t* sel = scratch<int32_t>(1, n);
   int64_t* count = scratch<int64_t>(2, n_blocks);
+  int64_t* span = scratch<int64_t>(3, 2 * n_blocks);
   at::parallel_for(0, n_blocks, 4, [&](int64_t b0, int64_t b1) {
     DenormalMode mode(csr);
     for (int64_t blk = b0; blk < b1; ++blk) {
       const int64_t c0 = blk * kBlockContacts, m = std::min(kBlockContacts, n - c0);
-      count[blk] = pass.ok(c0, m, bad) ? pass.run(c0, m, rows + Pass::kWidth * c0, sel + c0, bad) : 0;
+      const int64_t r = pass.ok(c0, m, bad) ? pass.run(c0, m, rows + Pass::kWidth * c0, sel + c0, bad) : 0;
+      count[blk] = r;
+      // The bodies the block's rows act on, lowest and highest (an empty block: none).
+      int64_t lo = std::numeric_limits<int64_t>::max(), hi = -1;
+      for (int64_t t = 0; t < r; ++t) {
+        const int64_t e = c0 + sel[c0 + t];
+        lo = std::min(lo, pass.body_a[e]);
+        hi = std::max(hi, pass.body_a[e]);
+        if (pass.body_b != nullptr) {
+          lo = std::min(lo, pass.body_b[e]);
+          hi = std::max(hi, pass.body_b[e]);
+        }
+      }
+      span[2 * blk] = lo;
+      span[2 * blk + 1] = hi;
     }
   });
   if (bad.load() == 0)
-    scatter_to_bodies<T>(pass.body_a, pass.body_b, rows, sel, count, Pass::kWidth, n, n_bodies, force_in,
+    scatter_to_bodies<T>(pass.body_a, pass.body_b, rows, sel, count, span, Pass::kWidth, n, n_bodies, force_in,
                          torque_in, force_out, torque_out);
 }
 
