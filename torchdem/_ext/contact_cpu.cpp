@@ -217,28 +217,33 @@ TORCHDEM_INLINE LawResult<T> contact_law(T overlap, Vec3<T> n, Vec3<T> v_rel, Ve
 // row t. Contacts without a row (not touching) add nothing, so the rows of the three quarters of
 // a Verlet list that do not touch are neither written nor read back.
 
-// Adds one row to its bodies: force on the first body (3), torque on it (3) and, when body_b is
-// given (width 9), torque on the second body (3); the second body gets minus the force.
+// A row is the force on the first body (3), the torque on it (3) and, with a second body (width 9),
+// the torque on that one (3); the second body gets minus the force.
 template <typename T>
-TORCHDEM_INLINE void add_row(int64_t a, const int64_t* body_b, int64_t e, const T* r, T* force, T* torque) {
-  T* f = force + 3 * a;
-  T* t = torque + 3 * a;
+TORCHDEM_INLINE void add_to_first(const T* r, T* f, T* t) {
   f[0] += r[0];
   f[1] += r[1];
   f[2] += r[2];
   t[0] += r[3];
   t[1] += r[4];
   t[2] += r[5];
-  if (body_b != nullptr) {
-    f = force + 3 * body_b[e];
-    t = torque + 3 * body_b[e];
-    f[0] -= r[0];
-    f[1] -= r[1];
-    f[2] -= r[2];
-    t[0] += r[6];
-    t[1] += r[7];
-    t[2] += r[8];
-  }
+}
+
+template <typename T>
+TORCHDEM_INLINE void add_to_second(const T* r, T* f, T* t) {
+  f[0] -= r[0];
+  f[1] -= r[1];
+  f[2] -= r[2];
+  t[0] += r[6];
+  t[1] += r[7];
+  t[2] += r[8];
+}
+
+// Adds one row to its bodies (body_b nullptr: one body).
+template <typename T>
+TORCHDEM_INLINE void add_row(int64_t a, const int64_t* body_b, int64_t e, const T* r, T* force, T* torque) {
+  add_to_first<T>(r, force + 3 * a, torque + 3 * a);
+  if (body_b != nullptr) add_to_second<T>(r, force + 3 * body_b[e], torque + 3 * body_b[e]);
 }
 
 // Adds the packed rows of every block to their bodies: out = in + sum over rows, in contact
@@ -266,29 +271,11 @@ void scatter_to_bodies(const int64_t* __restrict__ body_a, const int64_t* __rest
       for (int64_t t = 0; t < count[blk]; ++t) {
         const int64_t e = c0 + sel[c0 + t];
         const T* r = rows + width * (c0 + t);
-        const int64_t a = body_a[e] - b0;
-        if (static_cast<uint64_t>(a) < span) {
-          T* f = force_out + 3 * (b0 + a);
-          T* q = torque_out + 3 * (b0 + a);
-          f[0] += r[0];
-          f[1] += r[1];
-          f[2] += r[2];
-          q[0] += r[3];
-          q[1] += r[4];
-          q[2] += r[5];
-        }
+        const int64_t a = body_a[e];
+        if (static_cast<uint64_t>(a - b0) < span) add_to_first<T>(r, force_out + 3 * a, torque_out + 3 * a);
         if (body_b != nullptr) {
-          const int64_t b = body_b[e] - b0;
-          if (static_cast<uint64_t>(b) < span) {
-            T* f = force_out + 3 * (b0 + b);
-            T* q = torque_out + 3 * (b0 + b);
-            f[0] -= r[0];
-            f[1] -= r[1];
-            f[2] -= r[2];
-            q[0] += r[6];
-            q[1] += r[7];
-            q[2] += r[8];
-          }
+          const int64_t b = body_b[e];
+          if (static_cast<uint64_t>(b - b0) < span) add_to_second<T>(r, force_out + 3 * b, torque_out + 3 * b);
         }
       }
     }
