@@ -5,13 +5,15 @@ The member is filled and settled (``bench_search.settled_member``, cached), then
 s of simulated time (the gate opens at the end of the 0.8 s fill, so the default 1.3 s is half a
 second into the discharge) and cached again in ``.bench_cache/``. The script then advances
 ``--warm`` steps and times ``--steps`` more by the process's CPU time (``time.thread_time``), which
-other processes on the machine disturb less than the wall clock. Sorting along the Morton curve
+other processes on the machine disturb less than the wall clock (on a GPU, ``--device cuda``, by the
+wall clock, the GPU synchronised at both ends; ``--compile`` compiles the kernels in the warm-up). Sorting along the Morton curve
 every 10 rebuilds, as the lab profile does. Compare two versions of the code by running it with
 each in turn (two git worktrees, ``PYTHONPATH`` set to each), several times, alternating.
 
 Usage::
 
     python scripts/bench_member.py [--lobe-spacing 0.3] [--start 1.3] [--steps 1000] [--moved-share 0.25] [--json]
+                                   [--device cuda [--compile]]
 
 ``--moved-share 0`` makes every neighbour rebuild search every sphere (``System.moved_share``).
 """
@@ -29,18 +31,19 @@ from bench_search import CACHE, settled_member
 from torchdem.simulation import Simulation
 
 
-def flowing_member(lobe_spacing: float, seed: int, start: float) -> Simulation:
+def flowing_member(lobe_spacing: float, seed: int, start: float, device: str = "cpu",
+                   compile: bool = False) -> Simulation:
     """The member run to ``start`` s, cached on disk; reordered every 10 rebuilds."""
-    settled = settled_member(lobe_spacing, seed, 0.8)
+    settled = settled_member(lobe_spacing, seed, 0.8, device)
     path = CACHE / f"member_lab_s{lobe_spacing:g}_seed{seed}_t{start:g}.pt"
     if path.exists():
-        return Simulation.load(path, settled.system, reorder_every=10)
+        return Simulation.load(path, settled.system, reorder_every=10, compile=compile)
     sim = Simulation(settled.system, settled.state, reorder_every=10)
     started = time.perf_counter()
     sim.run_until(start)
     print(f"ran to {start} s in {time.perf_counter() - started:.0f} s; cached in {path}")
     sim.save(path)
-    return Simulation.load(path, settled.system, reorder_every=10)
+    return Simulation.load(path, settled.system, reorder_every=10, compile=compile)
 
 
 def main() -> None:
@@ -53,21 +56,29 @@ def main() -> None:
     parser.add_argument("--moved-share", type=float, default=None,
                         help="System.moved_share (default: the system's; 0: whole rebuilds)")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON too")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda); a GPU is timed by the wall clock")
+    parser.add_argument("--compile", action="store_true", help="Simulation(compile=True), compiled in the warm-up")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    sim = flowing_member(args.lobe_spacing, args.seed, args.start)
+    sim = flowing_member(args.lobe_spacing, args.seed, args.start, args.device, args.compile)
+    gpu = sim.system.mass.device.type == "cuda"
+    clock = time.perf_counter if gpu else time.thread_time
+    sync = torch.cuda.synchronize if gpu else (lambda: None)
     if args.moved_share is not None:
         sim.system = dataclasses.replace(sim.system, moved_share=args.moved_share)
     sim.advance(args.warm)
     rebuilds = sim.state.rebuilds
-    started = time.thread_time()
+    sync()
+    started = clock()
     sim.advance(args.steps)
-    cpu = time.thread_time() - started
-    out = {"lobe_spacing": args.lobe_spacing, "moved_share": sim.system.moved_share,
+    sync()
+    cpu = clock() - started
+    out = {"lobe_spacing": args.lobe_spacing, "moved_share": sim.system.moved_share, "device": args.device,
+           "compile": args.compile,
            "spheres": sim.system.n_spheres, "steps": args.steps,
            "ms_per_step": 1e3 * cpu / args.steps, "steps_per_rebuild": args.steps / max(sim.state.rebuilds - rebuilds, 1)}
     print(f"lab member, lobe spacing {args.lobe_spacing:g}, {out['spheres']} spheres, from t = {args.start:g} s: "
-          f"{out['ms_per_step']:.2f} ms a step (CPU time, one thread), {out['steps_per_rebuild']:.1f} steps a rebuild, "
+          f"{out['ms_per_step']:.2f} ms a step ({'wall clock on ' + args.device if gpu else 'CPU time, one thread'}), {out['steps_per_rebuild']:.1f} steps a rebuild, "
           f"moved share {out['moved_share']:g}")
     if args.json:
         print(json.dumps(out))

@@ -31,12 +31,13 @@ from torchdem.simulation import Simulation
 CACHE = Path(__file__).resolve().parents[1] / ".bench_cache"
 
 
-def settled_member(lobe_spacing: float, seed: int, settle: float):
-    """The system and state of one lab member after ``settle`` s, cached on disk."""
+def settled_member(lobe_spacing: float, seed: int, settle: float, device: str = "cpu"):
+    """The system and state of one lab member after ``settle`` s, cached on disk (a state cached on
+    one device loads onto ``device``)."""
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         plain = plain_config(compose("calibrate", overrides=["profile=lab"]))
     test = model_from(plain).test_for("50-50", [{"lobe_spacing_sinter": lobe_spacing}])
-    system, state, _ = test.build([seed], [0])
+    system, state, _ = test.build([seed], [0], device=device)
     path = CACHE / f"search_lab_s{lobe_spacing:g}_seed{seed}_t{settle:g}.pt"
     if path.exists():
         return Simulation.load(path, system)
