@@ -6,8 +6,8 @@ s of simulated time (the gate opens at the end of the 0.8 s fill, so the default
 second into the discharge) and cached again in ``.bench_cache/``. The script then advances
 ``--warm`` steps and times ``--steps`` more by the process's CPU time (``time.thread_time``), which
 other processes on the machine disturb less than the wall clock (on a GPU, ``--device cuda``, by the
-wall clock, the GPU synchronised at both ends; ``--compile`` compiles the kernels in the warm-up). Sorting along the Morton curve
-every 10 rebuilds, as the lab profile does. Compare two versions of the code by running it with
+wall clock, the GPU synchronised at both ends; ``--compile`` compiles the kernels in the warm-up).
+Sorting along the Morton curve every 10 rebuilds, as the lab profile does. Compare two versions of the code by running it with
 each in turn (two git worktrees, ``PYTHONPATH`` set to each), several times, alternating.
 
 Usage::
@@ -72,13 +72,14 @@ def main() -> None:
     started = clock()
     sim.advance(args.steps)
     sync()
-    cpu = clock() - started
+    elapsed = clock() - started
     out = {"lobe_spacing": args.lobe_spacing, "moved_share": sim.system.moved_share, "device": args.device,
            "compile": args.compile,
            "spheres": sim.system.n_spheres, "steps": args.steps,
-           "ms_per_step": 1e3 * cpu / args.steps, "steps_per_rebuild": args.steps / max(sim.state.rebuilds - rebuilds, 1)}
+           "ms_per_step": 1e3 * elapsed / args.steps, "steps_per_rebuild": args.steps / max(sim.state.rebuilds - rebuilds, 1)}
+    timed_by = f"wall clock on {args.device}" if gpu else "CPU time, one thread"
     print(f"lab member, lobe spacing {args.lobe_spacing:g}, {out['spheres']} spheres, from t = {args.start:g} s: "
-          f"{out['ms_per_step']:.2f} ms a step ({'wall clock on ' + args.device if gpu else 'CPU time, one thread'}), {out['steps_per_rebuild']:.1f} steps a rebuild, "
+          f"{out['ms_per_step']:.2f} ms a step ({timed_by}), {out['steps_per_rebuild']:.1f} steps a rebuild, "
           f"moved share {out['moved_share']:g}")
     if args.json:
         print(json.dumps(out))
