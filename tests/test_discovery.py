@@ -650,6 +650,38 @@ def test_a_design_that_cannot_be_run_names_the_first_failure(tmp_path):
                       calibrated, lab, settings, echo=lambda s: None)
 
 
+def _density_design_jams_on_25_75(tasks):
+    """known_batch, except that every run of density_per_material's design on 25-75 jams (the other
+    hypotheses' runs and the calibrated set's flow)."""
+    out = km.known_batch(tasks)
+    for i, t in enumerate(tasks):
+        jam = "density_sinter" in t.params and len(tasks) > 1 and t.condition == "25-75"
+        out[i] = dataclasses.replace(out[i], kpis={**out[i].kpis, **(JAMMED_KPIS if jam else {"discharge_jammed": 0.0})})
+    return out
+
+
+def test_a_candidate_whose_design_jams_is_left_out_with_its_reason_and_the_others_are_scored(tmp_path):
+    """The lab discovery's fill_friction: its dense fills jammed on the sinter-rich conditions, which
+    the lab's never did, so too few design points flowed everywhere to fit it. It is left out of the
+    verdict, saying so, and the next candidate is still scored; a design whose runs failed (a broken
+    set-up) still stops the discovery (test above)."""
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    calibrated = {**_known_model().fixed, **km.TRUE}
+    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1), fit_seeds=(0, 1),
+                                 candidates=("density_per_material", "outlet_width"), escalations=0)
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    lines = []
+    result = run_discovery(store, lambda model: InProcessExecutor(_density_design_jams_on_25_75, batch_size=12),
+                           _known_model(), calibrated, lab, settings, echo=lines.append)
+    by_name = {h.name: h for h in result.hypotheses}
+    jammed = by_name["density_per_material"]
+    assert jammed.skipped is not None and "only 0 of" in jammed.skipped and "25-75" in jammed.skipped
+    assert "jammed" in jammed.skipped and jammed.score == math.inf
+    assert result.cause != "density_per_material"
+    assert by_name["outlet_width"].skipped is None and math.isfinite(by_name["outlet_width"].score)
+    assert any(line.startswith("  density_per_material: skipped (") for line in lines)
+
+
 def test_no_hidden_effect_invents_no_cause(tmp_path):
     result = _discover(tmp_path, _lab({}))
     assert not result.discrepancy.significant

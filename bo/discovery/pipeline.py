@@ -127,6 +127,11 @@ __all__ = ["PARAMETERS", "VERDICT_RULES", "rules_of", "DiscoverySettings", "Cell
 PARAMETERS = "parameters"
 
 
+class JammedDesign(ConfigError):
+    """A candidate's design has too few points that flowed on every condition to be fitted, because
+    its runs jammed: the candidate is left out of the verdict with this reason."""
+
+
 #: Version of the rules from the discrepancy to the verdict. A power study keys each twin's outcome
 #: by it (``bo.discovery.power``), so outcomes of older rules are neither mixed with newer ones nor
 #: silently reused. 1: the fits weighed each cell by the lab's uncertainty alone when the design
@@ -308,7 +313,8 @@ class HypothesisScore:
         fitted_without: condition -> parameters fitted without that condition.
         fitted_all: parameters fitted on every condition; in_sample_chi2: their surrogate chi^2.
         score: sum of held-out chi^2 + penalty x added. points: design points run.
-        skipped: why the hypothesis was not fitted (unavailable for this model), else None.
+        skipped: why the hypothesis was not fitted (unavailable for this model, or too few of its
+            design points flowed on every condition: :class:`JammedDesign`), else None.
         gain_noise_sd: standard deviation of (score of ``parameters`` - this score) from DEM noise
             alone (step 3); NaN for ``parameters`` itself.
         detectable: direction (``"high"``/``"low"``: towards that end of the prior from the
@@ -782,8 +788,11 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
                      + f"): {failed[0].error}") if failed else ""
             if jammed_design:
                 first += f"; runs whose discharge jammed (left out): {jam_counts(jammed_design)}"
-            raise ConfigError(f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points "
-                              f"have every KPI measured on every condition{first} (all runs in {store.path})")
+            message = (f"discovery: hypothesis {name!r}: only {int(usable.sum())} of {n_points} design points "
+                       f"have every KPI measured on every condition{first} (all runs in {store.path})")
+            # a prior whose runs jam (a physical outcome the lab's test never had) is left out of the
+            # verdict with this reason; runs that failed are a broken set-up and stop the discovery
+            raise (JammedDesign if jammed_design and not failed and mechanism is not None else ConfigError)(message)
         V = None
         if len(settings.fit_seeds) > 1:  # variance of each design point's mean, from the design's pooled noise
             design_noise = ReplicateNoise.of(kpis, [reps[usable]])
@@ -1050,8 +1059,13 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
                                                math.inf, 0, skipped=why))
                 echo(f"  {n}: skipped ({why})")
                 continue
-            fitted.append(_fit_hypothesis(n, mechanisms[n], model, context, store, executor_for, calibrated,
-                                          measured, settings, reps, echo, reference=to_beat))
+            try:
+                fitted.append(_fit_hypothesis(n, mechanisms[n], model, context, store, executor_for, calibrated,
+                                              measured, settings, reps, echo, reference=to_beat))
+            except JammedDesign as err:
+                skipped.append(HypothesisScore(n, mechanisms[n].description, (), {}, 0, {}, {}, {}, math.nan,
+                                               math.inf, 0, skipped=str(err)))
+                echo(f"  {n}: skipped ({err})")
         # every chi^2 with one noise estimate: pooled over all runs of the discovery
         noise = discrepancy.noise
         for f in fitted:
