@@ -1052,20 +1052,22 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
         to_beat = _score(fitted[0], kpis, lab, discrepancy.noise, settings.penalty) \
             if settings.prune_probability > 0 else None
         skipped: list[HypothesisScore] = []
+
+        def skip(n: str, why: str) -> None:  # not fitted: out of the verdict, with the reason
+            skipped.append(HypothesisScore(n, mechanisms[n].description, (), {}, 0, {}, {}, {}, math.nan,
+                                           math.inf, 0, skipped=why))
+            echo(f"  {n}: skipped ({why})")
+
         for n in names:
             why = mechanisms[n].available(context)
             if why is not None:
-                skipped.append(HypothesisScore(n, mechanisms[n].description, (), {}, 0, {}, {}, {}, math.nan,
-                                               math.inf, 0, skipped=why))
-                echo(f"  {n}: skipped ({why})")
+                skip(n, why)
                 continue
             try:
                 fitted.append(_fit_hypothesis(n, mechanisms[n], model, context, store, executor_for, calibrated,
                                               measured, settings, reps, echo, reference=to_beat))
             except JammedDesign as err:
-                skipped.append(HypothesisScore(n, mechanisms[n].description, (), {}, 0, {}, {}, {}, math.nan,
-                                               math.inf, 0, skipped=str(err)))
-                echo(f"  {n}: skipped ({err})")
+                skip(n, str(err))
         # every chi^2 with one noise estimate: pooled over all runs of the discovery
         noise = discrepancy.noise
         for f in fitted:

@@ -199,12 +199,9 @@ def format_residue(check: ResidueCheck) -> str:
              "Stores: " + ", ".join(check.stores), "",
              "| condition | lab (95 % CI) | model runs | model mean (sd) | model range | ledge factor |",
              "| --- | ---: | ---: | ---: | ---: | ---: |"]
-    by_condition: dict[str, list[float]] = defaultdict(list)
-    for r in check.runs:
-        by_condition[r.condition].append(r.r)
-    for c in dict.fromkeys([*check.lab, *by_condition]):
+    for c in dict.fromkeys([*check.lab, *(r.condition for r in check.runs)]):
         lab = f"{check.lab[c][0]:.2f} +- {check.lab[c][1]:.2f}" if c in check.lab else "-"
-        r = np.array(by_condition.get(c, []))
+        r = check.model(c)
         model = (f"| {len(r)} | {r.mean():.2f} ({r.std(ddof=1) if len(r) > 1 else 0.0:.2f}) | "
                  f"{r.min():.2f}-{r.max():.2f} |" if len(r) else "| 0 | - | - |")
         lines.append(f"| {c} | {lab} {model} {check.ledge_factor(c):.3f} |")
