@@ -280,6 +280,41 @@ def test_report_files_and_counts_match_the_store(known_campaign):
     assert f"1 of {cut} runs jammed (the grains arched over the slot) and are left out of these means." in md
 
 
+def test_what_the_bounds_allow_is_the_noise_free_model_s_range(known_campaign):
+    """Per objective KPI, the surrogate's range over the GA's box with the other KPIs inside the lab's
+    CI, against the noise-free known model's by brute force over the same box. The known "lab" has
+    particles 7 % lighter than the model's, which only the flow rate feels: with the other three
+    inside their CIs the flow stays above the lab's (and with the flow inside, they cannot all be)."""
+    result, files, _, _ = known_campaign
+    names, kpis = result.surrogate.parameters, result.objective.kpi_names
+    b = result.surrogate.bounds
+    box = np.stack([b[0], np.minimum(b[1], 0.9)])  # the restricted GA's box
+    x = box[0] + np.random.default_rng(0).random((20000, len(names))) * (box[1] - box[0])
+    k = np.array([[km.known_kpis(dict(zip(names, p)), 0, "50-50", noise=False)[n] for n in kpis] for p in x])
+    lab = km.known_measurement().condition("50-50").kpis
+    m = np.array([lab[n.replace("_full_", "_")].mean for n in kpis])
+    ci = np.array([lab[n.replace("_full_", "_")].ci95 for n in kpis])
+    # the GP's error where the feasible set ends (and the brute force's, which samples inside it)
+    tol = {"deg": 0.3, "kg/s": 0.1, "kg": 0.15}
+    assert [r.kpi for r in result.attainable] == list(kpis)
+    for j, r in enumerate(result.attainable):
+        others = np.delete(np.arange(len(kpis)), j)
+        ok = (np.abs(k[:, others] - m[others]) <= ci[others]).all(axis=1)
+        assert r.feasible == bool(ok.any()), r
+        if not r.feasible:
+            assert math.isnan(r.low) and not r.reaches
+            continue
+        unit = "deg" if r.kpi.endswith("deg") else "kg/s" if "rate" in r.kpi else "kg"
+        assert r.low == pytest.approx(k[ok, j].min(), abs=tol[unit]), r
+        assert r.high == pytest.approx(k[ok, j].max(), abs=tol[unit]), r
+        assert r.reaches == bool(k[ok, j].min() <= m[j] + ci[j] and k[ok, j].max() >= m[j] - ci[j])
+    flow = {r.kpi: r for r in result.attainable}["mass_flow_rate_full_kg_s"]
+    assert flow.feasible and not flow.reaches and flow.low > flow.measured + flow.ci95
+    doc = json.loads(files["json"].read_text())
+    assert [a["kpi"] for a in doc["attainable"]] == list(kpis)
+    assert "### What the bounds allow" in files["md"].read_text()
+
+
 def test_report_sets_the_campaign_beside_the_papers_tables(known_campaign, tmp_path):
     from bo.calibration.report import PAPER_DEM_RUNS
     from torchdem.measured import load_paper_tables

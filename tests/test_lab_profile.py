@@ -271,6 +271,10 @@ def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch)
     assert summary["dem_evaluations"]["total"] == 224
     recorded = json.loads((root / "campaigns" / "table2" / "calibration_lab.json").read_text())
     assert summary["calibrated_parameters"] == recorded["calibrated_parameters"]
+    # what the bounds allow is read from the shipped store too, as calibration_lab.json records it
+    written = json.loads(Path(summary["files"]["json"]).read_text())
+    assert written["attainable"] == recorded["attainable"]
+    assert {a["kpi"]: a["feasible"] for a in written["attainable"]}["shear_angle_deg"]
     assert shipped.stat().st_mtime_ns == before                       # the shipped file is left as it is
     # verification.fresh (make run) asks the DEM for the 5 verification runs again, and nothing else
     app.calibrate(_plain(f"store_from={shipped}", f"store={tmp_path / 'run2.sqlite'}", "verification.fresh=true"),

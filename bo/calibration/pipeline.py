@@ -26,6 +26,9 @@ and the GA result is kept as a store artifact.
    the chosen mode is the calibrated set. The GA's surrogate is the rounds' strategy, or with
    ``ga_strategy`` another one or ``"best"``: the strategy whose Eq. 7 cross-validated better in
    the last round (the surrogate that predicts the objective best out of sample picks the point).
+   Beside it, ``attainable`` (artifact, :func:`attainable_stage`): per objective KPI, the range of
+   its per-KPI surrogate mean over the box the GA searched with every other objective KPI inside
+   the lab's 95 % CI (``bo.surrogate.attainable``): whether any set in the bounds matches them all.
 4. ``verification`` (stage ``verification``): the calibrated set with the verification seeds;
    relative error per KPI (Fig. 14, Table A.4). With ``fresh_verification`` the same runs are
    made again in a batch of their own that takes nothing from the store (batch key
@@ -66,14 +69,15 @@ from bo.surrogate.acquisition import (AdaptiveSettings, RoundRecord, SamplingSta
 from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.model import DENSITY_PREFIX
 from bo.campaign.executor import Executor, run_pending
-from bo.surrogate.ga import GASettings, GASummary, repeated_ga
+from bo.surrogate.attainable import AttainableRange, AttainableSettings, attainable_ranges
+from bo.surrogate.ga import GASettings, GASummary, ga_bounds, repeated_ga
 from bo.surrogate.jam import fit_jam_model
 from bo.surrogate.objective import ObjectiveSpec
 from bo.screening.pipeline import (ScreeningReport, ScreenSettings, analyse_and_report, json_ready, measured_for,
                                    run_screening)
 from bo.screening.stepwise import ScreeningResults
 from bo.campaign.store import CampaignStore
-from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2
+from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2, fit_surrogate
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
 
@@ -337,6 +341,7 @@ class CalibrationResult:
     fresh_verification: tuple[KPIAgreement, ...] | None = None
     discharge_not_ended: Mapping[str, int] = field(default_factory=dict)
     discharge_jammed: Mapping[str, int] = field(default_factory=dict)
+    attainable: tuple[AttainableRange, ...] = ()
 
 
 # --------------------------------------------------------------------------------------------
@@ -907,6 +912,58 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
                      strategy_note=why, jam_note=jam_note, jam_probability=p_jam)
 
 
+def _range_to_json(r: AttainableRange) -> dict:
+    """Strict JSON: NaN (no feasible set) as None."""
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in dataclasses.asdict(r).items()}
+
+
+def _range_from_json(data: Mapping) -> AttainableRange:
+    return AttainableRange(**{k: (math.nan if v is None else v) for k, v in data.items()})
+
+
+#: The chance that one run jams, by the GA's classifier, that a set may have and still count as matching
+#: the lab in :func:`attainable_stage` (the lab's discharges never jammed).
+ATTAINABLE_MAX_JAM = 0.05
+
+
+def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: ObjectiveSpec,
+                     settings: CalibrationSettings, ga: GAOutcome, lab: Mapping,
+                     echo: Callable[[str], None] = print) -> tuple[AttainableRange, ...]:
+    """Per objective KPI, the range of one per-KPI surrogate's mean (the points the GA's surrogate
+    was trained on, the last round's kernel, the first training seed) over the box of the chosen GA
+    mode, with the other objective KPIs inside the lab's 95 % CI (:mod:`bo.surrogate.attainable`) and,
+    when runs of the surrogate stage jammed, a chance of jamming of at most :data:`ATTAINABLE_MAX_JAM`
+    by the GA's classifier (:mod:`bo.surrogate.jam`); cached as a store artifact."""
+    usable, y, y_var = _objective_data(surrogate.kpi_replicates, objective, "per_kpi", surrogate.noise,
+                                       min(2, len(settings.surrogate.seeds)), surrogate.jammed)
+    X = surrogate.state.X[usable]
+    b = ga_bounds(surrogate.bounds, dataclasses.replace(settings.ga, restricted=(ga.mode == "restricted")),
+                  surrogate.parameters)
+    measured = {k: (float(v.mean), float(v.ci95)) for k, v in measured_for(objective.kpi_names, lab).items()}
+    if set(measured) != set(objective.kpi_names):
+        return ()
+    config = dataclasses.replace(settings.surrogate.config, kernel=surrogate.rounds[-1].kernel, strategy="per_kpi")
+    flags, _ = _jam_flags(surrogate, objective)
+    name = "attainable/" + _key(X.tolist(), y.tolist(), None if y_var is None else y_var.tolist(), b.tolist(),
+                                sorted(measured.items()), config.kernel, settings.seed,
+                                dataclasses.asdict(AttainableSettings()),
+                                *(() if flags is None else ("jam", ATTAINABLE_MAX_JAM,
+                                                            np.nan_to_num(flags, nan=-1.0).tolist())))
+    cached = store.get_artifact(name, None)
+    if cached is not None:
+        ranges = tuple(_range_from_json(r) for r in cached)
+    else:
+        model = fit_surrogate(X, y, surrogate.bounds, config, y_var=y_var, objective=objective, seed=settings.seed)
+        jam = None if flags is None else fit_jam_model(surrogate.state.X, flags, surrogate.bounds)
+        cap = None if jam is None else (lambda x: jam.probability(x) - ATTAINABLE_MAX_JAM)
+        ranges = attainable_ranges(model, measured, surrogate.parameters, b, seed=settings.seed, constraint=cap)
+        store.put_artifact(name, [_range_to_json(r) for r in ranges])
+    for r in ranges:
+        echo(f"      {r.kpi}: " + (f"{r.low:.4g} to {r.high:.4g}" if r.feasible else "no set")
+             + f" with the other KPIs inside the lab's CI (lab {r.measured:.4g} +- {r.ci95:.3g})")
+    return ranges
+
+
 def verify(store: CampaignStore, executor: Executor, stage: str, params: Mapping[str, float],
            seeds: Sequence[int], conditions: Sequence[str], kpis: Sequence[str],
            fresh: bool = False) -> dict[str, np.ndarray]:
@@ -1035,6 +1092,8 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     lap("surrogate")
     echo("[3/6] genetic algorithm on the surrogate")
     ga = ga_stage(store, surrogate, objective, settings, echo)
+    echo("      what the bounds allow: each KPI's surrogate range with the others inside the lab's CI")
+    attainable = attainable_stage(store, surrogate, objective, settings, ga, lab, echo)
     lap("ga")
     kpis = tuple(dict.fromkeys(list(objective.kpi_names) + [HEAP_HEIGHT_KPI]
                                + [k for k in settings.screening.kpis if k in measured_for(settings.screening.kpis, lab)]
@@ -1079,4 +1138,4 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
                              surrogate=surrogate, ga=ga, verification=verification, density=density,
                              validation=val, final_parameters=final, evaluations=evaluations, wall_time_s=walls,
                              fresh_verification=fresh, discharge_not_ended=not_ended,
-                             discharge_jammed=jammed)
+                             discharge_jammed=jammed, attainable=attainable)

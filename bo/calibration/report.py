@@ -9,7 +9,8 @@ already written its own files into ``out_dir/screening/``):
   plus ``density_<material>`` when the bulk density check rescaled them: the final model),
   ``objective`` (KPIs, measured values, weights), ``screening`` (kept KPIs, selected parameters,
   bounds), ``surrogate`` (CV R^2 per round and per strategy, stop reason, points run),
-  ``ga`` (Tables 8 and 9 per mode), ``verification`` / ``density`` / ``validation`` (per KPI: DEM
+  ``ga`` (Tables 8 and 9 per mode), ``attainable`` (per objective KPI, its surrogate range with
+  the other KPIs inside the lab's CI, ``bo.surrogate.attainable``), ``verification`` / ``density`` / ``validation`` (per KPI: DEM
   mean, std, n, measured mean and CI, relative error in percent), ``dem_evaluations`` (per stage
   and total) and ``wall_time_s`` (per stage, of the process that wrote the report);
 * ``report.md``: the same as tables, with the figures linked;
@@ -25,6 +26,7 @@ Returns ``{name: path}`` of every file written.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -33,7 +35,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bo.surrogate.acquisition import plot_actual_vs_predicted, target_reached
-from bo.calibration.pipeline import CalibrationResult, KPIAgreement
+from bo.surrogate.attainable import format_attainable
+from bo.calibration.pipeline import ATTAINABLE_MAX_JAM, CalibrationResult, KPIAgreement
 from bo.report.plots import write_relative_error_plot
 from bo.screening.pipeline import json_ready, measured_name
 from torchdem.drawdown import JAM_FRACTION
@@ -100,6 +103,7 @@ def calibration_payload(result: CalibrationResult) -> dict:
                       "strategy_r2": {k: list(v) for k, v in sur.strategy_r2.items()},
                       "strategy_comparison": strategy_comparison(result)},
         "ga": _ga_json(result),
+        "attainable": [dataclasses.asdict(r) for r in result.attainable],
         "verification": [a.to_dict() for a in result.verification],
         "fresh_verification": (None if result.fresh_verification is None
                                else [a.to_dict() for a in result.fresh_verification]),
@@ -277,6 +281,15 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
         lines.append("")
     if "choice" in ga.notes:
         lines += [ga.notes["choice"], ""]
+    if result.attainable:
+        lines += ["### What the bounds allow", "",
+                  "Per objective KPI, the range of its per-KPI surrogate mean over the box the GA searched while every "
+                  "other objective KPI's mean stays inside the lab's 95 % CI (`bo.surrogate.attainable`)"
+                  + (f" and the chance that a run jams, by the GA's classifier, stays at most {ATTAINABLE_MAX_JAM:.0%}"
+                     if ga.jam_note else "") + ". Where a "
+                  "range does not meet the lab's interval, no parameter set in the bounds matches all the KPIs by "
+                  "the surrogate, and what is left is the model's (`torchdem-discover`).", ""]
+        lines += format_attainable(result.attainable) + [""]
     lines += ["## 4. Verification (Fig. 14, Table A.4)", ""] + agreement_table(result.verification)
     if result.fresh_verification is not None:
         lines += ["", f"The same {len(s.verification_seeds)} runs made again on the machine that wrote this report "
