@@ -440,6 +440,33 @@ def test_no_candidates_measures_the_discrepancy_only(tmp_path):
     assert result.evaluations == {"discrepancy": 9, "total": 9}  # 3 conditions x 3 replicates, nothing else
 
 
+def test_the_report_sets_what_the_calibration_s_bounds_allowed_beside_the_discrepancy(tmp_path):
+    """calibration=<calibration.json> with an ``attainable`` list (the shipped lab calibration's): the
+    discovery report repeats it, in discovery.md and as discovery.json's calibration_attainable."""
+    from bo.cli.discover import attainable_from
+
+    shipped = Path(__file__).resolve().parents[1] / "campaigns" / "table2" / "calibration_lab.json"
+    ranges = attainable_from({"calibration": str(shipped)})
+    recorded = json.loads(shipped.read_text())["attainable"]
+    assert [r.kpi for r in ranges] == [a["kpi"] for a in recorded]
+    shear = {r.kpi: r for r in ranges}["shear_angle_deg"]
+    assert shear.feasible and shear.high == pytest.approx(recorded[1]["high"]) and not shear.reaches
+    assert attainable_from({"calibration": None}) == () and attainable_from({"calibration": "paper"}) == ()
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"calibrated_parameters": {"mu_s_pp": 0.5}, "attainable": [{"kpi": "x", "bogus": 1}]}))
+    with pytest.raises(ConfigError, match="'attainable' is not a list of ranges"):
+        attainable_from({"calibration": str(bad)})
+
+    result = _discover(tmp_path, _lab({}), candidates=())
+    files = write_discovery_report(result, tmp_path / "out", attainable=ranges)
+    md = files["md"].read_text()
+    assert "What the calibration's bounds allowed" in md and "| shear_angle_deg | 42.51 +- 1.62 |" in md
+    doc = json.loads(files["json"].read_text())
+    assert doc["calibration_attainable"] == recorded
+    plain_files = write_discovery_report(result, tmp_path / "plain")
+    assert "calibration_attainable" not in json.loads(plain_files["json"].read_text())
+
+
 def _calibration_store(path, calibrated_subset: dict) -> CampaignStore:
     """A torchdem-calibrate-like store of the known model: verification of the calibrated set (its
     own parameters only, as the calibration stores them) on 50-50 with 5 seeds, validation on 75-25

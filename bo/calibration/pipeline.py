@@ -912,15 +912,6 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
                      strategy_note=why, jam_note=jam_note, jam_probability=p_jam)
 
 
-def _range_to_json(r: AttainableRange) -> dict:
-    """Strict JSON: NaN (no feasible set) as None."""
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in dataclasses.asdict(r).items()}
-
-
-def _range_from_json(data: Mapping) -> AttainableRange:
-    return AttainableRange(**{k: (math.nan if v is None else v) for k, v in data.items()})
-
-
 #: The chance that one run jams, by the GA's classifier, that a set may have and still count as matching
 #: the lab in :func:`attainable_stage` (the lab's discharges never jammed).
 ATTAINABLE_MAX_JAM = 0.05
@@ -951,13 +942,13 @@ def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objectiv
                                                             np.nan_to_num(flags, nan=-1.0).tolist())))
     cached = store.get_artifact(name, None)
     if cached is not None:
-        ranges = tuple(_range_from_json(r) for r in cached)
+        ranges = tuple(AttainableRange.from_dict(r) for r in cached)
     else:
         model = fit_surrogate(X, y, surrogate.bounds, config, y_var=y_var, objective=objective, seed=settings.seed)
         jam = None if flags is None else fit_jam_model(surrogate.state.X, flags, surrogate.bounds)
         cap = None if jam is None else (lambda x: jam.probability(x) - ATTAINABLE_MAX_JAM)
         ranges = attainable_ranges(model, measured, surrogate.parameters, b, seed=settings.seed, constraint=cap)
-        store.put_artifact(name, [_range_to_json(r) for r in ranges])
+        store.put_artifact(name, [r.to_dict() for r in ranges])
     for r in ranges:
         echo(f"      {r.kpi}: " + (f"{r.low:.4g} to {r.high:.4g}" if r.feasible else "no set")
              + f" with the other KPIs inside the lab's CI (lab {r.measured:.4g} +- {r.ci95:.3g})")

@@ -26,7 +26,6 @@ Returns ``{name: path}`` of every file written.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from pathlib import Path
@@ -103,7 +102,7 @@ def calibration_payload(result: CalibrationResult) -> dict:
                       "strategy_r2": {k: list(v) for k, v in sur.strategy_r2.items()},
                       "strategy_comparison": strategy_comparison(result)},
         "ga": _ga_json(result),
-        "attainable": [dataclasses.asdict(r) for r in result.attainable],
+        "attainable": [r.to_dict() for r in result.attainable],
         "verification": [a.to_dict() for a in result.verification],
         "fresh_verification": (None if result.fresh_verification is None
                                else [a.to_dict() for a in result.fresh_verification]),

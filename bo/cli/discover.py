@@ -92,6 +92,32 @@ def _names(value, key: str, where: str) -> tuple[str, ...]:
 PAPER_DATA = "hadi2025_pellet_sinter.json"
 
 
+def _calibration_doc(path: str):
+    """The JSON of ``calibration=<path>``."""
+    try:
+        return json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ConfigError(f"calibration = {path!r}: cannot read it ({exc.strerror})") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"calibration = {path!r}: not JSON ({exc.msg} at line {exc.lineno})") from None
+
+
+def attainable_from(plain: Mapping[str, Any]):
+    """The calibration's "what the bounds allow" (``attainable`` of its calibration.json, as
+    :class:`bo.surrogate.attainable.AttainableRange`); empty without one."""
+    from bo.surrogate.attainable import AttainableRange
+
+    path = plain.get("calibration")
+    if path is None or path == "paper":
+        return ()
+    rows = _calibration_doc(path).get("attainable") or []
+    try:
+        return tuple(AttainableRange.from_dict(r) for r in rows)
+    except TypeError as exc:
+        raise ConfigError(f"calibration = {path!r}: 'attainable' is not a list of ranges of torchdem-calibrate "
+                          f"({exc})") from None
+
+
 def calibrated_from(plain: Mapping[str, Any], fixed: Mapping[str, float]) -> tuple[dict[str, float], str]:
     """The calibrated parameters: ``calibration.json``'s ``calibrated_parameters`` over the
     config's contact parameters, the paper's own calibrated set (``calibration=paper``: Table 8,
@@ -105,12 +131,7 @@ def calibrated_from(plain: Mapping[str, Any], fixed: Mapping[str, float]) -> tup
         values = table[table["selected"]]
         return ({**fixed, **{k: float(v) for k, v in values.items()}},
                 f"the paper's calibrated set ({table['table']}, {table['selected']} GA, in {PAPER_DATA})")
-    try:
-        doc = json.loads(Path(path).read_text())
-    except OSError as exc:
-        raise ConfigError(f"calibration = {path!r}: cannot read it ({exc.strerror})") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"calibration = {path!r}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    doc = _calibration_doc(path)
     values = doc.get("calibrated_parameters") if isinstance(doc, dict) else None
     if not isinstance(values, dict) or not values:
         raise ConfigError(f"calibration = {path!r}: no 'calibrated_parameters' object (expected a calibration.json "
@@ -194,7 +215,7 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
         result = run_discovery(store, executor_for, model, calibrated, measured, settings, echo=echo,
                                baseline=baseline)
     command = extension_command(result.cause, result.extension)
-    files = write_discovery_report(result, out, command)
+    files = write_discovery_report(result, out, command, attainable_from(plain))
     wall = time.perf_counter() - started
     if command:
         echo(f"use it: torchdem-calibrate {command}")

@@ -2,7 +2,9 @@
 
 Contract
 --------
-``write_discovery_report(result, out_dir, extension_command=None)`` writes into ``out_dir``:
+``write_discovery_report(result, out_dir, extension_command=None, attainable=())`` writes into
+``out_dir`` (``attainable``: the calibration's "what the bounds allow", ``bo.surrogate.attainable``,
+from its calibration.json; reported beside the discrepancy and as ``calibration_attainable``):
 
 * ``discovery.json`` (strict JSON, NaN as null): ``cause`` (a registry name or null),
   ``explanation``, ``discrepancy`` (chi^2, degrees of freedom, p-value, significant,
@@ -30,6 +32,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -38,6 +41,7 @@ from matplotlib.figure import Figure
 from bo.discovery.pipeline import DiscoveryResult, gain_rows, jam_counts, jammed_runs_note
 from bo.report.plots import save_png
 from bo.screening.pipeline import json_ready
+from bo.surrogate.attainable import AttainableRange, format_attainable
 
 __all__ = ["write_discovery_report", "discovery_payload"]
 
@@ -124,7 +128,8 @@ def _gain_line(g) -> str:
             f"{g.after_error_pct:+.1f} % |")
 
 
-def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: str | None = None) -> dict[str, Path]:
+def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: str | None = None,
+                           attainable: Sequence[AttainableRange] = ()) -> dict[str, Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {"discrepancy_png": save_png(_discrepancy_figure(result), out / "discrepancy.png")}
@@ -133,6 +138,8 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
     payload = discovery_payload(result)
     if extension_command:
         payload["extension"]["command"] = extension_command
+    if attainable:
+        payload["calibration_attainable"] = [r.to_dict() for r in attainable]
     files["json"] = out / "discovery.json"
     files["json"].write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
     d = result.discrepancy
@@ -151,6 +158,11 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
     if d.jammed:
         lines += ["", "Runs of the calibrated set whose discharge jammed (the grains arched over the slot), left out of "
                   "the means and the noise: " + jam_counts(d.jammed) + "."]
+    if attainable:
+        lines += ["", "What the calibration's bounds allowed at its condition (its calibration.json): each KPI's surrogate "
+                  "range over the box its GA searched with the other KPIs inside the lab's 95 % CI. A KPI whose range "
+                  "misses the lab's interval cannot be matched with the others by any set in the bounds.", ""]
+        lines += format_attainable(attainable)
     lines += ["", "![discrepancy](discrepancy.png)", "", "## 2. Candidate causes (leave-one-condition-out)", ""]
     if not result.hypotheses:
         lines.append("None fitted: " + ("no candidate was asked for (discovery.candidates = [])."

@@ -24,12 +24,14 @@ Contract:
   :mod:`bo.surrogate.jam`). Returns one :class:`AttainableRange` per objective KPI, in the objective's order.
   Each optimisation is pymoo's GA with the constraints as inequality constraints (feasible points
   first); its first population holds the surrogate's training points inside the box.
-* :func:`format_attainable` turns the ranges into markdown lines.
+* :func:`format_attainable` turns the ranges into markdown lines; ``AttainableRange.to_dict`` /
+  ``from_dict`` into strict JSON (a calibration.json's ``attainable``) and back.
 
 Deterministic for a given surrogate and seed.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable, Mapping, Sequence
@@ -80,6 +82,16 @@ class AttainableRange:
     at_high: Mapping[str, float]
     sd_low: float
     sd_high: float
+
+    def to_dict(self) -> dict:
+        """Strict-JSON data (NaN, where no set is feasible, as None)."""
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> "AttainableRange":
+        """The inverse of :meth:`to_dict`."""
+        return cls(**{k: (math.nan if v is None else v) for k, v in data.items()})
 
     @property
     def reaches(self) -> bool:
