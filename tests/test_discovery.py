@@ -440,9 +440,10 @@ def test_no_candidates_measures_the_discrepancy_only(tmp_path):
     assert result.evaluations == {"discrepancy": 9, "total": 9}  # 3 conditions x 3 replicates, nothing else
 
 
-def test_the_report_sets_what_the_calibration_s_bounds_allowed_beside_the_discrepancy(tmp_path):
+def test_the_report_sets_what_the_calibration_s_bounds_allowed_and_the_residue_beside_the_discrepancy(tmp_path):
     """calibration=<calibration.json> with an ``attainable`` list (the shipped lab calibration's): the
-    discovery report repeats it, in discovery.md and as discovery.json's calibration_attainable."""
+    discovery report repeats it, in discovery.md and as discovery.json's calibration_attainable; with a
+    residue check it adds the upper box's residue per unit slope (discovery.json's residue)."""
     from bo.cli.discover import attainable_from
 
     shipped = Path(__file__).resolve().parents[1] / "campaigns" / "table2" / "calibration_lab.json"
@@ -458,13 +459,27 @@ def test_the_report_sets_what_the_calibration_s_bounds_allowed_beside_the_discre
         attainable_from({"calibration": str(bad)})
 
     result = _discover(tmp_path, _lab({}), candidates=())
-    files = write_discovery_report(result, tmp_path / "out", attainable=ranges)
+    # and the residue per unit slope of the lab and of the shipped lab calibration's runs
+    from bo.cli.discover import residue_from
+    from bo.discovery.residue import residue_check
+
+    lab_store = shipped.parent / "lab.sqlite"
+    residue = residue_check([lab_store], load_measured(None))
+    files = write_discovery_report(result, tmp_path / "out", attainable=ranges, residue=residue)
     md = files["md"].read_text()
     assert "What the calibration's bounds allowed" in md and "| shear_angle_deg | 42.51 +- 1.62 |" in md
+    assert "## The upper box's residue per unit slope" in md and "| 50-50 | 8.38 +- 0.77 |" in md
     doc = json.loads(files["json"].read_text())
     assert doc["calibration_attainable"] == recorded
+    assert doc["residue"]["conditions"]["50-50"]["runs"] == len(residue.model("50-50")) > 100
+    assert doc["residue"]["conditions"]["50-50"]["lab"] == pytest.approx(list(residue.lab["50-50"]))
     plain_files = write_discovery_report(result, tmp_path / "plain")
-    assert "calibration_attainable" not in json.loads(plain_files["json"].read_text())
+    plain = json.loads(plain_files["json"].read_text())
+    assert "calibration_attainable" not in plain and "residue" not in plain
+    # the discovery app: the residue of the baseline store and its own; none from runs without a fill mass
+    from_app = residue_from({"discovery": {"baseline_store": str(lab_store)}}, tmp_path / "d.sqlite", load_measured(None))
+    assert len(from_app.model("50-50")) == len(residue.model("50-50"))
+    assert residue_from({}, tmp_path / "d.sqlite", _lab({})) is None  # the known model reports no fill mass
 
 
 def _calibration_store(path, calibrated_subset: dict) -> CampaignStore:

@@ -160,6 +160,16 @@ def baseline_runs(plain: Mapping[str, Any], data, calibrated: Mapping[str, float
     return str(path), runs_of_set(records, calibrated, conditions)
 
 
+def residue_from(plain: Mapping[str, Any], store_path, measured):
+    """The upper box's residue per unit slope (``bo.discovery.residue``) of the lab and of the runs in
+    the baseline store and the discovery's own; None when the data or the runs give none."""
+    from bo.discovery.residue import residue_check
+
+    stores = [p for p in ((plain.get("discovery") or {}).get("baseline_store"), store_path) if p]
+    check = residue_check(stores, measured)
+    return check if check.lab and check.runs else None
+
+
 def extension_command(name: str | None, values: Mapping[str, float]) -> str | None:
     """The Hydra overrides that switch mechanism ``name`` on at ``values`` in any command."""
     if name is None:
@@ -215,7 +225,7 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
         result = run_discovery(store, executor_for, model, calibrated, measured, settings, echo=echo,
                                baseline=baseline)
     command = extension_command(result.cause, result.extension)
-    files = write_discovery_report(result, out, command, attainable_from(plain))
+    files = write_discovery_report(result, out, command, attainable_from(plain), residue_from(plain, path, measured))
     wall = time.perf_counter() - started
     if command:
         echo(f"use it: torchdem-calibrate {command}")

@@ -2,9 +2,11 @@
 
 Contract
 --------
-``write_discovery_report(result, out_dir, extension_command=None, attainable=())`` writes into
-``out_dir`` (``attainable``: the calibration's "what the bounds allow", ``bo.surrogate.attainable``,
-from its calibration.json; reported beside the discrepancy and as ``calibration_attainable``):
+``write_discovery_report(result, out_dir, extension_command=None, attainable=(), residue=None)``
+writes into ``out_dir`` (``attainable``: the calibration's "what the bounds allow",
+``bo.surrogate.attainable``, from its calibration.json, reported beside the discrepancy and as
+``calibration_attainable``; ``residue``: the upper box's residue per unit slope of the lab and of
+the runs, ``bo.discovery.residue``, reported in a last section and as ``residue``):
 
 * ``discovery.json`` (strict JSON, NaN as null): ``cause`` (a registry name or null),
   ``explanation``, ``discrepancy`` (chi^2, degrees of freedom, p-value, significant,
@@ -41,6 +43,7 @@ from matplotlib.figure import Figure
 from bo.discovery.pipeline import DiscoveryResult, gain_rows, jam_counts, jammed_runs_note
 from bo.report.plots import save_png
 from bo.screening.pipeline import json_ready
+from bo.discovery.residue import ResidueCheck, format_residue
 from bo.surrogate.attainable import AttainableRange, format_attainable
 
 __all__ = ["write_discovery_report", "discovery_payload"]
@@ -129,7 +132,8 @@ def _gain_line(g) -> str:
 
 
 def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: str | None = None,
-                           attainable: Sequence[AttainableRange] = ()) -> dict[str, Path]:
+                           attainable: Sequence[AttainableRange] = (),
+                           residue: ResidueCheck | None = None) -> dict[str, Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {"discrepancy_png": save_png(_discrepancy_figure(result), out / "discrepancy.png")}
@@ -140,6 +144,8 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
         payload["extension"]["command"] = extension_command
     if attainable:
         payload["calibration_attainable"] = [r.to_dict() for r in attainable]
+    if residue is not None:
+        payload["residue"] = json_ready(residue.to_dict())
     files["json"] = out / "discovery.json"
     files["json"].write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
     d = result.discrepancy
@@ -255,6 +261,13 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                   "| --- | --- | --- | --- | --- | ---: | ---: |"]
         lines += [_gain_line(g) for g in result.gain]
         lines += ["", "![gain](gain.png)"]
+    if residue is not None:
+        lines += ["", "## The upper box's residue per unit slope", "",
+                  "R = (fill - lower box) / tan(shear angle) is the mass the upper box keeps per unit slope of its "
+                  "face. For straight wedges it is rho_b a^2 L, set by the floor's ledge beside the slot and the bulk "
+                  "density, not by the angle: a model whose R is not the lab's can match the shear angle or the lower "
+                  "box, not both, whatever its contact parameters (`bo/discovery/residue.py`)."]
+        lines += [""] + format_residue(residue).splitlines()[2:]  # the heading above replaces its own
     lines += ["", "DEM evaluations: " + ", ".join(f"{k} {v}" for k, v in result.evaluations.items())]
     files["md"] = out / "discovery.md"
     files["md"].write_text("\n".join(lines) + "\n")

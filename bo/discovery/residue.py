@@ -26,7 +26,8 @@ Contract:
   least half the runs, over the runs that set them all), per standard deviation of each parameter,
   with its standard error and the fit's R^2.
   ``ResidueCheck.ledge_factor(condition)``: ``sqrt(R_lab / R_model)``, the factor on the ledge
-  ``a`` that would give the model the lab's R if its wedges kept their shape.
+  ``a`` that would give the model the lab's R if its wedges kept their shape; ``ResidueCheck.to_dict()``
+  the same as plain data (the discovery report's ``residue``).
 * :func:`format_residue` turns it into markdown (``scripts/residue_check.py``).
 
 Stores are opened read-only, so a running campaign is not disturbed.
@@ -110,6 +111,22 @@ class ResidueCheck:
     def model(self, condition: str) -> np.ndarray:
         """``[n]`` R of the model's runs at ``condition``."""
         return np.array([r.r for r in self.runs if r.condition == condition])
+
+    def to_dict(self) -> dict:
+        """Plain data: per condition the lab's R and half-width, the model's runs, mean, sd and ledge
+        factor; per fitted condition its slopes (per sd, se, the parameter's sd) and R^2."""
+        conditions = list(dict.fromkeys([*self.lab, *(r.condition for r in self.runs)]))
+        per = {}
+        for c in conditions:
+            r = self.model(c)
+            per[c] = {"lab": list(self.lab[c]) if c in self.lab else None, "runs": int(len(r)),
+                      "mean": float(r.mean()) if len(r) else math.nan,
+                      "sd": float(r.std(ddof=1)) if len(r) > 1 else math.nan,
+                      "ledge_factor": self.ledge_factor(c)}
+        return {"stores": list(self.stores), "conditions": per,
+                "fits": {f.condition: {"runs": f.runs, "r2": f.r2,
+                                       "slopes": {n: {"per_sd": v[0], "se": v[1], "sd": v[2]}
+                                                  for n, v in f.slopes.items()}} for f in self.fits}}
 
     def ledge_factor(self, condition: str) -> float:
         """``sqrt(R_lab / mean R_model)`` at ``condition`` (NaN without runs or lab value)."""
