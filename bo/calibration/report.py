@@ -10,9 +10,10 @@ already written its own files into ``out_dir/screening/``):
   ``objective`` (KPIs, measured values, weights), ``screening`` (kept KPIs, selected parameters,
   bounds), ``surrogate`` (CV R^2 per round and per strategy, stop reason, points run),
   ``ga`` (Tables 8 and 9 per mode), ``attainable`` (per objective KPI, its surrogate range with
-  the other KPIs inside the lab's CI, ``bo.surrogate.attainable``), ``verification`` / ``density`` / ``validation`` (per KPI: DEM
-  mean, std, n, measured mean and CI, relative error in percent), ``dem_evaluations`` (per stage
-  and total) and ``wall_time_s`` (per stage, of the process that wrote the report);
+  the other KPIs inside the lab's CI, ``bo.surrogate.attainable``), ``verification`` /
+  ``density`` / ``validation`` (per KPI: DEM mean, std, n, measured mean and CI, relative error
+  in percent), ``dem_evaluations`` (per stage and total) and ``wall_time_s`` (per stage, of the
+  process that wrote the report);
 * ``report.md``: the same as tables, with the figures linked;
 * ``fig13_actual_vs_predicted.png``, ``fig14_verification.png``, ``fig16_density.png`` (when the
   density check ran), ``fig18_validation.png`` (when validation conditions exist).
