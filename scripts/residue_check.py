@@ -6,6 +6,7 @@ only read, so it may be run beside a campaign.
 
     python scripts/residue_check.py campaigns/table2/lab.sqlite campaigns/table2/discover_lab.sqlite
     python scripts/residue_check.py STORE --data my_lab.json
+    python scripts/residue_check.py campaigns/table2/discover_lab.sqlite --by-stage   # R per candidate
 """
 from __future__ import annotations
 
@@ -19,8 +20,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("stores", nargs="+", help="campaign stores (SQLite)")
     parser.add_argument("--data", default=None, help="measured-data JSON (default: the paper's Table 2)")
+    parser.add_argument("--by-stage", action="store_true", help="also R per stage (a discovery's candidates)")
     args = parser.parse_args()
-    print(format_residue(residue_check(args.stores, load_measured(args.data))), end="")
+    print(format_residue(residue_check(args.stores, load_measured(args.data)), by_stage=args.by_stage), end="")
 
 
 if __name__ == "__main__":

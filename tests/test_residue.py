@@ -127,6 +127,22 @@ def test_a_store_gives_each_runs_residue_and_the_fit_finds_what_moves_it(tmp_pat
     assert f"| density | {slope:+.3f} ({se:.3f}) |" in text
 
 
+def test_r_per_stage_groups_the_runs_as_stored(tmp_path):
+    path, r = _store(tmp_path, n=12)
+    check = residue_check([path], _measured())
+    groups = check.by_stage()
+    assert list(groups) == [("screening", "A"), ("initial", "A")]  # the jammed run left out of "initial"
+    assert groups[("screening", "A")] == pytest.approx(r[:5], rel=1e-9)
+    assert groups[("initial", "A")] == pytest.approx(r[5:], rel=1e-9)
+    text = format_residue(check, by_stage=True)
+    assert f"| screening | {np.mean(r[:5]):.2f} ({np.std(r[:5], ddof=1):.2f}, 5) |" in text
+    assert f"| initial | {np.mean(r[5:]):.2f} ({np.std(r[5:], ddof=1):.2f}, 7) |" in text
+    assert "R per stage" not in format_residue(check)
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "residue_check.py"), str(path), "--by-stage"],
+                         capture_output=True, text=True, cwd=REPO, check=True).stdout
+    assert "| stage | A |" in out and "| initial |" in out
+
+
 def test_too_few_runs_give_no_fit(tmp_path):
     path, _ = _store(tmp_path, n=8)
     check = residue_check([path], _measured())

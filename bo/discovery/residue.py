@@ -28,7 +28,9 @@ Contract:
   ``ResidueCheck.ledge_factor(condition)``: ``sqrt(R_lab / R_model)``, the factor on the ledge
   ``a`` that would give the model the lab's R if its wedges kept their shape; ``ResidueCheck.to_dict()``
   the same as plain data (the discovery report's ``residue``).
-* :func:`format_residue` turns it into markdown (``scripts/residue_check.py``).
+* :func:`format_residue` turns it into markdown (``scripts/residue_check.py``); with ``by_stage``
+  also R per stage and condition (``ResidueCheck.by_stage()``), so a discovery store shows which
+  candidate's runs moved it.
 
 Stores are opened read-only, so a running campaign is not disturbed.
 """
@@ -128,6 +130,14 @@ class ResidueCheck:
                                        "slopes": {n: {"per_sd": v[0], "se": v[1], "sd": v[2]}
                                                   for n, v in f.slopes.items()}} for f in self.fits}}
 
+    def by_stage(self) -> dict[tuple[str, str], np.ndarray]:
+        """``(stage, condition) -> [n]`` R of the model's runs, stages in the order the stores list them
+        (in a discovery store a stage is a candidate's design or held-out runs)."""
+        out: dict[tuple[str, str], list[float]] = {}
+        for r in self.runs:
+            out.setdefault((r.stage, r.condition), []).append(r.r)
+        return {k: np.array(v) for k, v in out.items()}
+
     def ledge_factor(self, condition: str) -> float:
         """``sqrt(R_lab / mean R_model)`` at ``condition`` (NaN without runs or lab value)."""
         r = self.model(condition)
@@ -210,8 +220,9 @@ def residue_check(stores: Sequence[str | Path], measured: MeasuredData) -> Resid
     return ResidueCheck(tuple(str(s) for s in stores), lab_residue(measured), tuple(runs), fits)
 
 
-def format_residue(check: ResidueCheck) -> str:
-    """Markdown: R of the lab and of the model per condition, then the fits of R on the parameters."""
+def format_residue(check: ResidueCheck, by_stage: bool = False) -> str:
+    """Markdown: R of the lab and of the model per condition, then the fits of R on the parameters;
+    ``by_stage``: between them, R per stage and condition (mean, sd, runs)."""
     lines = ["## Residue per unit slope, R = (fill - lower box) / tan(shear angle), kg", "",
              "Stores: " + ", ".join(check.stores), "",
              "| condition | lab (95 % CI) | model runs | model mean (sd) | model range | ledge factor |",
@@ -222,6 +233,18 @@ def format_residue(check: ResidueCheck) -> str:
         model = (f"| {len(r)} | {r.mean():.2f} ({r.std(ddof=1) if len(r) > 1 else 0.0:.2f}) | "
                  f"{r.min():.2f}-{r.max():.2f} |" if len(r) else "| 0 | - | - |")
         lines.append(f"| {c} | {lab} {model} {check.ledge_factor(c):.3f} |")
+    if by_stage:
+        groups = check.by_stage()
+        conditions = list(dict.fromkeys(c for _, c in groups))
+        lines += ["", "R per stage, kg: mean (sd, runs)", "",
+                  "| stage | " + " | ".join(conditions) + " |", "| --- |" + " ---: |" * len(conditions)]
+        for stage in dict.fromkeys(st for st, _ in groups):
+            cells = []
+            for c in conditions:
+                r = groups.get((stage, c))
+                cells.append("-" if r is None else
+                             f"{r.mean():.2f} ({r.std(ddof=1) if len(r) > 1 else 0.0:.2f}, {len(r)})")
+            lines.append(f"| {stage} | " + " | ".join(cells) + " |")
     for f in check.fits:
         lines += ["", f"R at {f.condition} on the run parameters ({f.runs} runs, one fit, R^2 {f.r2:.2f}): "
                   "change of R per standard deviation of each parameter, kg", "",
