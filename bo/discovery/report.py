@@ -267,7 +267,7 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                   "face. For straight wedges it is rho_b a^2 L, set by the floor's ledge beside the slot and the bulk "
                   "density, not by the angle: a model whose R is not the lab's can match the shear angle or the lower "
                   "box, not both, whatever its contact parameters (`bo/discovery/residue.py`)."]
-        lines += [""] + format_residue(residue).splitlines()[2:]  # the heading above replaces its own
+        lines += [""] + format_residue(residue, heading=False).splitlines()
     lines += ["", "DEM evaluations: " + ", ".join(f"{k} {v}" for k, v in result.evaluations.items())]
     files["md"] = out / "discovery.md"
     files["md"].write_text("\n".join(lines) + "\n")

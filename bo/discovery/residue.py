@@ -114,12 +114,15 @@ class ResidueCheck:
         """``[n]`` R of the model's runs at ``condition``."""
         return np.array([r.r for r in self.runs if r.condition == condition])
 
+    def conditions(self) -> list[str]:
+        """The lab's conditions, then any other the runs have, in order."""
+        return list(dict.fromkeys([*self.lab, *(r.condition for r in self.runs)]))
+
     def to_dict(self) -> dict:
         """Plain data: per condition the lab's R and half-width, the model's runs, mean, sd and ledge
         factor; per fitted condition its slopes (per sd, se, the parameter's sd) and R^2."""
-        conditions = list(dict.fromkeys([*self.lab, *(r.condition for r in self.runs)]))
         per = {}
-        for c in conditions:
+        for c in self.conditions():
             r = self.model(c)
             per[c] = {"lab": list(self.lab[c]) if c in self.lab else None, "runs": int(len(r)),
                       "mean": float(r.mean()) if len(r) else math.nan,
@@ -220,17 +223,22 @@ def residue_check(stores: Sequence[str | Path], measured: MeasuredData) -> Resid
     return ResidueCheck(tuple(str(s) for s in stores), lab_residue(measured), tuple(runs), fits)
 
 
-def format_residue(check: ResidueCheck, by_stage: bool = False) -> str:
+def _sd(r: np.ndarray) -> float:
+    return float(r.std(ddof=1)) if len(r) > 1 else 0.0
+
+
+def format_residue(check: ResidueCheck, by_stage: bool = False, heading: bool = True) -> str:
     """Markdown: R of the lab and of the model per condition, then the fits of R on the parameters;
-    ``by_stage``: between them, R per stage and condition (mean, sd, runs)."""
-    lines = ["## Residue per unit slope, R = (fill - lower box) / tan(shear angle), kg", "",
+    ``by_stage``: between them, R per stage and condition (mean, sd, runs); ``heading``: the section's
+    own title first (a report that titles it itself leaves it out)."""
+    lines = (["## Residue per unit slope, R = (fill - lower box) / tan(shear angle), kg", ""] if heading else []) + [
              "Stores: " + ", ".join(check.stores), "",
              "| condition | lab (95 % CI) | model runs | model mean (sd) | model range | ledge factor |",
              "| --- | ---: | ---: | ---: | ---: | ---: |"]
-    for c in dict.fromkeys([*check.lab, *(r.condition for r in check.runs)]):
+    for c in check.conditions():
         lab = f"{check.lab[c][0]:.2f} +- {check.lab[c][1]:.2f}" if c in check.lab else "-"
         r = check.model(c)
-        model = (f"| {len(r)} | {r.mean():.2f} ({r.std(ddof=1) if len(r) > 1 else 0.0:.2f}) | "
+        model = (f"| {len(r)} | {r.mean():.2f} ({_sd(r):.2f}) | "
                  f"{r.min():.2f}-{r.max():.2f} |" if len(r) else "| 0 | - | - |")
         lines.append(f"| {c} | {lab} {model} {check.ledge_factor(c):.3f} |")
     if by_stage:
@@ -242,8 +250,7 @@ def format_residue(check: ResidueCheck, by_stage: bool = False) -> str:
             cells = []
             for c in conditions:
                 r = groups.get((stage, c))
-                cells.append("-" if r is None else
-                             f"{r.mean():.2f} ({r.std(ddof=1) if len(r) > 1 else 0.0:.2f}, {len(r)})")
+                cells.append("-" if r is None else f"{r.mean():.2f} ({_sd(r):.2f}, {len(r)})")
             lines.append(f"| {stage} | " + " | ".join(cells) + " |")
     for f in check.fits:
         lines += ["", f"R at {f.condition} on the run parameters ({f.runs} runs, one fit, R^2 {f.r2:.2f}): "
