@@ -265,6 +265,16 @@ def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch)
 
     monkeypatch.setattr(app, "executor_from",
                         lambda *a, **k: contextlib.nullcontext(InProcessExecutor(nothing_runs, 1)))
+    # nor is anything the store holds computed again on this machine: the rounds' cross-validations,
+    # the GA and what the bounds allow are artifacts whose keys do not see the machine's last bits
+    import bo.calibration.pipeline as pipeline
+
+    def computed(what):
+        def refuse(*a, **k):
+            raise AssertionError(f"{what} computed again instead of read from the shipped store")
+        return refuse
+    for what in ("best_kernel_cv", "repeated_ga", "attainable_ranges"):
+        monkeypatch.setattr(pipeline, what, computed(what))
     plain = _plain(f"store_from={shipped}", f"store={tmp_path / 'run.sqlite'}")
     summary = app.calibrate(plain, tmp_path / "out", echo=lambda s: None)
     assert not sent
@@ -275,6 +285,10 @@ def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch)
     written = json.loads(Path(summary["files"]["json"]).read_text())
     assert written["attainable"] == recorded["attainable"]
     assert {a["kpi"]: a["feasible"] for a in written["attainable"]}["shear_angle_deg"]
+    # what holds the shear angle at 40 deg is the angle of repose's CI, and the reverse
+    from bo.surrogate.attainable import AttainableRange
+    held = {a["kpi"]: AttainableRange.from_dict(a).held_by for a in written["attainable"]}
+    assert held["shear_angle_deg"] == ("angle_of_repose_deg",) and held["angle_of_repose_deg"] == ("shear_angle_deg",)
     assert shipped.stat().st_mtime_ns == before                       # the shipped file is left as it is
     # verification.fresh (make run) asks the DEM for the 5 verification runs again, and nothing else
     app.calibrate(_plain(f"store_from={shipped}", f"store={tmp_path / 'run2.sqlite'}", "verification.fresh=true"),

@@ -352,6 +352,31 @@ def _key(*parts) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=repr).encode()).hexdigest()[:12]
 
 
+#: Significant digits of the floats an artifact key hashes (:func:`_data_key`).
+KEY_DIGITS = 9
+
+
+def _canonical(value):
+    """``value`` with arrays as lists and every float rounded to :data:`KEY_DIGITS` significant digits."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, (float, np.floating)):
+        return float(f"{float(value):.{KEY_DIGITS}g}") if math.isfinite(value) else float(value)
+    if isinstance(value, (list, tuple)):
+        return [_canonical(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _canonical(v) for k, v in value.items()}
+    return value
+
+
+def _data_key(*parts) -> str:
+    """The key of an artifact computed from the stored runs (a round's cross-validation, the GA, what
+    the bounds allow). The data it hashes (replicate means, pooled noise) are sums whose last bits
+    depend on the machine and the numpy build, so their floats are hashed to :data:`KEY_DIGITS`
+    significant digits: a shipped store's artifacts are then found on the user's machine too."""
+    return _key(*_canonical(list(parts)))
+
+
 def _stored(store: CampaignStore, name: str, compute: Callable[[], dict]) -> dict:
     """The artifact ``name``, computed (and stored) when the store does not hold it yet."""
     value = store.get_artifact(name, None)
@@ -753,7 +778,7 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
 
         # A round's cross-validation (hundreds of GP fits) is kept in the store, keyed by its data, so
         # a resumed campaign (make run on the shipped store) does not fit them again.
-        cv = _stored(store, f"surrogate-cv/{key}/{k}/" + _key(
+        cv = _stored(store, f"surrogate-cv/{key}/{k}/" + _data_key(
             state.X.tolist(), np.asarray(state.y).tolist(), None if state.y_var is None else np.asarray(state.y_var).tolist(),
             list(a.kernels), list(a.cv_seeds), a.n_folds, sorted(r2)), cross_validate_round)
         num = lambda v: math.nan if v is None else float(v)  # noqa: E731
@@ -866,7 +891,7 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
         f"{jammed_objective:.2f}, with p the chance that it jams by a GP classifier of those runs")
     if jam_note:
         echo(f"      {jam_note}")
-    name = "ga/" + _key(X.tolist(), np.asarray(y).tolist(), None if y_var is None else
+    name = "ga/" + _data_key(X.tolist(), np.asarray(y).tolist(), None if y_var is None else
                         np.asarray(y_var).tolist(), dataclasses.asdict(settings.ga), settings.ga_repetitions,
                         settings.seed, config.kernel, config.strategy,
                         *(() if flags is None else ("jam", np.nan_to_num(flags, nan=-1.0).tolist())))
@@ -915,6 +940,8 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
 #: The chance that one run jams, by the GA's classifier, that a set may have and still count as matching
 #: the lab in :func:`attainable_stage` (the lab's discharges never jammed).
 ATTAINABLE_MAX_JAM = 0.05
+#: That cap's name where the report says what holds a range (``AttainableRange.without``).
+ATTAINABLE_JAM_NAME = "jam cap"
 
 
 def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: ObjectiveSpec,
@@ -924,7 +951,8 @@ def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objectiv
     was trained on, the last round's kernel, the first training seed) over the box of the chosen GA
     mode, with the other objective KPIs inside the lab's 95 % CI (:mod:`bo.surrogate.attainable`) and,
     when runs of the surrogate stage jammed, a chance of jamming of at most :data:`ATTAINABLE_MAX_JAM`
-    by the GA's classifier (:mod:`bo.surrogate.jam`); cached as a store artifact."""
+    by the GA's classifier (:mod:`bo.surrogate.jam`), and for every range that misses the lab what
+    each of those constraints holds it from; cached as a store artifact."""
     usable, y, y_var = _objective_data(surrogate.kpi_replicates, objective, "per_kpi", surrogate.noise,
                                        min(2, len(settings.surrogate.seeds)), surrogate.jammed)
     X = surrogate.state.X[usable]
@@ -935,7 +963,7 @@ def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objectiv
         return ()
     config = dataclasses.replace(settings.surrogate.config, kernel=surrogate.rounds[-1].kernel, strategy="per_kpi")
     flags, _ = _jam_flags(surrogate, objective)
-    name = "attainable/" + _key(X.tolist(), y.tolist(), None if y_var is None else y_var.tolist(), b.tolist(),
+    name = "attainable/" + _data_key(X.tolist(), y.tolist(), None if y_var is None else y_var.tolist(), b.tolist(),
                                 sorted(measured.items()), config.kernel, settings.seed,
                                 dataclasses.asdict(AttainableSettings()),
                                 *(() if flags is None else ("jam", ATTAINABLE_MAX_JAM,
@@ -947,7 +975,8 @@ def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objectiv
         model = fit_surrogate(X, y, surrogate.bounds, config, y_var=y_var, objective=objective, seed=settings.seed)
         jam = None if flags is None else fit_jam_model(surrogate.state.X, flags, surrogate.bounds)
         cap = None if jam is None else (lambda x: jam.probability(x) - ATTAINABLE_MAX_JAM)
-        ranges = attainable_ranges(model, measured, surrogate.parameters, b, seed=settings.seed, constraint=cap)
+        ranges = attainable_ranges(model, measured, surrogate.parameters, b, seed=settings.seed, constraint=cap,
+                                   constraint_name=ATTAINABLE_JAM_NAME)
         store.put_artifact(name, [r.to_dict() for r in ranges])
     for r in ranges:
         echo(f"      {r.kpi}: " + (f"{r.low:.4g} to {r.high:.4g}" if r.feasible else "no set")

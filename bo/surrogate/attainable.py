@@ -14,6 +14,16 @@ KPIs by the surrogate, and the paper's workflow has nothing left to tune: the ga
 (``torchdem-discover``). The posterior sd at each extreme says how sure the surrogate is there; an
 extreme at a corner of the box with few runs near it is an extrapolation.
 
+What holds a range that misses the lab: for such a KPI k and each of its constraints c in turn (another
+KPI's CI, or the extra ``constraint``), one more optimisation finds the mean of KPI k closest to the
+lab's with every constraint but c::
+
+    min  |mu_k(x) - m_k|   over the box,   subject to every constraint of k but c
+
+(``AttainableRange.without[c]``; NaN when the others still cannot hold). The constraints whose
+release lets KPI k reach the lab's CI (``AttainableRange.held_by``) name what the model cannot do
+at once: a cause of the gap has to move those KPIs apart.
+
 Contract:
 
 * :func:`attainable_ranges` ``(surrogate, measured, names=None, bounds=None, settings, seed,
@@ -24,8 +34,11 @@ Contract:
   :mod:`bo.surrogate.jam`). Returns one :class:`AttainableRange` per objective KPI, in the objective's order.
   Each optimisation is pymoo's GA with the constraints as inequality constraints (feasible points
   first); its first population holds the surrogate's training points inside the box.
-* :func:`format_attainable` turns the ranges into markdown lines; ``AttainableRange.to_dict`` /
-  ``from_dict`` into strict JSON (a calibration.json's ``attainable``) and back.
+  ``constraint_name`` names that constraint in ``without``. With ``settings.explain`` every range
+  that misses the lab's CI also gets ``without`` (one more GA per constraint).
+* :func:`format_attainable` turns the ranges into markdown lines (with a table of what holds the ranges
+  that miss, when they were explained); ``AttainableRange.to_dict`` / ``from_dict`` into strict JSON (a
+  calibration.json's ``attainable``) and back.
 
 Deterministic for a given surrogate and seed.
 """
@@ -33,7 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
 
 import gpytorch
@@ -51,16 +64,21 @@ __all__ = ["AttainableSettings", "AttainableRange", "attainable_ranges", "format
 
 @dataclass(frozen=True)
 class AttainableSettings:
-    """Population and generations of each constrained GA (two per KPI)."""
+    """Population and generations of each constrained GA (two per KPI); ``explain``: also find, for
+    every range that misses the lab, what each of its constraints holds it from (one GA per
+    constraint, module docstring)."""
 
     pop_size: int = 300
     n_generations: int = 150
+    explain: bool = True
 
     def validate(self, source: str = "AttainableSettings") -> "AttainableSettings":
         for name in ("pop_size", "n_generations"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
                 raise out_of_range(name, v, "an integer >= 2", source)
+        if not isinstance(self.explain, bool):
+            raise out_of_range("explain", self.explain, "true or false", source)
         return self
 
 
@@ -70,7 +88,10 @@ class AttainableRange:
 
     ``low``/``high``: the extremes (NaN when no point of the box puts the others inside their CIs,
     ``feasible`` False); ``at_low``/``at_high``: the parameter sets there; ``sd_low``/``sd_high``:
-    the posterior sd of the KPI's mean at them; ``measured``/``ci95``: the lab's."""
+    the posterior sd of the KPI's mean at them; ``measured``/``ci95``: the lab's. ``without``: for a
+    range that misses the lab (and was explained), per constraint (another KPI's name, or the extra
+    constraint's), the KPI's mean closest to the lab's with every constraint but that one (NaN where
+    the others cannot all hold); empty otherwise."""
 
     kpi: str
     measured: float
@@ -82,16 +103,31 @@ class AttainableRange:
     at_high: Mapping[str, float]
     sd_low: float
     sd_high: float
+    without: Mapping[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """Strict-JSON data (NaN, where no set is feasible, as None)."""
-        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                for k, v in dataclasses.asdict(self).items()}
+        def strict(v):
+            return None if isinstance(v, float) and not math.isfinite(v) else v
+        data = {k: strict(v) for k, v in dataclasses.asdict(self).items()}
+        data["without"] = {c: strict(float(v)) for c, v in self.without.items()}
+        return data
 
     @classmethod
     def from_dict(cls, data: Mapping) -> "AttainableRange":
-        """The inverse of :meth:`to_dict`."""
-        return cls(**{k: (math.nan if v is None else v) for k, v in data.items()})
+        """The inverse of :meth:`to_dict` (a range written before ``without`` existed has none)."""
+        data = dict(data)
+        without = {c: (math.nan if v is None else float(v)) for c, v in (data.pop("without", None) or {}).items()}
+        return cls(**{k: (math.nan if v is None else v) for k, v in data.items()}, without=without)
+
+    def meets(self, value: float) -> bool:
+        """True when ``value`` lies inside the lab's interval."""
+        return math.isfinite(value) and abs(value - self.measured) <= self.ci95
+
+    @property
+    def held_by(self) -> tuple[str, ...]:
+        """The constraints whose release alone lets the KPI reach the lab's CI (from ``without``)."""
+        return tuple(c for c, v in self.without.items() if self.meets(v))
 
     @property
     def reaches(self) -> bool:
@@ -108,20 +144,22 @@ def _means(surrogate: Surrogate, X) -> np.ndarray:
 
 
 class _Constrained(Problem):
-    """``sign * mu_k(x)`` with ``G_j = |mu_j(x) - m_j| - c_j <= 0`` for the other KPIs."""
+    """``sign * mu_k(x)``, or ``|mu_k(x) - m_k|`` with ``sign`` 0, subject to ``G_j = |mu_j(x) - m_j| -
+    c_j <= 0`` for the KPIs ``others`` and to the extra constraint when given."""
 
     def __init__(self, surrogate: Surrogate, b: np.ndarray, k: int, sign: float,
-                 measured: np.ndarray, ci: np.ndarray, constraint: Callable[[np.ndarray], np.ndarray] | None):
-        others = [j for j in range(len(measured)) if j != k]
+                 measured: np.ndarray, ci: np.ndarray, others: Sequence[int],
+                 constraint: Callable[[np.ndarray], np.ndarray] | None):
         super().__init__(n_var=b.shape[1], n_obj=1, n_ieq_constr=len(others) + 1, xl=b[0], xu=b[1],
                          elementwise=False)
-        self._s, self._k, self._sign, self._others = surrogate, k, sign, others
+        self._s, self._k, self._sign, self._others = surrogate, k, sign, list(others)
         self._m, self._c, self._constraint = measured, ci, constraint
 
     def _evaluate(self, X, out, *args, **kwargs):
         x = np.asarray(X, dtype=np.float64)
         mean = _means(self._s, x)
-        out["F"] = self._sign * mean[:, [self._k]]
+        k = self._k
+        out["F"] = (np.abs(mean[:, [k]] - self._m[k]) if self._sign == 0 else self._sign * mean[:, [k]])
         o = self._others
         extra = np.zeros(len(x)) if self._constraint is None else np.asarray(self._constraint(x), dtype=np.float64)
         out["G"] = np.column_stack([np.abs(mean[:, o] - self._m[o]) - self._c[o], extra])
@@ -137,8 +175,8 @@ def _first_population(surrogate: Surrogate, b: np.ndarray, n: int, rng: np.rando
 def attainable_ranges(surrogate: Surrogate, measured: Mapping[str, tuple[float, float]],
                       names: Sequence[str] | None = None, bounds=None,
                       settings: AttainableSettings = AttainableSettings(), seed: int = 0,
-                      constraint: Callable[[np.ndarray], np.ndarray] | None = None
-                      ) -> tuple[AttainableRange, ...]:
+                      constraint: Callable[[np.ndarray], np.ndarray] | None = None,
+                      constraint_name: str = "constraint") -> tuple[AttainableRange, ...]:
     """Per objective KPI, its surrogate mean's range over the box with the others inside their
     CIs (module docstring)."""
     src = "attainable_ranges"
@@ -162,36 +200,73 @@ def attainable_ranges(surrogate: Surrogate, measured: Mapping[str, tuple[float, 
     names = tuple(names) if names is not None else tuple(f"x{i}" for i in range(surrogate.d))
     if len(names) != surrogate.d:
         raise ConfigError(f"{src}: {len(names)} names for {surrogate.d} parameters; expected one name each")
+    if constraint is not None and constraint_name in kpis:
+        raise ConfigError(f"{src}: constraint_name = {constraint_name!r} is an objective KPI's name; expected "
+                          "another name")
+    def optimum(k, sign, others, cons, stream):
+        """The GA's best feasible point of one problem, or None when none is feasible."""
+        start = _first_population(surrogate, b, settings.pop_size, np.random.default_rng(seed + stream))
+        problem = _Constrained(surrogate, b, k, sign, m, c, others, cons)
+        algorithm = GA(pop_size=settings.pop_size, sampling=start, eliminate_duplicates=True)
+        res = minimize(problem, algorithm, ("n_gen", settings.n_generations), seed=seed + k, verbose=False)
+        return None if res.X is None else np.asarray(res.X, dtype=np.float64).reshape(1, -1)
+
     out = []
     for k, kpi in enumerate(kpis):
+        others = [j for j in range(len(kpis)) if j != k]
         ends = {}
         for side, sign in (("low", 1.0), ("high", -1.0)):
-            rng = np.random.default_rng(seed + 2 * k + (side == "high"))
-            start = _first_population(surrogate, b, settings.pop_size, rng)
-            problem = _Constrained(surrogate, b, k, sign, m, c, constraint)
-            algorithm = GA(pop_size=settings.pop_size, sampling=start, eliminate_duplicates=True)
-            res = minimize(problem, algorithm, ("n_gen", settings.n_generations), seed=seed + k, verbose=False)
-            if res.X is None:  # no feasible point
+            x = optimum(k, sign, others, constraint, 2 * k + (side == "high"))
+            if x is None:  # no feasible point
                 ends[side] = None
                 continue
-            x = np.asarray(res.X, dtype=np.float64).reshape(1, -1)
             mean, var = surrogate.predict_outputs(x)
             ends[side] = (float(mean[0, k]), math.sqrt(max(float(var[0, k]), 0.0)), dict(zip(names, map(float, x[0]))))
         feasible = ends["low"] is not None and ends["high"] is not None
         lo = ends["low"] or (math.nan, math.nan, {})
         hi = ends["high"] or (math.nan, math.nan, {})
-        out.append(AttainableRange(kpi=kpi, measured=float(m[k]), ci95=float(c[k]), feasible=feasible,
-                                   low=lo[0], high=hi[0], at_low=lo[2], at_high=hi[2], sd_low=lo[1], sd_high=hi[1]))
+        r = AttainableRange(kpi=kpi, measured=float(m[k]), ci95=float(c[k]), feasible=feasible,
+                            low=lo[0], high=hi[0], at_low=lo[2], at_high=hi[2], sd_low=lo[1], sd_high=hi[1])
+        if settings.explain and not r.reaches:
+            without = {}
+            released = [(kpis[j], [i for i in others if i != j], constraint) for j in others]
+            if constraint is not None:
+                released.append((constraint_name, others, None))
+            for n, (name, kept, cons) in enumerate(released):
+                x = optimum(k, 0.0, kept, cons, 2 * len(kpis) + len(released) * k + n)
+                without[name] = math.nan if x is None else float(surrogate.predict_outputs(x)[0][0, k])
+            r = dataclasses.replace(r, without=without)
+        out.append(r)
     return tuple(out)
 
 
 def format_attainable(ranges: Sequence[AttainableRange]) -> list[str]:
     """Markdown table: per KPI the lab's interval, the attainable range (with the posterior sd at its
-    ends) and whether they meet."""
+    ends) and whether they meet; then, for the ranges that miss and were explained, what holds them:
+    per constraint released, the mean closest to the lab's (bold where it meets the lab's CI)."""
     lines = ["| KPI | lab (95 % CI) | surrogate range with the others inside their CIs (sd at the ends) | meets the lab |",
              "| --- | ---: | ---: | --- |"]
     for r in ranges:
         span = (f"{r.low:.4g} ({r.sd_low:.2g}) to {r.high:.4g} ({r.sd_high:.2g})" if r.feasible
                 else "none: the others cannot all be inside their CIs")
         lines.append(f"| {r.kpi} | {r.measured:.4g} +- {r.ci95:.3g} | {span} | {'yes' if r.reaches else '**no**'} |")
+    explained = [r for r in ranges if r.without]
+    if not explained:
+        return lines
+    named = [c for r in explained for c in r.without]
+    released = [r.kpi for r in ranges if r.kpi in named] + list(dict.fromkeys(c for c in named
+                                                                              if c not in {r.kpi for r in ranges}))
+    lines += ["", "What holds each range that misses: the KPI's mean closest to the lab's with one constraint "
+              "released (bold: inside the lab's CI; - where the rest cannot all hold). A KPI held by another "
+              "cannot meet the lab together with it: a cause of the gap has to move them apart.", "",
+              "| KPI | lab (95 % CI) | " + " | ".join(f"without {c}" for c in released) + " | held by |",
+              "| --- | ---: | " + " | ".join("---:" for _ in released) + " | --- |"]
+    for r in explained:
+        cells = []
+        for c in released:
+            v = r.without.get(c, math.nan)
+            cells.append("" if c not in r.without else "-" if not math.isfinite(v)
+                         else f"**{v:.4g}**" if r.meets(v) else f"{v:.4g}")
+        held = ", ".join(r.held_by) or "no single constraint"
+        lines.append(f"| {r.kpi} | {r.measured:.4g} +- {r.ci95:.3g} | " + " | ".join(cells) + f" | {held} |")
     return lines
