@@ -96,6 +96,7 @@ def small_settings(**changes):
     from bo.surrogate.acquisition import AcquisitionSettings, AdaptiveSettings
     from bo.calibration.pipeline import CalibrationSettings, SurrogateStageSettings
     from bo.design.dsd import ParameterTable
+    from bo.surrogate.attainable import AttainableSettings
     from bo.surrogate.ga import GASettings
     from bo.screening.pipeline import ScreenSettings
     from bo.surrogate.gp import SurrogateConfig
@@ -116,7 +117,8 @@ def small_settings(**changes):
         config=SurrogateConfig(strategy="per_kpi", n_mc_samples=64), compare_strategies=True)
     settings = CalibrationSettings(condition="50-50", screening=screening, objective_kpis=None, weights=None,
                                    surrogate=surrogate, ga=GASettings(pop_size=100, n_generations=100),
-                                   ga_repetitions=2, verification_seeds=(0, 1, 2), validation_seeds=(0, 1))
+                                   ga_repetitions=2, verification_seeds=(0, 1, 2), validation_seeds=(0, 1),
+                                   attainable=AttainableSettings(explain=False))
     return settings if not changes else __import__("dataclasses").replace(settings, **changes)
 
 

@@ -179,6 +179,8 @@ class CalibrationSettings:
         ga_strategy: the surrogate strategy the GA minimises: None (the rounds' strategy), one of
             ``STRATEGIES``, or ``"best"`` (the one with the higher CV R^2 of Eq. 7 in the last
             round; the rounds' own when the other was not cross-validated).
+        attainable: the GAs of what the bounds allow (:func:`attainable_stage`), and whether it
+            says what holds each range that misses.
     """
 
     condition: str
@@ -197,6 +199,7 @@ class CalibrationSettings:
     seed: int = 0
     fresh_verification: bool = False
     ga_strategy: str | None = None
+    attainable: AttainableSettings = AttainableSettings()
 
     def validate(self, source: str = "calibration") -> "CalibrationSettings":
         if self.screening.condition != self.condition:
@@ -965,7 +968,7 @@ def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objectiv
     flags, _ = _jam_flags(surrogate, objective)
     name = "attainable/" + _data_key(X.tolist(), y.tolist(), None if y_var is None else y_var.tolist(), b.tolist(),
                                 sorted(measured.items()), config.kernel, settings.seed,
-                                dataclasses.asdict(AttainableSettings()),
+                                dataclasses.asdict(settings.attainable),
                                 *(() if flags is None else ("jam", ATTAINABLE_MAX_JAM,
                                                             np.nan_to_num(flags, nan=-1.0).tolist())))
     cached = store.get_artifact(name, None)
@@ -975,8 +978,8 @@ def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objectiv
         model = fit_surrogate(X, y, surrogate.bounds, config, y_var=y_var, objective=objective, seed=settings.seed)
         jam = None if flags is None else fit_jam_model(surrogate.state.X, flags, surrogate.bounds)
         cap = None if jam is None else (lambda x: jam.probability(x) - ATTAINABLE_MAX_JAM)
-        ranges = attainable_ranges(model, measured, surrogate.parameters, b, seed=settings.seed, constraint=cap,
-                                   constraint_name=ATTAINABLE_JAM_NAME)
+        ranges = attainable_ranges(model, measured, surrogate.parameters, b, settings.attainable, seed=settings.seed,
+                                   constraint=cap, constraint_name=ATTAINABLE_JAM_NAME)
         store.put_artifact(name, [r.to_dict() for r in ranges])
     for r in ranges:
         echo(f"      {r.kpi}: " + (f"{r.low:.4g} to {r.high:.4g}" if r.feasible else "no set")

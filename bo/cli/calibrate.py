@@ -203,6 +203,8 @@ def calibration_settings_from(plain: Mapping[str, Any]):
         raise out_of_range("mode", mode, "'restricted' or 'unrestricted'", "ga")
     ga_strategy = ga_cfg.pop("strategy", None)
     ga = _wrap("ga", lambda: GASettings(**ga_cfg))
+    from bo.surrogate.attainable import AttainableSettings
+    attainable = _wrap("attainable", lambda: AttainableSettings(**dict(plain.get("attainable") or {})).validate("attainable"))
     ver = plain.get("verification") or {}
     val = plain.get("validation") or {}
     conditions = val.get("conditions")
@@ -218,7 +220,8 @@ def calibration_settings_from(plain: Mapping[str, Any]):
         density_recalibration=bool((plain.get("density") or {}).get("recalibrate", True)),
         validation_conditions=conditions, validation_seeds=_seeds(val, "validation", base),
         validate_with_density=bool(val.get("with_density", True)), seed=base,
-        fresh_verification=flag(ver.get("fresh", False), "fresh", "verification"), ga_strategy=ga_strategy)
+        fresh_verification=flag(ver.get("fresh", False), "fresh", "verification"), ga_strategy=ga_strategy,
+        attainable=attainable)
     return _wrap("", settings.validate)
 
 
