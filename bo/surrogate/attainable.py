@@ -108,10 +108,10 @@ class AttainableRange:
     def to_dict(self) -> dict:
         """Strict-JSON data (NaN, where no set is feasible, as None)."""
         def strict(v):
+            if isinstance(v, Mapping):
+                return {k: strict(x) for k, x in v.items()}
             return None if isinstance(v, float) and not math.isfinite(v) else v
-        data = {k: strict(v) for k, v in dataclasses.asdict(self).items()}
-        data["without"] = {c: strict(float(v)) for c, v in self.without.items()}
-        return data
+        return strict(dataclasses.asdict(self))
 
     @classmethod
     def from_dict(cls, data: Mapping) -> "AttainableRange":
@@ -253,9 +253,9 @@ def format_attainable(ranges: Sequence[AttainableRange]) -> list[str]:
     explained = [r for r in ranges if r.without]
     if not explained:
         return lines
-    named = [c for r in explained for c in r.without]
-    released = [r.kpi for r in ranges if r.kpi in named] + list(dict.fromkeys(c for c in named
-                                                                              if c not in {r.kpi for r in ranges}))
+    kpis = [r.kpi for r in ranges]
+    named = dict.fromkeys(c for r in explained for c in r.without)
+    released = [c for c in kpis if c in named] + [c for c in named if c not in kpis]  # the KPIs' order first
     lines += ["", "What holds each range that misses: the KPI's mean closest to the lab's with one constraint "
               "released (bold: inside the lab's CI; - where the rest cannot all hold). A KPI held by another "
               "cannot meet the lab together with it: a cause of the gap has to move them apart.", "",
