@@ -118,7 +118,7 @@ def small_settings(**changes):
     settings = CalibrationSettings(condition="50-50", screening=screening, objective_kpis=None, weights=None,
                                    surrogate=surrogate, ga=GASettings(pop_size=100, n_generations=100),
                                    ga_repetitions=2, verification_seeds=(0, 1, 2), validation_seeds=(0, 1),
-                                   attainable=AttainableSettings(explain=False))
+                                   attainable=AttainableSettings(pop_size=100, n_generations=100, explain=False))
     return settings if not changes else __import__("dataclasses").replace(settings, **changes)
 
 

@@ -2,8 +2,20 @@
 from __future__ import annotations
 
 import math
+import os
 
-import torch
+# ``make test`` runs two test workers on the two cores. A worker on torch's default two threads
+# made four on two cores, and the GP-heavy calibration tests ran 3-6x slower (a known-answer
+# campaign: 37 s on one thread alone, 67 s on two alone, 237 s on two beside the other worker).
+# Each worker gets one thread; the tests of threading set their own counts and restore them.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
+
+import torch  # noqa: E402
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 from torchdem.materials import Material, interaction_table
 from torchdem.simulation import GuardSettings, Simulation

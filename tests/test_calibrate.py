@@ -180,7 +180,13 @@ def test_density_parameters_set_the_member_mixtures_densities():
 
 # -- the whole campaign on a known answer ----------------------------------------------------
 
-@pytest.fixture(scope="module")
+# The tests of the known-answer campaign run on one test worker, which builds it once (40 s): the
+# fixture lives for the session, as a module's fixture is rebuilt when the worker comes back to the
+# module after another module's tests.
+ON_ONE_WORKER = pytest.mark.xdist_group("known_campaign")
+
+
+@pytest.fixture(scope="session")
 def known_campaign(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("known")
     log = tmp / "log.jsonl"
@@ -190,8 +196,9 @@ def known_campaign(tmp_path_factory):
     executor = InProcessExecutor(functools.partial(km.known_batch, log_path=str(log), jam=True), batch_size=6)
     from bo.surrogate.attainable import AttainableSettings
     # the one campaign that also says what holds each range (the other tests' campaigns leave it out)
-    result = run_calibration(store, executor, km.small_settings(attainable=AttainableSettings()), km.known_measurement(),
-                             tmp / "out", km.NOMINAL_DENSITY, echo=lambda s: None)
+    settings = km.small_settings(attainable=AttainableSettings(pop_size=100, n_generations=100))
+    result = run_calibration(store, executor, settings, km.known_measurement(), tmp / "out", km.NOMINAL_DENSITY,
+                             echo=lambda s: None)
     files = write_calibration_report(result, tmp / "out")
     return result, files, store, log
 
@@ -201,6 +208,7 @@ def _noise_free_objective(result, x):
     return float(result.objective(np.array([k[n] for n in result.objective.kpi_names])))
 
 
+@ON_ONE_WORKER
 def test_campaign_selects_active_parameters_and_finds_the_objective_minimum(known_campaign):
     from scipy.optimize import differential_evolution
 
@@ -221,6 +229,7 @@ def test_campaign_selects_active_parameters_and_finds_the_objective_minimum(know
     assert all(abs(errors[k]) < 3 for k in result.objective.kpi_names), errors
 
 
+@ON_ONE_WORKER
 def test_bulk_density_check_rescales_by_the_heap_ratio(known_campaign):
     result, _, _, _ = known_campaign
     d = result.density
@@ -237,6 +246,7 @@ def test_bulk_density_check_rescales_by_the_heap_ratio(known_campaign):
     assert result.final_parameters["density_sinter"] == pytest.approx(d.densities["sinter"])
 
 
+@ON_ONE_WORKER
 def test_validation_runs_every_other_condition_with_the_final_model(known_campaign):
     result, _, _, _ = known_campaign
     assert list(result.validation) == ["75-25", "25-75", "50-50-reverse"]
@@ -252,6 +262,7 @@ def test_validation_runs_every_other_condition_with_the_final_model(known_campai
                 assert a.relative_error_pct == pytest.approx((a.dem_mean - measured) / measured * 100)
 
 
+@ON_ONE_WORKER
 def test_report_files_and_counts_match_the_store(known_campaign):
     result, files, store, log = known_campaign
     doc = json.loads(files["json"].read_text())
@@ -282,6 +293,7 @@ def test_report_files_and_counts_match_the_store(known_campaign):
     assert f"1 of {cut} runs jammed (the grains arched over the slot) and are left out of these means." in md
 
 
+@ON_ONE_WORKER
 def test_what_the_bounds_allow_is_the_noise_free_model_s_range(known_campaign):
     """Per objective KPI, the surrogate's range over the GA's box with the other KPIs inside the lab's
     CI, against the noise-free known model's by brute force over the same box. The known "lab" has
@@ -331,6 +343,7 @@ def test_what_the_bounds_allow_is_the_noise_free_model_s_range(known_campaign):
     assert "### What the bounds allow" in files["md"].read_text()
 
 
+@ON_ONE_WORKER
 def test_report_sets_the_campaign_beside_the_papers_tables(known_campaign, tmp_path):
     from bo.calibration.report import PAPER_DEM_RUNS
     from torchdem.measured import load_paper_tables
@@ -654,6 +667,7 @@ def test_a_campaign_whose_bounds_change_reuses_the_runs_of_its_earlier_design(tm
 
 # -- make run: a shipped store, resumed, with the verification made again ----------------------
 
+@ON_ONE_WORKER
 def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(known_campaign, tmp_path):
     """What `make run` does with campaigns/table2/lab.sqlite, on the known-answer campaign: the
     shipped store is copied (and left as it is), every stage resumes from it, and the only DEM
@@ -807,7 +821,7 @@ def test_smoke_profile_end_to_end_and_resume(tmp_path):
     def run(out):
         proc = subprocess.run([sys.executable, "-m", "bo.cli.calibrate", "profile=smoke", f"store={store}",
                                f"hydra.run.dir={out}"], cwd=REPO, capture_output=True, text=True,
-                              env={**os.environ, "OMP_NUM_THREADS": "2"}, timeout=1200)
+                              env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=1200)
         assert proc.returncode == 0, proc.stderr[-3000:]
         return json.loads((out / "calibration.json").read_text()), proc.stdout
 
