@@ -115,10 +115,11 @@ def small_settings(**changes):
                                   acquisition=AcquisitionSettings(num_restarts=4, raw_samples=128, mc_samples=64,
                                                                   maxiter=50)),
         config=SurrogateConfig(strategy="per_kpi", n_mc_samples=64), compare_strategies=True)
+    ga = GASettings(pop_size=100, n_generations=100)
     settings = CalibrationSettings(condition="50-50", screening=screening, objective_kpis=None, weights=None,
-                                   surrogate=surrogate, ga=GASettings(pop_size=100, n_generations=100),
-                                   ga_repetitions=2, verification_seeds=(0, 1, 2), validation_seeds=(0, 1),
-                                   attainable=AttainableSettings(pop_size=100, n_generations=100, explain=False))
+                                   surrogate=surrogate, ga=ga, ga_repetitions=2, verification_seeds=(0, 1, 2),
+                                   validation_seeds=(0, 1),
+                                   attainable=AttainableSettings(ga.pop_size, ga.n_generations, explain=False))
     return settings if not changes else __import__("dataclasses").replace(settings, **changes)
 
 

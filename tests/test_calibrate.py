@@ -194,9 +194,9 @@ def known_campaign(tmp_path_factory):
     store = CampaignStore(tmp / "c.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
     # jam: the first 75-25 run of every set reports a jammed discharge (the report's checks below)
     executor = InProcessExecutor(functools.partial(km.known_batch, log_path=str(log), jam=True), batch_size=6)
-    from bo.surrogate.attainable import AttainableSettings
     # the one campaign that also says what holds each range (the other tests' campaigns leave it out)
-    settings = km.small_settings(attainable=AttainableSettings(pop_size=100, n_generations=100))
+    plain = km.small_settings()
+    settings = dataclasses.replace(plain, attainable=dataclasses.replace(plain.attainable, explain=True))
     result = run_calibration(store, executor, settings, km.known_measurement(), tmp / "out", km.NOMINAL_DENSITY,
                              echo=lambda s: None)
     files = write_calibration_report(result, tmp / "out")

@@ -36,7 +36,6 @@ TINY = {
     "study": ["fractions=[0.2,0.3]", "replicates=2"],
     "calibrate": ["profile=smoke", "replicates=1", "surrogate.replicates=1", "surrogate.points_per_parameter=3",
                   "surrogate.budget=6", "ga.pop_size=20", "ga.n_generations=10", "ga.repetitions=1",
-                  "attainable.pop_size=20", "attainable.n_generations=10",
                   "verification.replicates=1", "objective.kpis=[shear_angle_deg,mass_lower_box_full_kg]"],
     "discover": ["profile=smoke", "discovery.conditions=[50-50,25-75]", "discovery.candidates=[density_per_material]",
                  "discovery.always_score=true", "discovery.replicates=2", "discovery.fit_replicates=1",
