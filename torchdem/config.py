@@ -179,6 +179,8 @@ def run_settings_from(sim: Mapping[str, Any], run: Mapping[str, Any]) -> RunSett
         loadcell_rate=_number(run, "loadcell_rate_hz", "run", 0.0, open_low=True, allowed="> 0 Hz"),
         time_step_fraction=_number(sim, "time_step_fraction", "sim", 0.0, 1.0, open_low=True,
                                    allowed="(0, 1] of the Rayleigh time step"),
+        discharge_time_step_fraction=_number(sim, "discharge_time_step_fraction", "sim", 0.0, 1.0, open_low=True,
+                                             default=None, allowed="(0, 1] of the Rayleigh time step or null"),
         shear_modulus=_number(sim, "shear_modulus_pa", "sim", 0.0, open_low=True, default=None,
                               allowed="> 0 Pa or null"),
         rolling_damping=_number(run, "rolling_damping", "run", 0.0, 1.0),

@@ -112,6 +112,9 @@ class RunSettings:
             discharge has ended (upper-box mass within half of :data:`DISCHARGE_END_TOLERANCE`
             of the fill over the last ``final_window`` s), at most this long after the gate
             opens, s. loadcell_rate: Hz. time_step_fraction: of the Rayleigh time step.
+        discharge_time_step_fraction: of the Rayleigh time step from the gate's opening on; None:
+            ``time_step_fraction`` throughout. The fill lands from up to three box heights and packs
+            while it settles; the discharge's contacts are gentler, and it takes most of a run's steps.
         shear_modulus: overrides every particle material's G (Pa) when set — the usual
             speed-up (reduced stiffness); None keeps the materials' values.
         geometry_material: Material of the walls. rolling_damping: eta_r for every pair.
@@ -149,6 +152,7 @@ class RunSettings:
     max_discharge_time: float | None = None
     loadcell_rate: float = 50.0
     time_step_fraction: float = 0.15
+    discharge_time_step_fraction: float | None = None
     shear_modulus: float | None = None
     geometry_material: Material = Material("geometry", 2e11, 0.3, 7800.0)
     rolling_damping: float = 0.3
@@ -204,6 +208,9 @@ class RunSettings:
             raise out_of_range("loose_fraction", self.loose_fraction, "(0, 0.6)", source)
         if not 0 < self.time_step_fraction <= 1:
             raise out_of_range("time_step_fraction", self.time_step_fraction, "(0, 1] of the Rayleigh time step", source)
+        if self.discharge_time_step_fraction is not None and not 0 < self.discharge_time_step_fraction <= 1:
+            raise out_of_range("discharge_time_step_fraction", self.discharge_time_step_fraction,
+                               "(0, 1] of the Rayleigh time step, or null (time_step_fraction throughout)", source)
         retry = self.retry_time_steps
         if not isinstance(retry, tuple) or any(isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f < 1
                                                for f in retry) or any(b >= a for a, b in zip(retry, retry[1:])):
@@ -231,7 +238,8 @@ class DrawDownResult:
             and the largest body speed when the gate opened (how settled the fill was), m/s.
         errors: per member, KPI name -> message for KPIs that could not be measured.
         build_time_s: wall time of placing the particles (part of ``wall_time_s``).
-        spheres: spheres per member (padded to the largest member), dt: time step, s.
+        spheres: spheres per member (padded to the largest member), dt: time step, s (of the fill;
+            ``discharge_dt`` from the gate's opening on).
         failed: member -> cause, for members the blow-up guard isolated
             (``guards.on_blowup = "isolate"``); their KPIs are not measured.
         kpis_at_discharge_time: with ``max_discharge_time`` and ``run_members(...,
@@ -251,6 +259,7 @@ class DrawDownResult:
     build_time_s: float = 0.0
     spheres: int = 0
     dt: float = 0.0
+    discharge_dt: float = 0.0
     failed: dict[int, str] = field(default_factory=dict)
     kpis_at_discharge_time: list[dict] = field(default_factory=list)
 
@@ -499,8 +508,13 @@ class DrawDownTest:
                 simulation.system = dataclasses.replace(simulation.system, tables=full_tables)
                 simulation.state = evaluate_forces(simulation.system, simulation.state, simulation.time,
                                                    simulation.kernels)
-        every = max(1, int(round(1.0 / (s.loadcell_rate * system.dt))))
+        dt_fill = system.dt
+        dt_discharge = (dt_fill if s.discharge_time_step_fraction is None
+                        else dt_fill * s.discharge_time_step_fraction / s.time_step_fraction)
+        every_fill = max(1, int(round(1.0 / (s.loadcell_rate * dt_fill))))
+        every = max(1, int(round(1.0 / (s.loadcell_rate * dt_discharge))))  # load-cell samples from the gate on
         t_open, t_end = s.fill_time, s.fill_time + s.discharge_time
+        k_open = int(math.ceil(round(t_open / dt_fill, 6)))  # the step run_until(t_open) stops at
         times: list[float] = []
         masses: list[np.ndarray] = []
         ckpt = Path(checkpoint) if checkpoint is not None else None
@@ -521,14 +535,23 @@ class DrawDownTest:
             fill_density[:] = saved.get("fill_density", torch.full((len(members),), math.nan)).tolist()
         else:
             sim = Simulation(system, state, s.guards, compile=s.compile, reorder_every=s.reorder_every)
-        ckpt_steps = max(every, int(round(checkpoint_every / system.dt)))
-        k_open = int(math.ceil(round(t_open / system.dt, 6)))  # the step run_until(t_open) stops at
+        ckpt_steps = max(every, int(round(checkpoint_every / dt_fill)))
         writer = None
         if vtk is not None:
             directory, interval_s = vtk
             if not interval_s > 0:
                 raise out_of_range("vtk interval", interval_s, "> 0 s", "DrawDownTest.run")
-            writer = VTKWriter(directory, max(1, int(round(interval_s / system.dt))))
+            writer = VTKWriter(directory, max(1, int(round(interval_s / dt_fill))))
+
+        def with_discharge_step(simulation: Simulation) -> None:
+            """From the gate's opening on: the discharge's time step (and VTK frames as often in time)."""
+            if dt_discharge != dt_fill and simulation.system.dt == dt_fill:
+                simulation.system = simulation.system.with_time_step(dt_discharge, k_open)
+                if writer is not None:
+                    writer.interval = max(1, int(round(vtk[1] / dt_discharge)))
+
+        if sim.state.step > k_open:  # resumed from a checkpoint saved in the discharge
+            with_discharge_step(sim)
 
         def save_checkpoint(simulation: Simulation) -> None:
             tmp = ckpt.with_suffix(ckpt.suffix + ".tmp")
@@ -551,9 +574,10 @@ class DrawDownTest:
             if k >= k_open and (k - k_open) % every == 0:  # 50 Hz from the gate opening on
                 times.append(simulation.time - t_open)
                 masses.append(self._upper_mass(simulation).cpu().numpy())
-            if k % every == 0 and progress is not None:
+            tick = (k - k_open) % every == 0 if k >= k_open else k % every_fill == 0
+            if tick and progress is not None:
                 progress(simulation.time, wall_before + time.perf_counter() - started)
-            if k % every == 0 and threads is not None:
+            if tick and threads is not None:
                 _use_threads(threads())
             if ckpt is not None and k % ckpt_steps == 0:
                 save_checkpoint(simulation)
@@ -561,16 +585,17 @@ class DrawDownTest:
         if sim.time < t_open - 0.5 * system.dt:
             sim.run_until(t_open, callback=on_step, callback_every=1)
         with_full_friction(sim)
+        with_discharge_step(sim)
         before = sim.time
         sim.run_until(t_end, callback=on_step, callback_every=1)
         early = []
-        if kpis_at_discharge_time and s.max_discharge_time is not None and before < t_end - 0.5 * system.dt:
+        if kpis_at_discharge_time and s.max_discharge_time is not None and before < t_end - 0.5 * dt_discharge:
             early = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), 0.0).kpis
         if s.max_discharge_time is not None:  # on until every member's discharge has ended
             tolerance = 0.5 * DISCHARGE_END_TOLERANCE * _fill_masses(system, sim.state, counts).cpu().numpy()
             tail = max(2, int(round(s.final_window * s.loadcell_rate)) + 1)
             t_last = t_open + s.max_discharge_time
-            while sim.time < t_last - 0.5 * system.dt and not bool(
+            while sim.time < t_last - 0.5 * dt_discharge and not bool(
                     _discharges_ended(np.stack(masses[-tail:], 1), tail, tolerance, sim.failed).all()):
                 sim.run_until(min(sim.time + 5.0 / s.loadcell_rate, t_last), callback=on_step, callback_every=1)
         wall = wall_before + time.perf_counter() - started
@@ -580,7 +605,8 @@ class DrawDownTest:
                 k["fill_bulk_density_kg_m3"] = v
         for c, v in zip(result.conservation, gate_speed):
             c["max_speed_at_gate_open_m_s"] = v
-        result = dataclasses.replace(result, build_time_s=build_s, spheres=int(system.n_spheres), dt=float(system.dt),
+        result = dataclasses.replace(result, build_time_s=build_s, spheres=int(system.n_spheres), dt=float(dt_fill),
+                                     discharge_dt=float(dt_discharge),
                                      failed=dict(sim.failed), kpis_at_discharge_time=early)
         if ckpt is not None and ckpt.exists():
             ckpt.unlink()

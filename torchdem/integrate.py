@@ -436,7 +436,7 @@ def step(system: System, state: State, kernels: "Kernels | None" = None) -> Stat
         state.reference, dt_t, system.spheres_only)
     state = state.set(bodies=b.set(position=x, velocity=v, angular_momentum=L, orientation=q),
                       step=state.step + 1)
-    time = state.step * dt
+    time = system.time_of(state.step)
     displacement = displacement.tolist()
     rebuild_now = neighbors.lists_expired(displacement, system.skin, 0.0 if system.walls.n else None)
     if system.walls.n and not rebuild_now and system.wall_events:

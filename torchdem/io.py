@@ -54,7 +54,7 @@ def write_vtk_frame(directory: str | Path, system: System, state: State, members
         n = sel.shape[0]
         path = directory / f"{prefix}_m{m:03d}_{state.step:09d}.vtk"
         with open(path, "wb") as fh:
-            head = (f"# vtk DataFile Version 3.0\ntorchdem step {state.step} t={state.step * system.dt:.9g} s "
+            head = (f"# vtk DataFile Version 3.0\ntorchdem step {state.step} t={system.time_of(state.step):.9g} s "
                     f"member {m}\nBINARY\nDATASET POLYDATA\nPOINTS {n} double\n")
             fh.write(head.encode())
             fh.write(xs[m, sel].astype(">f8").tobytes())

@@ -147,7 +147,10 @@ class DrawDownModel:
             raise out_of_range("time_step_scale", time_step_scale, "(0, 1]", "DrawDownModel.test_for")
         base, settings = split_condition(condition, self.settings)
         if time_step_scale != 1:
-            settings = dataclasses.replace(settings, time_step_fraction=settings.time_step_fraction * time_step_scale)
+            discharge = settings.discharge_time_step_fraction
+            settings = dataclasses.replace(settings, time_step_fraction=settings.time_step_fraction * time_step_scale,
+                                           discharge_time_step_fraction=None if discharge is None
+                                           else discharge * time_step_scale)
         geometry = condition_geometry(condition, self.geometry)
         if isolate:
             settings = dataclasses.replace(settings, guards=dataclasses.replace(settings.guards, on_blowup="isolate"))

@@ -468,7 +468,7 @@ def render_state(
         labels_by_material: material id -> component label (palette key), for every material
             of an active sphere, e.g. ``{0: PELLET_LABEL, 1: SINTER_LABEL}``.
         view: window and pixel size.
-        walls: draw the system's walls that exist at the state's time (``step * dt``).
+        walls: draw the system's walls that exist at the state's time (``system.time_of(step)``).
         palette, wall_thickness, rim_darkening: as in :func:`render_front`.
         shown: optional ``[n_bodies]`` bool mask of the member's bodies to draw (e.g. the bodies at
             rest); None draws every active body.
@@ -505,7 +505,7 @@ def render_state(
         centres, radii, labels, view,
         walls=system.walls if walls else None,
         palette=palette,
-        time=state.step * system.dt,
+        time=system.time_of(state.step),
         wall_thickness=wall_thickness,
         rim_darkening=rim_darkening,
         source=source,

@@ -160,7 +160,7 @@ def reorder(system: System, state: State, body_perm: Tensor | None = None) -> tu
     reference = state.reference[old_sphere]
     renumbered = state.set(bodies=bodies, pairs=pairs, walls=walls, body_id=body_id, sphere_id=sphere_id,
                            reference=reference)
-    rebuilt, _ = rebuild(new_system, renumbered, reference, state.step * system.dt,
+    rebuilt, _ = rebuild(new_system, renumbered, reference, system.time_of(state.step),
                          values=p.radius_i is not None,  # per-pair constants as the state had them
                          moved=torch.zeros(S, dtype=torch.bool, device=reference.device))
     return new_system, rebuilt.set(rebuilds=state.rebuilds, wall_shift=state.wall_shift,

@@ -128,7 +128,7 @@ class Simulation:
             # (torchdem.heap; 20-25 % of a dask worker's CPU went to page faults without it).
             keep_freed_memory()
         if state.rebuilds == 0:
-            state = evaluate_forces(system, state, state.step * system.dt, self.kernels)
+            state = evaluate_forces(system, state, system.time_of(state.step), self.kernels)
         self.state = state
         self.failed: dict[int, str] = {}
         height = float((system.domain_upper - system.domain_lower).abs().max())
@@ -140,7 +140,7 @@ class Simulation:
     @property
     def time(self) -> float:
         """Simulated time, s."""
-        return self.state.step * self.system.dt
+        return self.system.time_of(self.state.step)
 
     def advance(self, n_steps: int, callback: Callable[["Simulation"], None] | None = None,
                 callback_every: int = 0) -> "Simulation":
@@ -283,7 +283,7 @@ def elastic_energy(system: System, state: State) -> Tensor:
         out.index_add_(0, p.i // Ns, u)
     w = state.walls
     if w.n:
-        time = state.step * system.dt
+        time = system.time_of(state.step)
         q = closest_points(system.walls, system.walls.shift(time), xs[w.sphere], w.wall)
         present = system.walls.active_at(time)[w.wall]
         overlap = (w.radius - (xs[w.sphere] - q).norm(dim=-1)).clamp_min(0.0) * present

@@ -162,7 +162,7 @@ class State(_Replaceable):
             sphere (a partial rebuild searches only the spheres that moved), m.
         wall_shift: ``[W, 3]`` wall displacement when the lists were last built, m.
         wall_active: ``[W]`` bool, which walls were present when the lists were last built.
-        step: number of steps taken since t = 0 (time = step * dt).
+        step: number of steps taken since t = 0 (time: ``System.time_of(step)``).
         rebuilds: number of neighbour-list rebuilds so far.
         lost: ``[B]`` int64, bodies deactivated because they left the domain, per member.
         body_id: ``[B, Nb]`` int64, the body's index when the system was built: slot k of

@@ -13,6 +13,7 @@ Contract:
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 from typing import Sequence
@@ -46,6 +47,9 @@ class System:
         walls: the geometry.
         gravity: ``[3]`` m/s^2.
         dt: time step, s. skin: Verlet skin, m.
+        time_origin, step_origin: the simulated time (s) at step ``step_origin``; the time at step
+            ``k`` is ``time_origin + (k - step_origin) * dt`` (:meth:`time_of`), so a run may change
+            its step partway (:meth:`with_time_step`) and its clock runs on.
         grid: cell grid of the domain. domain_lower, domain_upper: ``[3]`` m; bodies that
             leave this box are deactivated and counted as lost.
         rolling_stiffness: ``"tangential"`` or ``"ai2011"`` (see :mod:`torchdem.contact`).
@@ -83,6 +87,20 @@ class System:
     walls_move: bool = False
     has_cohesion: bool = False
     moved_share: float = 0.25
+    time_origin: float = 0.0
+    step_origin: int = 0
+
+    def time_of(self, step: int) -> float:
+        """Simulated time at step ``step``, s (``time_origin + (step - step_origin) * dt``)."""
+        return self.time_origin + (step - self.step_origin) * self.dt
+
+    def with_time_step(self, dt: float, step: int) -> "System":
+        """This system stepping ``dt`` (s) from step ``step`` on; the time at ``step`` is kept. The
+        integrator's step is a complete kick-drift-kick, so changing ``dt`` between two steps keeps it
+        second order (the tangential and rolling springs grow by each step's own displacement)."""
+        if not dt > 0:
+            raise out_of_range("dt", dt, "> 0 s", "System.with_time_step")
+        return dataclasses.replace(self, dt=float(dt), time_origin=self.time_of(step), step_origin=int(step))
 
     @property
     def batch(self) -> int:

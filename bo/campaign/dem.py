@@ -25,7 +25,8 @@ Contract:
 - A run that blows up is run again, alone (with the others of its batch that blew up), at the
   shorter time steps of the model's ``settings.retry_time_steps`` in turn (``sim.retry_time_steps``,
   e.g. 0.8 and 0.6 of the step), until one gets through; its outcome then carries the step it ran
-  at as ``time_step_s`` beside the KPIs, and its wall time is that of every attempt. A run whose
+  at as ``time_step_s`` (and the discharge's as ``discharge_time_step_s`` where it has one of its own,
+  ``sim.discharge_time_step_fraction``) beside the KPIs, and its wall time is that of every attempt. A run whose
   last retry blows up too fails with the errors of all its attempts. Soft particles landing from the
   rained fill at ~4 m/s overlap deeply, and the step that is stable for the flow can be marginal for
   that moment alone (a lab run at lobe spacing 0.15 threw bodies off the landing bed at 20-32 m/s
@@ -150,6 +151,8 @@ def _evaluate(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: str |
         kpis = {name: float(k.get(name, math.nan)) for name in KPI_UNITS}
         if time_step_scale != 1:
             kpis["time_step_s"] = float(result.dt)
+            if result.discharge_dt != result.dt:
+                kpis["discharge_time_step_s"] = float(result.discharge_dt)
         out.append(EvalOutcome.success(kpis, wall))
     return out
 

@@ -100,20 +100,23 @@ def check_kpis(kpis, where: str, name: str = "kpis") -> tuple[str, ...]:
 HASHED_AS = {"device": "cpu", "compile": False}
 
 
-#: ``run`` settings added after stores were shipped: hashed as absent while null (their old behaviour).
+#: ``run`` and ``sim`` settings added after stores were shipped: hashed as absent while null (their old
+#: behaviour).
 RUN_ABSENT_WHEN_NULL = ("max_discharge_time_s",)
+SIM_ABSENT_WHEN_NULL = ("discharge_time_step_fraction",)
 
 
 def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> str:
     """Hash of the result-deciding blocks (default ``MODEL_KEYS``) of the resolved config
     (``sim``'s execution-only settings hashed as :data:`HASHED_AS` says, ``run``'s
-    :data:`RUN_ABSENT_WHEN_NULL` left out while null)."""
+    :data:`RUN_ABSENT_WHEN_NULL` and ``sim``'s :data:`SIM_ABSENT_WHEN_NULL` left out while null)."""
     from torchdem.model import EXECUTION_ONLY
 
     part = {k: plain.get(k) for k in keys}
     if isinstance(part.get("sim"), Mapping):
         sim = part["sim"]
-        part["sim"] = {**{k: v for k, v in sim.items() if k not in EXECUTION_ONLY},
+        part["sim"] = {**{k: v for k, v in sim.items() if k not in EXECUTION_ONLY
+                          and not (k in SIM_ABSENT_WHEN_NULL and v is None)},
                        **{k: v for k, v in HASHED_AS.items() if k in sim}}
     if isinstance(part.get("run"), Mapping):
         part["run"] = {k: v for k, v in part["run"].items() if not (k in RUN_ABSENT_WHEN_NULL and v is None)}

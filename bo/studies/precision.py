@@ -20,6 +20,11 @@ precision when the true difference is zero,
 and the seeds needed for the target power (at least ``minimum_seeds``). A KPI whose test is not
 passed although its power is reached fails: float32 moves it. One whose power is not reached is
 ``undecided``: run it with more seeds (``replicates``; the store shares the seeds already run, so only the new ones run).
+
+``paired=True`` tests paired runs instead (run ``i`` of both variants has the same seed,
+parameters and condition, as ``scripts/rerun_equivalence.py`` makes them): TOST on the mean paired
+difference (``statsmodels.stats.weightstats.ttost_paired``), ``sd`` the scatter of the
+differences, ``SE = sd / sqrt(n)`` and ``df = n - 1`` in the power.
 """
 from __future__ import annotations
 
@@ -29,28 +34,29 @@ from typing import Mapping, Sequence
 
 import numpy as np
 from scipy import stats
-from statsmodels.stats.weightstats import ttost_ind
+from statsmodels.stats.weightstats import ttost_ind, ttost_paired
 
 from torchdem.errors import ConfigError, out_of_range
 
 __all__ = ["tost_power", "seeds_for_power", "KPIEquivalence", "PrecisionVerdict", "precision_verdict"]
 
 
-def tost_power(sd: float, margin: float, n: int, alpha: float = 0.05) -> float:
-    """Power of TOST with ``n`` runs per group, scatter ``sd``, true difference 0 (module docstring)."""
+def tost_power(sd: float, margin: float, n: int, alpha: float = 0.05, paired: bool = False) -> float:
+    """Power of TOST with ``n`` runs per group (``paired``: ``n`` pairs, ``sd`` that of the
+    differences), scatter ``sd``, true difference 0 (module docstring)."""
     if n < 2 or not sd > 0 or not margin > 0:
         raise out_of_range("(sd, margin, n)", (sd, margin, n), "sd > 0, margin > 0, n >= 2", "tost_power")
-    se = sd * math.sqrt(2.0 / n)
-    df = 2 * n - 2
+    se = sd / math.sqrt(n) if paired else sd * math.sqrt(2.0 / n)
+    df = n - 1 if paired else 2 * n - 2
     return max(0.0, 2.0 * float(stats.t.cdf(margin / se - stats.t.ppf(1 - alpha, df), df)) - 1.0)
 
 
 def seeds_for_power(sd: float, margin: float, alpha: float = 0.05, power: float = 0.8, minimum: int = 10,
-                    maximum: int = 10_000) -> int | None:
-    """Smallest ``n >= minimum`` per group with ``tost_power >= power``; None if above ``maximum``."""
+                    maximum: int = 10_000, paired: bool = False) -> int | None:
+    """Smallest ``n >= minimum`` per group (or pairs) with ``tost_power >= power``; None if above ``maximum``."""
     n = max(2, minimum)
     while n <= maximum:
-        if tost_power(sd, margin, n, alpha) >= power:
+        if tost_power(sd, margin, n, alpha, paired) >= power:
             return n
         n += 1
     return None
@@ -63,8 +69,9 @@ class KPIEquivalence:
     Attributes:
         kpi: KPI name. margin: equivalence margin (the lab's 95 % CI half-width), KPI unit.
         n_a, n_b: finite runs per precision. mean_a, mean_b: their means. difference: mean_b - mean_a.
-        sd: replicate scatter pooled over both precisions. ci_low, ci_high: the (1 - 2 alpha) CI
-            of the difference (Welch). p_value: the larger one-sided p-value.
+        sd: replicate scatter pooled over both precisions (paired: the scatter of the differences).
+            ci_low, ci_high: the (1 - 2 alpha) CI of the difference (Welch; paired: t on the
+            differences). p_value: the larger one-sided p-value.
         power: TOST power at min(n_a, n_b) seeds for the pooled sd. seeds_needed: per precision
             for the target power (None: more than 10,000).
         verdict: ``"equivalent"``, ``"not equivalent"`` (power reached, test failed) or
@@ -137,13 +144,17 @@ class PrecisionVerdict:
 
 def precision_verdict(values_a: np.ndarray, values_b: np.ndarray, kpi_names: Sequence[str],
                       margins: Mapping[str, float], *, labels: tuple[str, str] = ("float64", "float32"),
-                      alpha: float = 0.05, power: float = 0.8, minimum_seeds: int = 10) -> PrecisionVerdict:
+                      alpha: float = 0.05, power: float = 0.8, minimum_seeds: int = 10,
+                      paired: bool = False) -> PrecisionVerdict:
     """TOST per KPI of ``values_b`` against ``values_a`` (``[runs, n_kpi]`` each, NaN for failed
-    runs and unmeasured KPIs); KPIs without a margin are skipped (see the module docstring)."""
+    runs and unmeasured KPIs; ``paired``: row ``i`` of both is one pair, and a pair counts where
+    both are measured); KPIs without a margin are skipped (see the module docstring)."""
     source = "precision_verdict"
     a, b = np.asarray(values_a, dtype=float), np.asarray(values_b, dtype=float)
     if a.ndim != 2 or b.ndim != 2 or a.shape[1] != len(kpi_names) or b.shape[1] != len(kpi_names):
         raise ConfigError(f"{source}: values must be [runs, {len(kpi_names)}] each; got {a.shape} and {b.shape}")
+    if paired and a.shape != b.shape:
+        raise ConfigError(f"{source}: paired values must have the same shape; got {a.shape} and {b.shape}")
     if not 0 < alpha < 0.5 or not 0 < power < 1:
         raise out_of_range("(alpha, power)", (alpha, power), "alpha in (0, 0.5), power in (0, 1)", source)
     rows, skipped = [], {}
@@ -152,16 +163,30 @@ def precision_verdict(values_a: np.ndarray, values_b: np.ndarray, kpi_names: Seq
         if margin is None or not math.isfinite(margin) or margin <= 0:
             skipped[kpi] = "no lab margin"
             continue
-        xa, xb = a[:, j][np.isfinite(a[:, j])], b[:, j][np.isfinite(b[:, j])]
+        if paired:
+            both = np.isfinite(a[:, j]) & np.isfinite(b[:, j])
+            xa, xb = a[both, j], b[both, j]
+        else:
+            xa, xb = a[:, j][np.isfinite(a[:, j])], b[:, j][np.isfinite(b[:, j])]
         if len(xa) < 2 or len(xb) < 2:
-            skipped[kpi] = f"fewer than 2 measured runs ({len(xa)} and {len(xb)})"
+            skipped[kpi] = f"fewer than 2 measured {'pairs' if paired else 'runs'} ({len(xa)} and {len(xb)})"
             continue
-        sd = math.sqrt(((len(xa) - 1) * xa.var(ddof=1) + (len(xb) - 1) * xb.var(ddof=1)) / (len(xa) + len(xb) - 2))
+        if paired:
+            sd = float((xb - xa).std(ddof=1))
+        else:
+            sd = math.sqrt(((len(xa) - 1) * xa.var(ddof=1) + (len(xb) - 1) * xb.var(ddof=1))
+                           / (len(xa) + len(xb) - 2))
         diff = float(xb.mean() - xa.mean())
-        if sd == 0:  # identical runs within each precision: the difference is exact
+        if sd == 0:  # identical runs within each precision (paired: identical differences): the difference is exact
             p = 0.0 if abs(diff) < margin else 1.0
             lo = hi = diff
             pw, need = 1.0, max(2, minimum_seeds)
+        elif paired:
+            p, _, _ = ttost_paired(xb, xa, -margin, margin)
+            half = float(stats.t.ppf(1 - alpha, len(xa) - 1)) * sd / math.sqrt(len(xa))
+            lo, hi = diff - half, diff + half
+            pw = tost_power(sd, margin, len(xa), alpha, paired=True)
+            need = seeds_for_power(sd, margin, alpha, power, minimum_seeds, paired=True)
         else:
             p, _, _ = ttost_ind(xb, xa, -margin, margin, usevar="unequal")
             se = math.sqrt(xa.var(ddof=1) / len(xa) + xb.var(ddof=1) / len(xb))
