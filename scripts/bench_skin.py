@@ -9,7 +9,9 @@ starts from that state at the gate's opening, renumbered along the Morton curve 
 10 rebuilds as a campaign run is. After ``--warm`` steps each (into the discharge), the cases take
 ``--chunk`` steps in turn, ``--rounds`` times, the order reversed every round so that the machine's
 drift hits them alike. It prints the time per step, the steps per rebuild and the speed-up over the
-first skin, and how much CPU other processes used meanwhile.
+first skin, and how much CPU other processes used meanwhile. ``--time-step-factor 1.5`` runs every
+case at 1.5x the member's step from the gate's opening on (``sim.discharge_time_step_fraction`` 0.225
+over 0.15): a longer step moves the spheres further between steps, so the balance may move.
 
 Usage::
 
@@ -37,14 +39,17 @@ from torchdem.reorder import reorder  # noqa: E402
 from torchdem.simulation import Simulation  # noqa: E402
 
 
-def member_with_skin(lobe_spacing: float, seed: int, fraction: float) -> Simulation:
-    """The cached settled member, its system built with ``sim.skin_fraction = fraction``."""
+def member_with_skin(lobe_spacing: float, seed: int, fraction: float, time_step_factor: float = 1.0) -> Simulation:
+    """The cached settled member, its system built with ``sim.skin_fraction = fraction`` (its step times
+    ``time_step_factor`` from here on)."""
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         plain = plain_config(compose("calibrate", overrides=["profile=lab", f"sim.skin_fraction={fraction}"]))
     test = model_from(plain).test_for("50-50", [{"lobe_spacing_sinter": lobe_spacing}])
     system, _, _ = test.build([seed], [0])
     settled = Simulation.load(CACHE / f"search_lab_s{lobe_spacing:g}_seed{seed}_t0.8.pt", system)
     system, state = reorder(settled.system, settled.state)
+    if time_step_factor != 1:
+        system = system.with_time_step(system.dt * time_step_factor, state.step)
     return Simulation(system, state, reorder_every=10)
 
 
@@ -57,8 +62,12 @@ def main() -> None:
     parser.add_argument("--warm", type=int, default=1500, help="steps of every case before timing (into the discharge)")
     parser.add_argument("--chunk", type=int, default=200, help="steps per case per round")
     parser.add_argument("--rounds", type=int, default=6)
+    parser.add_argument("--time-step-factor", type=float, default=1.0,
+                        help="every case's step times this from the gate's opening on (> 0)")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON too")
     args = parser.parse_args()
+    if not args.time_step_factor > 0:
+        parser.error(f"--time-step-factor {args.time_step_factor}: expected > 0")
     if any(not 0 < f <= 2 for f in args.fractions) or len(set(args.fractions)) != len(args.fractions):
         parser.error(f"--fractions {args.fractions}: distinct values in (0, 2] expected")
     if args.chunk < 1 or args.rounds < 1 or args.warm < 0:
@@ -67,7 +76,7 @@ def main() -> None:
     settled_member(args.lobe_spacing, args.seed, 0.8)  # fills and caches the member once
     sims = {}
     for f in args.fractions:
-        sims[f] = member_with_skin(args.lobe_spacing, args.seed, f)
+        sims[f] = member_with_skin(args.lobe_spacing, args.seed, f, args.time_step_factor)
         sims[f].advance(args.warm)
     spent = {f: 0.0 for f in args.fractions}
     rebuilds = {f: 0 for f in args.fractions}
@@ -83,7 +92,8 @@ def main() -> None:
     base = args.fractions[0]
     other = monitor.other_cores
     print(f"lobe spacing {args.lobe_spacing}, seed {args.seed}: {int(sims[base].system.sphere_radius.numel())} "
-          f"spheres, t = {sims[base].time:.3f} s at the end, {steps} steps per case after {args.warm}, one thread; "
+          f"spheres, t = {sims[base].time:.3f} s at the end, {steps} steps of {sims[base].system.dt:.4g} s per case "
+          f"after {args.warm}, one thread; "
           "other processes used " + (f"{other:.2f} cores" if other is not None else "? cores")
           + (" (figures low and noisy)" if other is not None and other > 0.1 else ""))
     out = {}
@@ -96,6 +106,7 @@ def main() -> None:
                        "speedup": spent[base] / spent[f]}
     if args.json:
         print(json.dumps({"lobe_spacing": args.lobe_spacing, "steps": steps, "warm": args.warm,
+                          "time_step_factor": args.time_step_factor,
                           "other_cpu_cores": other, "cases": out}))
 
 

@@ -1,7 +1,8 @@
 """Does a change of the model's settings move its KPIs by more than the lab can resolve? Reruns a
 campaign store's finished runs under config overrides (same parameters, seed and condition: the
-same rained fill) and tests each KPI's paired difference by TOST, the margin being the lab's 95 %
-CI half-width (the smallest over the runs' conditions), as the float32 study did
+same seeded fill) and tests each KPI's paired difference by TOST, the margin being the lab's 95 %
+CI half-width (the smallest over the runs' conditions, or that of ``--margin-condition``), as the
+float32 study did
 (``bo.studies.precision.precision_verdict(..., paired=True)``).
 
 The model is the calibrate config's (Hydra overrides after ``--``), so a rerun is the run a
@@ -48,8 +49,10 @@ def _rerun(overrides: tuple[str, ...], row: dict) -> dict:
             "dt_s": res.dt, "discharge_dt_s": res.discharge_dt}
 
 
-def stored_runs(store: Path, stages: list[str], parameters: dict[str, float] | None) -> list[dict]:
-    """The store's finished runs of ``stages`` (of ``parameters`` only, when given), task id order."""
+def stored_runs(store: Path, stages: list[str], parameters: dict[str, float] | None,
+                task_ids: list[int] | None = None) -> list[dict]:
+    """The store's finished runs of ``stages`` (of ``parameters`` only, and of ``task_ids`` only, when
+    given), task id order."""
     from bo.campaign.progress import open_read_only
 
     conn = open_read_only(store, "rerun_equivalence")
@@ -61,6 +64,8 @@ def stored_runs(store: Path, stages: list[str], parameters: dict[str, float] | N
         conn.close()
     out = []
     for task_id, stage, condition, seed, params, kpis, wall in rows:
+        if task_ids is not None and task_id not in task_ids:
+            continue
         params = json.loads(params)
         if parameters is not None and (set(params) != set(parameters) or any(
                 not math.isclose(params[k], v, rel_tol=1e-9, abs_tol=1e-12) for k, v in parameters.items())):
@@ -83,14 +88,16 @@ def _read_out(path: Path, header: dict) -> dict[int, dict]:
     return {r["task_id"]: r for r in lines[1:]}
 
 
-def verdict_text(done: list[dict], kpis: list[str], measured) -> str:
-    """The paired TOST of every KPI over the reruns ``done`` against their stored runs."""
+def verdict_text(done: list[dict], kpis: list[str], measured, margin_condition: str | None = None) -> str:
+    """The paired TOST of every KPI over the reruns ``done`` against their stored runs; the margins are
+    the lab's CI half-widths of ``margin_condition``, or the smallest over the runs' conditions."""
     from bo.screening.pipeline import measured_name
     from bo.studies.precision import precision_verdict
 
     margins = {}
+    conditions = [margin_condition] if margin_condition else sorted({r["condition"] for r in done})
     for k in kpis:
-        widths = [measured.condition(c).kpis[measured_name(k)].ci95 for c in sorted({r["condition"] for r in done})
+        widths = [measured.condition(c).kpis[measured_name(k)].ci95 for c in conditions
                   if measured_name(k) in measured.condition(c).kpis]
         if widths:
             margins[k] = min(widths)
@@ -101,7 +108,9 @@ def verdict_text(done: list[dict], kpis: list[str], measured) -> str:
     verdict = precision_verdict(a, b, kpis, margins, labels=("stored", "rerun"), paired=True, minimum_seeds=2)
     lines = [f"{len(done)} reruns, {len(done) - len(ok)} blew up" + "".join(
         f"\n- blew up: {r['condition']} seed {r['seed']}: {r['failed']}" for r in done if r["failed"] is not None)]
-    return "\n".join(lines + ["", verdict.to_text()])
+    where = (f"margins: the lab's 95 % CI half-widths at {margin_condition}" if margin_condition
+             else f"margins: the smallest of the lab's 95 % CI half-widths over {', '.join(conditions)}")
+    return "\n".join(lines + ["", where, verdict.to_text()])
 
 
 def main() -> None:
@@ -110,6 +119,11 @@ def main() -> None:
     parser.add_argument("--stages", nargs="+", default=["verification", "validation"])
     parser.add_argument("--calibration", type=Path, default=None,
                         help="calibration JSON: rerun only the runs of its calibrated_parameters")
+    parser.add_argument("--task-ids", type=int, nargs="+", default=None,
+                        help="rerun only these store rows (e.g. a sample of the screening design's corners)")
+    parser.add_argument("--margin-condition", default=None,
+                        help="the condition whose lab CI half-widths are the margins (default: the smallest "
+                             "over the runs' conditions)")
     parser.add_argument("--out", type=Path, required=True, help="JSON lines of the reruns (resumed when it exists)")
     parser.add_argument("--workers", type=int, default=1, help="worker processes of one thread each")
     argv = sys.argv[1:]
@@ -127,11 +141,14 @@ def main() -> None:
             parameters = json.loads(args.calibration.read_text())["calibrated_parameters"]
         except (OSError, ValueError, KeyError) as exc:
             raise ConfigError(f"{args.calibration}: no calibrated_parameters to read ({exc})") from None
-    runs = stored_runs(args.store, args.stages, parameters)
+    runs = stored_runs(args.store, args.stages, parameters, args.task_ids)
     if not runs:
         raise ConfigError(f"{args.store}: no finished run of stages {args.stages}"
-                          + (f" at the parameters of {args.calibration}" if parameters else ""))
+                          + (f" at the parameters of {args.calibration}" if parameters else "")
+                          + (f" among task ids {args.task_ids}" if args.task_ids else ""))
     header = {"store": str(args.store), "stages": args.stages, "parameters": parameters, "overrides": list(overrides)}
+    if args.task_ids is not None:
+        header["task_ids"] = sorted(set(args.task_ids))
     done = _read_out(args.out, header)
     todo = [r for r in runs if r["task_id"] not in done]
     print(f"{len(runs)} stored runs, {len(done)} rerun before, {len(todo)} to run; overrides: {' '.join(overrides)}",
@@ -154,7 +171,11 @@ def main() -> None:
     from torchdem.drawdown import CALIBRATION_KPIS_DEM
 
     measured = calibration_model_for(list(overrides))[2]
-    print("\n" + verdict_text([done[r["task_id"]] for r in runs], list(CALIBRATION_KPIS_DEM), measured))
+    if args.margin_condition is not None and args.margin_condition not in measured.names:
+        raise ConfigError(f"rerun_equivalence: --margin-condition {args.margin_condition!r} is not a measured "
+                          f"condition; known: {list(measured.names)}")
+    print("\n" + verdict_text([done[r["task_id"]] for r in runs], list(CALIBRATION_KPIS_DEM), measured,
+                              args.margin_condition))
 
 
 if __name__ == "__main__":

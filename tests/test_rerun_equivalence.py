@@ -59,8 +59,10 @@ def test_reruns_pair_with_the_stored_runs_and_resume(tmp_path):
         assert r["discharge_dt_s"] == pytest.approx(1.5 * r["dt_s"], rel=1e-12)
         assert r["kpis"]["fill_bulk_density_kg_m3"] == r["stored_kpis"]["fill_bulk_density_kg_m3"]
     assert "2 reruns, 0 blew up" in longer.stdout and "Verdict:" in longer.stdout
-    again = _run(*base, "--out", out, "--", "profile=smoke", "sim.discharge_time_step_fraction=0.45")
+    again = _run(*base, "--out", out, "--margin-condition", "50-50", "--", "profile=smoke",
+                 "sim.discharge_time_step_fraction=0.45")
     assert again.returncode == 0 and "0 to run" in again.stdout
+    assert "margins: the lab's 95 % CI half-widths at 50-50" in again.stdout
     other = _run(*base, "--out", out, "--", "profile=smoke", "sim.discharge_time_step_fraction=0.4")
     assert other.returncode != 0 and "0.4" in other.stderr and "0.45" in other.stderr
 
