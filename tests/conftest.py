@@ -47,6 +47,26 @@ def simulation(position, radius, mats, table, guards: GuardSettings | None = Non
     return Simulation(system, state, guards or GuardSettings(check_every=500))
 
 
+def elastic_spheres_in_a_box(time_step_fraction: float = 0.15) -> Simulation:
+    """64 frictionless, elastic glass spheres (radii 4-5 mm, random velocities of ~0.5 m/s) in a
+    closed steel box of 56 mm, no gravity: their kinetic + Hertz elastic energy is conserved."""
+    from torchdem.walls import box_walls
+
+    g = torch.Generator().manual_seed(0)
+    n_side = 4
+    N = n_side ** 3
+    k = torch.arange(N)
+    pos = (torch.stack([k % n_side, (k // n_side) % n_side, k // n_side ** 2], -1).to(F64) * 0.012 + 0.008)[None]
+    pos = pos + 0.001 * (torch.rand(pos.shape, generator=g, dtype=F64) - 0.5)
+    radius = (0.004 + 0.001 * torch.rand(1, N, generator=g, dtype=F64))
+    vel = 0.5 * torch.randn(1, N, 3, generator=g, dtype=F64)
+    mats = [glass(), steel()]
+    elastic = dict(mu_s=0.0, mu_r=0.0, restitution=1.0)
+    table = interaction_table(mats, {("glass", "glass"): elastic, ("glass", "steel"): elastic})
+    return simulation(pos, radius, mats, table, velocity=vel, gravity=(0, 0, 0), time_step_fraction=time_step_fraction,
+                      walls=box_walls("box", (0, 0, 0), (0.056, 0.056, 0.056), "steel", open_top=False))
+
+
 def hertz_contact_duration(m_eff: float, r_eff: float, e_eff: float, v: float) -> float:
     """Elastic Hertz contact time 2.9432 delta_max / v, delta_max = (5 m* v^2 / (4 k))^(2/5)."""
     k = 4.0 / 3.0 * e_eff * math.sqrt(r_eff)

@@ -8,20 +8,18 @@
 - Two clumps colliding off-centre (no gravity, no walls): total linear momentum and total
   angular momentum about the origin conserved within 1e-9 relative.
 """
-import math
 
 import numpy as np
 import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from conftest import F64, glass, simulation, steel
+from conftest import F64, elastic_spheres_in_a_box, glass, simulation, steel
 from torchdem.clumps import ClumpTemplate
 from torchdem.materials import interaction_table
 from torchdem.rigid import quat_rotate_inverse
 from torchdem.simulation import GuardSettings, Simulation, elastic_energy, kinetic_energy
 from torchdem.system import build_system
-from torchdem.walls import box_walls
 
 SINTER_LIKE = ClumpTemplate(
     "tri3", np.array([[0.0, 0.0, 0.0], [0.007, 0.001, 0.0], [0.002, 0.006, 0.003]]),
@@ -29,19 +27,7 @@ SINTER_LIKE = ClumpTemplate(
 
 
 def test_frictionless_elastic_spheres_conserve_energy_over_1e4_steps():
-    g = torch.Generator().manual_seed(0)
-    n_side = 4
-    N = n_side ** 3
-    k = torch.arange(N)
-    pos = (torch.stack([k % n_side, (k // n_side) % n_side, k // n_side ** 2], -1).to(F64) * 0.012 + 0.008)[None]
-    pos = pos + 0.001 * (torch.rand(pos.shape, generator=g, dtype=F64) - 0.5)
-    radius = (0.004 + 0.001 * torch.rand(1, N, generator=g, dtype=F64))
-    vel = 0.5 * torch.randn(1, N, 3, generator=g, dtype=F64)
-    mats = [glass(), steel()]
-    table = interaction_table(mats, {("glass", "glass"): dict(mu_s=0.0, mu_r=0.0, restitution=1.0),
-                                     ("glass", "steel"): dict(mu_s=0.0, mu_r=0.0, restitution=1.0)})
-    sim = simulation(pos, radius, mats, table, velocity=vel, gravity=(0, 0, 0), time_step_fraction=0.15,
-                     walls=box_walls("box", (0, 0, 0), (0.056, 0.056, 0.056), "steel", open_top=False))
+    sim = elastic_spheres_in_a_box()
     e0 = (kinetic_energy(sim.system, sim.state) + elastic_energy(sim.system, sim.state)).item()
     collisions_seen = 0
     for _ in range(20):

@@ -20,14 +20,13 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import F64, glass, simulation, steel
+from conftest import F64, elastic_spheres_in_a_box, glass, simulation, steel
 from torchdem.drawdown import DrawDownTest, RunSettings
 from torchdem.errors import ConfigError
 from torchdem.geometry import DrawDownGeometry
 from torchdem.materials import interaction_table
 from torchdem.mixture import Mixture, ParticleMaterial, SieveClass
 from torchdem.simulation import elastic_energy, kinetic_energy
-from torchdem.walls import box_walls
 
 
 def test_free_fall_is_exact_across_a_change_of_step():
@@ -49,19 +48,7 @@ def test_free_fall_is_exact_across_a_change_of_step():
 
 
 def test_elastic_spheres_keep_their_energy_when_the_step_grows():
-    g = torch.Generator().manual_seed(0)
-    n_side = 4
-    N = n_side ** 3
-    k = torch.arange(N)
-    pos = (torch.stack([k % n_side, (k // n_side) % n_side, k // n_side ** 2], -1).to(F64) * 0.012 + 0.008)[None]
-    pos = pos + 0.001 * (torch.rand(pos.shape, generator=g, dtype=F64) - 0.5)
-    radius = 0.004 + 0.001 * torch.rand(1, N, generator=g, dtype=F64)
-    vel = 0.5 * torch.randn(1, N, 3, generator=g, dtype=F64)
-    mats = [glass(), steel()]
-    elastic = dict(mu_s=0.0, mu_r=0.0, restitution=1.0)
-    table = interaction_table(mats, {("glass", "glass"): elastic, ("glass", "steel"): elastic})
-    sim = simulation(pos, radius, mats, table, velocity=vel, gravity=(0, 0, 0), time_step_fraction=0.15,
-                     walls=box_walls("box", (0, 0, 0), (0.056, 0.056, 0.056), "steel", open_top=False))
+    sim = elastic_spheres_in_a_box(time_step_fraction=0.15)
     e0 = (kinetic_energy(sim.system, sim.state) + elastic_energy(sim.system, sim.state)).item()
     sim.advance(5000)
     in_contact = sim.state.pairs.n
