@@ -545,7 +545,7 @@ class DrawDownTest:
 
         def with_discharge_step(simulation: Simulation) -> None:
             """From the gate's opening on: the discharge's time step (and VTK frames as often in time)."""
-            if dt_discharge != dt_fill and simulation.system.dt == dt_fill:
+            if simulation.system.dt != dt_discharge:  # not switched yet (a resumed run may be)
                 simulation.system = simulation.system.with_time_step(dt_discharge, k_open)
                 if writer is not None:
                     writer.interval = max(1, int(round(vtk[1] / dt_discharge)))
