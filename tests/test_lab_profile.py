@@ -295,3 +295,37 @@ def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch)
                   tmp_path / "out2", echo=lambda s: None)
     assert len(sent) == 5 and len({t.seed for t in sent}) == 5
     assert all(dict(t.params) == recorded["calibrated_parameters"] and t.condition == "50-50" for t in sent)
+
+
+def test_the_box_profile_holds_the_lab_calibration_and_varies_the_box():
+    """profile=lab_box: every run has the lab calibration's set (conf/contact/table2_lab.yaml equals
+    the shipped calibration_lab.json's parameters to 6 digits) under the four it calibrates: the upper
+    box's width, the fill's friction share and both wall frictions, whose values reach a run's
+    walls and fill; at most 70 lab-geometry runs; the GA caps the wall frictions at 0.9, not the box
+    or the fill."""
+    import json
+    from pathlib import Path
+
+    from bo.surrogate.ga import GASettings, ga_bounds
+    from torchdem.drawdown import FILL_FRICTION_PARAMETER
+
+    plain = _plain(profile="lab_box")
+    s = calibration_settings_from(plain)
+    model, _ = calibration_model_from(plain, load_measured())
+    shipped = json.loads((Path(__file__).resolve().parents[1] / "campaigns" / "table2"
+                          / "calibration_lab.json").read_text())["calibrated_parameters"]
+    for name, value in shipped.items():
+        assert model.fixed[name] == float(f"{value:.6g}"), name
+    assert model.fixed["mu_s_sg"] == 0.38  # Table 4, not calibrated by profile=lab
+    four = ("geometry_upper_width", "fill_friction", "mu_s_pg", "mu_s_sg")
+    assert s.screening.table.names == four and s.surrogate.parameters == four
+    test = model.test_for("50-50", [{"geometry_upper_width": 0.324, "fill_friction": 0.55, "mu_s_pg": 0.9,
+                                     "mu_s_sg": 0.83}])
+    assert test.geometry.upper_width == 0.324 and test.geometry.mirror
+    assert test.parameter_sets[0]["mu_s_pg"] == 0.9 and test.parameter_sets[0]["mu_s_pp"] == 0.858
+    assert test.parameter_sets[0][FILL_FRICTION_PARAMETER] == 0.55
+    a = s.surrogate.adaptive
+    screening_runs = (2 * (s.screening.table.k + 2) + 1) * len(s.screening.seeds)
+    assert screening_runs + a.budget + len(s.verification_seeds) + 3 * len(s.validation_seeds) <= 70
+    bounds = np.array([s.surrogate.bounds[n] for n in four]).T
+    np.testing.assert_allclose(ga_bounds(bounds, GASettings(), four)[1], [0.35, 1.0, 0.9, 0.9])
