@@ -197,8 +197,9 @@ def known_campaign(tmp_path_factory):
     # the one campaign that also says what holds each range (the other tests' campaigns leave it out)
     plain = km.small_settings()
     settings = dataclasses.replace(plain, attainable=dataclasses.replace(plain.attainable, explain=True))
+    # the model's fixed parameters: the result keeps those the campaign did not calibrate
     result = run_calibration(store, executor, settings, km.known_measurement(), tmp / "out", km.NOMINAL_DENSITY,
-                             echo=lambda s: None)
+                             echo=lambda s: None, held={"mu_s_pp": 0.5, "e_ss": 0.35})
     files = write_calibration_report(result, tmp / "out")
     return result, files, store, log
 
@@ -351,7 +352,8 @@ def test_report_sets_the_campaign_beside_the_papers_tables(known_campaign, tmp_p
     result, _, _, _ = known_campaign
     files = write_calibration_report(result, tmp_path, paper=load_paper_tables())
     c = json.loads(files["json"].read_text())["paper_comparison"]
-    assert c["parameters"]["mu_s_pp"] == {"ours": pytest.approx(result.final_parameters["mu_s_pp"]), "table8": 0.73}
+    assert c["parameters"]["mu_s_pp"] == {"ours": pytest.approx(result.final_parameters["mu_s_pp"]), "table8": 0.73,
+                                          "held": False}
     assert c["parameters"]["mu_s_pg"]["ours"] is None and c["parameters"]["mu_s_pg"]["table8"] == 0.9
     assert c["verification"]["table_a4"]["shear_angle_deg"] == -1.48
     ours = {(cond, a.kpi.replace("_full_", "_")): a.relative_error_pct
@@ -366,6 +368,16 @@ def test_report_sets_the_campaign_beside_the_papers_tables(known_campaign, tmp_p
     assert "## Beside the paper (Hadi et al.)" in md and "| mu_s_pg | - | 0.9 |" in md
     assert "the paper 7.23 %" in md
     assert "paper_comparison" not in json.loads(write_calibration_report(result, tmp_path / "plain")["json"].read_text())
+    assert result.held_parameters == {"e_ss": 0.35}  # mu_s_pp is calibrated
+    assert c["parameters"]["e_ss"] == {"ours": 0.35, "table8": None, "held": True}
+    # what the model held (profile=lab_box holds the lab campaign's set) stands beside Table 8, marked
+    held = dataclasses.replace(result, held_parameters={"mu_s_pg": 0.766})
+    files = write_calibration_report(held, tmp_path / "held", paper=load_paper_tables())
+    doc = json.loads(files["json"].read_text())
+    assert doc["held_parameters"] == {"mu_s_pg": 0.766}
+    assert doc["paper_comparison"]["parameters"]["mu_s_pg"] == {"ours": 0.766, "table8": 0.9, "held": True}
+    md = files["md"].read_text()
+    assert "| mu_s_pg | 0.766 (held) | 0.9 |" in md and "Held (every run has them" in md
 
 
 def test_single_run_points_with_pooled_noise_calibrate_and_compare_with_learned_noise(tmp_path):

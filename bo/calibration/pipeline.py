@@ -345,6 +345,7 @@ class CalibrationResult:
     discharge_not_ended: Mapping[str, int] = field(default_factory=dict)
     discharge_jammed: Mapping[str, int] = field(default_factory=dict)
     attainable: tuple[AttainableRange, ...] = ()
+    held_parameters: Mapping[str, float] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1064,9 +1065,12 @@ def validation_conditions(settings: CalibrationSettings, measured: MeasuredData)
 
 def run_calibration(store: CampaignStore, executor: Executor, settings: CalibrationSettings,
                     measured: MeasuredData, out_dir: str | Path, densities: Mapping[str, float],
-                    echo: Callable[[str], None] = print) -> CalibrationResult:
+                    echo: Callable[[str], None] = print, held: Mapping[str, float] | None = None
+                    ) -> CalibrationResult:
     """Run (or resume) every stage; see the module docstring. ``densities`` are the model's
-    material densities (kg/m^3), which the bulk density check rescales."""
+    material densities (kg/m^3), which the bulk density check rescales. ``held``: the parameters
+    every run of the model has (``DrawDownModel.fixed``); the result reports those the campaign
+    did not calibrate beside the calibrated set (``held_parameters``)."""
     settings = settings.validate()
     validation = validation_conditions(settings, measured)
     out = Path(out_dir)
@@ -1161,4 +1165,5 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
                              surrogate=surrogate, ga=ga, verification=verification, density=density,
                              validation=val, final_parameters=final, evaluations=evaluations, wall_time_s=walls,
                              fresh_verification=fresh, discharge_not_ended=not_ended,
-                             discharge_jammed=jammed, attainable=attainable)
+                             discharge_jammed=jammed, attainable=attainable,
+                             held_parameters={k: float(v) for k, v in (held or {}).items() if k not in final})

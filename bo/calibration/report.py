@@ -7,6 +7,7 @@ already written its own files into ``out_dir/screening/``):
 
 * ``calibration.json`` (strict JSON, NaN as null): ``calibrated_parameters`` (the GA optimum,
   plus ``density_<material>`` when the bulk density check rescaled them: the final model),
+  ``held_parameters`` (the model's parameters the campaign did not vary, which every run had),
   ``objective`` (KPIs, measured values, weights), ``screening`` (kept KPIs, selected parameters,
   bounds), ``surrogate`` (CV R^2 per round and per strategy, stop reason, points run),
   ``ga`` (Tables 8 and 9 per mode), ``attainable`` (per objective KPI, its surrogate range with
@@ -79,6 +80,7 @@ def calibration_payload(result: CalibrationResult) -> dict:
     return json_ready({
         "condition": s.condition,
         "calibrated_parameters": dict(result.final_parameters),
+        "held_parameters": dict(result.held_parameters),
         "objective": {"kpis": list(result.objective.kpi_names), "measured": list(result.objective.measured),
                       "weights": list(result.objective.weights)},
         "screening": {"kept_kpis": list(scr.calibration_kpis),
@@ -153,12 +155,16 @@ def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
     worst = [abs(e) for c, row in ours_val.items() for k, e in row.items() if k in paper_val.get(c, {}) and e is not None]
     verification = result.fresh_verification if result.fresh_verification is not None else result.verification
     return {
-        "parameters": {n: {"ours": result.final_parameters.get(n), "table8": table8.get(n)}
-                       for n in dict.fromkeys(list(result.final_parameters) + list(table8))},
+        # a parameter the campaign held has its held value, marked
+        "parameters": {n: {"ours": result.final_parameters.get(n, result.held_parameters.get(n)), "table8": table8.get(n),
+                           "held": n not in result.final_parameters and n in result.held_parameters}
+                       for n in dict.fromkeys(list(result.final_parameters) + list(table8)
+                                              + list(result.held_parameters))},
         "verification": {"ours": errors(verification), "within_ci": {measured_name(a.kpi): a.within_ci
                                                                       for a in verification},
                          "table_a4": dem["calibration"]["relative_error_percent"]},
-        "densities": {"ours": {k[len("density_"):]: v for k, v in result.final_parameters.items()
+        "densities": {"ours": {k[len("density_"):]: v for k, v in {**result.held_parameters,
+                                                                   **result.final_parameters}.items()
                                if k.startswith("density_")} or dict(result.density.densities),
                       "table_a5": paper["bulk_density_recalibration"]["particle_density_kg_m3"]},
         "validation": {"ours": ours_val, "table_a6": paper_val},
@@ -172,7 +178,8 @@ def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
 def _paper_markdown(c: Mapping) -> list[str]:
     f = lambda v, fmt=".3g": "-" if v is None else format(v, fmt)  # noqa: E731
     lines = ["## Beside the paper (Hadi et al.)", "", "| parameter | this campaign | Table 8 |", "| --- | ---: | ---: |"]
-    lines += [f"| {n} | {f(v['ours'])} | {f(v['table8'])} |" for n, v in c["parameters"].items()]
+    lines += [f"| {n} | {f(v['ours'])}{' (held)' if v.get('held') else ''} | {f(v['table8'])} |"
+              for n, v in c["parameters"].items()]
     ver = c["verification"]
     lines += ["", "| verification, 50-50 | this campaign | within the lab's CI | Table A.4 |", "| --- | ---: | :---: | ---: |"]
     lines += [f"| {k} | {f(ver['ours'].get(k), '+.2f')} % | {'yes' if ver['within_ci'].get(k) else 'no'} | "
@@ -229,6 +236,9 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
     lines = [f"# DEM calibration, condition {s.condition}", ""]
     lines += ["## Calibrated parameters", "", "| parameter | value |", "| --- | ---: |"]
     lines += [f"| {k} | {v:.4g} |" for k, v in result.final_parameters.items()]
+    if result.held_parameters:
+        lines += ["", "Held (every run has them; the campaign does not vary them): "
+                  + ", ".join(f"{k} {v:.6g}" for k, v in result.held_parameters.items()) + "."]
     lines += ["", f"Objective (Eq. 7): KPIs {list(obj.kpi_names)}, measured {list(obj.measured)}, "
               f"weights {[round(w, 4) for w in obj.weights]}.", ""]
     lines += ["## 1. Screening", "", f"See [screening/screening.md](screening/screening.md). Kept KPIs: "

@@ -282,7 +282,7 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     started = time.perf_counter()
     echo(f"torchdem-calibrate: store {path}" + (f" (from {source})" if source else "") + f", output {out}")
     with executor_from(executor_settings, model, checkpoints=checkpoint_dir_for(path)) as executor:
-        result = run_calibration(store, executor, settings, measured, out, densities, echo=echo)
+        result = run_calibration(store, executor, settings, measured, out, densities, echo=echo, held=model.fixed)
     paper = load_paper_tables() if plain.get("measured") is None else None  # the paper's own Table 2
     files = write_calibration_report(result, out, paper=paper)
     wall = time.perf_counter() - started
