@@ -345,7 +345,7 @@ class CalibrationResult:
     discharge_not_ended: Mapping[str, int] = field(default_factory=dict)
     discharge_jammed: Mapping[str, int] = field(default_factory=dict)
     attainable: tuple[AttainableRange, ...] = ()
-    held_parameters: Mapping[str, float] = field(default_factory=dict)
+    held_parameters: Mapping[str, float] = field(default_factory=dict)  # the model's, less the calibrated ones
 
 
 # --------------------------------------------------------------------------------------------

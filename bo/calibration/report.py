@@ -154,18 +154,16 @@ def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
     paper_val = {c: v["relative_error_percent"] for c, v in dem["validation"]["conditions"].items()}
     worst = [abs(e) for c, row in ours_val.items() for k, e in row.items() if k in paper_val.get(c, {}) and e is not None]
     verification = result.fresh_verification if result.fresh_verification is not None else result.verification
+    model = {**result.held_parameters, **result.final_parameters}  # the whole set; held ones are not calibrated
     return {
-        # a parameter the campaign held has its held value, marked
-        "parameters": {n: {"ours": result.final_parameters.get(n, result.held_parameters.get(n)), "table8": table8.get(n),
-                           "held": n not in result.final_parameters and n in result.held_parameters}
+        "parameters": {n: {"ours": model.get(n), "table8": table8.get(n), "held": n in result.held_parameters}
                        for n in dict.fromkeys(list(result.final_parameters) + list(table8)
                                               + list(result.held_parameters))},
         "verification": {"ours": errors(verification), "within_ci": {measured_name(a.kpi): a.within_ci
                                                                       for a in verification},
                          "table_a4": dem["calibration"]["relative_error_percent"]},
-        "densities": {"ours": {k[len("density_"):]: v for k, v in {**result.held_parameters,
-                                                                   **result.final_parameters}.items()
-                               if k.startswith("density_")} or dict(result.density.densities),
+        "densities": {"ours": {k[len("density_"):]: v for k, v in model.items() if k.startswith("density_")}
+                      or dict(result.density.densities),
                       "table_a5": paper["bulk_density_recalibration"]["particle_density_kg_m3"]},
         "validation": {"ours": ours_val, "table_a6": paper_val},
         "unmeasured_validation": [f"{c} {k}" for c, row in ours_val.items() for k, e in row.items() if e is None],
@@ -178,7 +176,7 @@ def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
 def _paper_markdown(c: Mapping) -> list[str]:
     f = lambda v, fmt=".3g": "-" if v is None else format(v, fmt)  # noqa: E731
     lines = ["## Beside the paper (Hadi et al.)", "", "| parameter | this campaign | Table 8 |", "| --- | ---: | ---: |"]
-    lines += [f"| {n} | {f(v['ours'])}{' (held)' if v.get('held') else ''} | {f(v['table8'])} |"
+    lines += [f"| {n} | {f(v['ours'])}{' (held)' if v['held'] else ''} | {f(v['table8'])} |"
               for n, v in c["parameters"].items()]
     ver = c["verification"]
     lines += ["", "| verification, 50-50 | this campaign | within the lab's CI | Table A.4 |", "| --- | ---: | :---: | ---: |"]
