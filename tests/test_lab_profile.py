@@ -2,7 +2,9 @@
 lab geometry (mirror, half depth, fill by lobes, the four conditions of Table 2), within the
 issue's budget of about 215 lab-geometry runs; ``surrogate.added`` parameters join the
 selection with their own bounds, and bad ones are one-line errors naming the key."""
+import contextlib
 import dataclasses
+import sqlite3
 from types import SimpleNamespace
 
 import numpy as np
@@ -301,8 +303,9 @@ def test_the_box_profile_holds_the_lab_calibration_and_varies_the_box():
     """profile=lab_box: every run has the lab calibration's set (conf/contact/table2_lab.yaml equals
     the shipped calibration_lab.json's parameters to 6 digits) under the four it calibrates: the upper
     box's width, the fill's friction share and both wall frictions, whose values reach a run's
-    walls and fill; at most 70 lab-geometry runs; the GA caps the wall frictions at 0.9, not the box
-    or the fill."""
+    walls and fill; the fill's friction from 0.6 (at 0.45 the reverse layering jammed); the first
+    initial design it reuses is in the shipped store, and with its runs the campaign makes at most 74
+    lab-geometry runs; the GA caps the wall frictions at 0.9, not the box or the fill."""
     import json
     from pathlib import Path
 
@@ -325,7 +328,14 @@ def test_the_box_profile_holds_the_lab_calibration_and_varies_the_box():
     assert test.parameter_sets[0]["mu_s_pg"] == 0.9 and test.parameter_sets[0]["mu_s_pp"] == 0.858
     assert test.parameter_sets[0][FILL_FRICTION_PARAMETER] == 0.55
     a = s.surrogate.adaptive
+    assert s.surrogate.bounds["fill_friction"] == (0.6, 1.0)
     screening_runs = (2 * (s.screening.table.k + 2) + 1) * len(s.screening.seeds)
-    assert screening_runs + a.budget + len(s.verification_seeds) + 3 * len(s.validation_seeds) <= 70
+    store = Path(__file__).resolve().parents[1] / "campaigns" / "table2" / "lab_box.sqlite"
+    assert s.surrogate.reuse_designs == ("b34a94bf58f6",)
+    with contextlib.closing(sqlite3.connect(f"file:{store}?mode=ro", uri=True)) as conn:  # the shipped store, read only
+        earlier = conn.execute("SELECT COUNT(*) FROM evaluations WHERE stage = 'initial' AND batch_key = ? "
+                               "AND status = 'done'", s.surrogate.reuse_designs).fetchone()[0]
+    assert earlier == 4
+    assert screening_runs + earlier + a.budget + len(s.verification_seeds) + 3 * len(s.validation_seeds) <= 74
     bounds = np.array([s.surrogate.bounds[n] for n in four]).T
     np.testing.assert_allclose(ga_bounds(bounds, GASettings(), four)[1], [0.35, 1.0, 0.9, 0.9])
