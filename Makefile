@@ -17,15 +17,17 @@ $(STAMP): setup.cfg pyproject.toml
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-# The main job: the lab calibration of the paper's Table 2 (profile=lab) from its shipped campaign store
-# (copied to the run directory; the shipped file is never written): it runs only what the store lacks,
-# runs the verification's 5 replicates of the calibrated set again here (verification.fresh) and writes
-# the report. Two one-thread workers, as the campaign ran; the last run takes both cores once the other
-# worker is idle (bo/campaign/cores.py). The first campaign, whose runs stopped 4 s after the gate
-# opened: profile=lab_4s store_from=campaigns/table2/lab_4s.sqlite. The mini-box pipeline against its
-# synthetic twin: torchdem-calibrate profile=cpu (profile=smoke in the tests).
+# The main job: the box calibration of the paper's Table 2 (profile=lab_box: the upper box's width, the
+# fill's friction share and both wall frictions, on the contact set the lab campaign calibrated) from its
+# shipped campaign store (copied to the run directory; the shipped file is never written): it runs only
+# what the store lacks, runs the verification's 5 replicates of the calibrated set again here
+# (verification.fresh) and writes the report. Two one-thread workers, as the campaign ran; the last run
+# takes both cores once the other worker is idle (bo/campaign/cores.py). The contact calibration it builds
+# on: profile=lab store_from=campaigns/table2/lab.sqlite; the first campaign, whose runs stopped 4 s after
+# the gate opened: profile=lab_4s store_from=campaigns/table2/lab_4s.sqlite. The mini-box pipeline against
+# its synthetic twin: torchdem-calibrate profile=cpu (profile=smoke in the tests).
 run: $(STAMP)
-	OMP_NUM_THREADS=1 $(VENV)/bin/torchdem-calibrate profile=lab store_from=campaigns/table2/lab.sqlite \
+	OMP_NUM_THREADS=1 $(VENV)/bin/torchdem-calibrate profile=lab_box store_from=campaigns/table2/lab_box.sqlite \
 		verification.fresh=true executor=dask executor.n_workers=2 executor.batch_size=1
 
 # The C++ kernels are built (or found in torch's cache) before the tests start, on both cores,
