@@ -244,19 +244,23 @@ def test_the_pellet_wall_friction_is_calibrated_on_the_evidence_of_both_replicat
     assert fits["mass_flow_rate_full_kg_s"].pvalues[j] > 0.5
 
 
-def _replay_shipped(profile, store, tmp_path, monkeypatch):
-    """Runs `make run`'s command for `profile` on a copy of the shipped store `store` (under
-    campaigns/table2/) with an executor that records what reaches the DEM and refuses it, and with
-    the GP cross-validation, the GA and the bounds' optimiser made to fail if called: everything the
-    store holds must be read from it. Returns the campaign's summary, the refused tasks, and a
-    function that runs it again with more overrides (into the same list of refused tasks)."""
+def _replay_shipped(profile, name, runs, tmp_path, monkeypatch):
+    """`make run`'s command for `profile` on a copy of the shipped store campaigns/table2/`name`.sqlite, with
+    an executor that records what reaches the DEM and refuses it, and with the GP cross-validation, the
+    GA and the bounds' optimiser made to fail if called: everything the store holds must be read from
+    it. The campaign resumes with nothing sent to the DEM, its `runs` runs all there, the shipped file
+    untouched, and the calibrated set the one campaigns/table2/calibration_`name`.json (the discovery's
+    input) records; with verification.fresh it asks the DEM for the 5 verification runs again, and
+    nothing else. Returns the first run's summary and the recorded calibration."""
     import contextlib
+    import json
     from pathlib import Path
 
     from bo.campaign.executor import EvalOutcome, InProcessExecutor
     from bo.cli import calibrate as app
 
-    shipped = Path(__file__).resolve().parents[1] / "campaigns" / "table2" / store
+    table2 = Path(__file__).resolve().parents[1] / "campaigns" / "table2"
+    shipped = table2 / f"{name}.sqlite"
     before = shipped.stat().st_mtime_ns
     sent = []
 
@@ -277,28 +281,29 @@ def _replay_shipped(profile, store, tmp_path, monkeypatch):
     for what in ("best_kernel_cv", "repeated_ga", "attainable_ranges"):
         monkeypatch.setattr(pipeline, what, computed(what))
 
-    def again(name, *overrides):
-        return app.calibrate(_plain(f"store_from={shipped}", f"store={tmp_path / (name + '.sqlite')}", *overrides,
-                                    profile=profile), tmp_path / name, echo=lambda s: None)
-    summary = again("run")
+    def calibrate(run, *overrides):
+        return app.calibrate(_plain(f"store_from={shipped}", f"store={tmp_path / (run + '.sqlite')}", *overrides,
+                                    profile=profile), tmp_path / run, echo=lambda s: None)
+    summary = calibrate("run")
+    assert not sent
+    assert summary["dem_evaluations"]["total"] == runs
+    recorded = json.loads((table2 / f"calibration_{name}.json").read_text())
+    assert summary["calibrated_parameters"] == recorded["calibrated_parameters"]
     assert shipped.stat().st_mtime_ns == before                       # the shipped file is left as it is
-    return summary, sent, again
+    calibrate("fresh", "verification.fresh=true")
+    assert len(sent) == 5 and len({t.seed for t in sent}) == 5
+    assert all(dict(t.params) == recorded["calibrated_parameters"] and t.condition == "50-50" for t in sent)
+    return summary, recorded
 
 
 def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch):
     """The lab campaign (profile=lab, store_from=campaigns/table2/lab.sqlite) resumes from a copy of
-    the shipped store and sends nothing to the DEM but the verification made again: every stage,
-    the GA included, is read from the store, and the calibrated set is the one the shipped
-    campaigns/table2/calibration_lab.json (the discovery's input) records."""
+    the shipped store and sends nothing to the DEM but the verification made again (_replay_shipped);
+    what the bounds allow is read from the store too."""
     import json
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
-    summary, sent, again = _replay_shipped("lab", "lab.sqlite", tmp_path, monkeypatch)
-    assert not sent
-    assert summary["dem_evaluations"]["total"] == 224
-    recorded = json.loads((root / "campaigns" / "table2" / "calibration_lab.json").read_text())
-    assert summary["calibrated_parameters"] == recorded["calibrated_parameters"]
+    summary, recorded = _replay_shipped("lab", "lab", 224, tmp_path, monkeypatch)
     # what the bounds allow is read from the shipped store too, as calibration_lab.json records it
     written = json.loads(Path(summary["files"]["json"]).read_text())
     assert written["attainable"] == recorded["attainable"]
@@ -307,33 +312,21 @@ def test_make_run_finds_the_shipped_lab_campaign_complete(tmp_path, monkeypatch)
     from bo.surrogate.attainable import AttainableRange
     held = {a["kpi"]: AttainableRange.from_dict(a).held_by for a in written["attainable"]}
     assert held["shear_angle_deg"] == ("angle_of_repose_deg",) and held["angle_of_repose_deg"] == ("shear_angle_deg",)
-    # verification.fresh asks the DEM for the 5 verification runs again, and nothing else
-    again("run2", "verification.fresh=true")
-    assert len(sent) == 5 and len({t.seed for t in sent}) == 5
-    assert all(dict(t.params) == recorded["calibrated_parameters"] and t.condition == "50-50" for t in sent)
 
 
 def test_make_run_finds_the_shipped_box_campaign_complete(tmp_path, monkeypatch):
     """`make run`'s campaign (profile=lab_box, store_from=campaigns/table2/lab_box.sqlite) resumes from a
-    copy of the shipped store and sends nothing to the DEM but the verification made again: the 74 runs
-    of the box campaign are all there, and the calibrated set is the one the shipped
-    campaigns/table2/calibration_lab_box.json (the discovery's input) records, with the lab campaign's
-    contact parameters held."""
+    copy of the shipped store and sends nothing to the DEM but the verification made again
+    (_replay_shipped): its 74 runs are all there, it calibrates the box's four, and it holds the lab
+    campaign's contact parameters."""
     import json
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
-    summary, sent, again = _replay_shipped("lab_box", "lab_box.sqlite", tmp_path, monkeypatch)
-    assert not sent
-    assert summary["dem_evaluations"]["total"] == 74
-    recorded = json.loads((root / "campaigns" / "table2" / "calibration_lab_box.json").read_text())
-    assert summary["calibrated_parameters"] == recorded["calibrated_parameters"]
+    _, recorded = _replay_shipped("lab_box", "lab_box", 74, tmp_path, monkeypatch)
     assert set(recorded["calibrated_parameters"]) == {"geometry_upper_width", "fill_friction", "mu_s_pg", "mu_s_sg"}
-    lab = json.loads((root / "campaigns" / "table2" / "calibration_lab.json").read_text())["calibrated_parameters"]
+    lab = json.loads((Path(__file__).resolve().parents[1] / "campaigns" / "table2"
+                      / "calibration_lab.json").read_text())["calibrated_parameters"]
     assert all(recorded["held_parameters"][k] == pytest.approx(v, rel=1e-5) for k, v in lab.items() if k != "mu_s_pg")
-    again("run2", "verification.fresh=true")
-    assert len(sent) == 5 and len({t.seed for t in sent}) == 5
-    assert all(dict(t.params) == recorded["calibrated_parameters"] and t.condition == "50-50" for t in sent)
 
 
 def test_the_box_profile_holds_the_lab_calibration_and_varies_the_box():
