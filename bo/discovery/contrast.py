@@ -1,0 +1,220 @@
+"""A KPI's change between two conditions at one parameter set: the contrast of a mixture's make-up.
+
+Two conditions of one test differ in the mixture alone (75-25 and 25-75: the pellets' and the
+sinter's shares swapped), so at a fixed parameter set the change of a KPI from one to the other,
+
+    C = KPI(condition a) - KPI(condition b),
+
+is what the make-up does to it. A calibration on one condition cannot see C: it can trade one
+material's contribution against the other's and still match its own condition, and the other
+conditions then show C. Discovery's design points run on every condition, so a discovery store
+holds C at every point it tried. Reading C off every parameter set that a set of stores ran on both
+conditions says whether any parameter or candidate they varied reaches the lab's C; when none
+does, the cause lies in what they all held.
+
+Contract:
+
+* :func:`lab_contrast` ``(measured, a, b) -> {KPI: (C, 95 % half-width)}``: Table 2's means and the
+  two CIs combined in quadrature (independent tests), for the KPIs both conditions report, under the
+  DEM's names (``mass_flow_rate_full_kg_s`` for the lab's ``mass_flow_rate_kg_s``).
+* :func:`contrast_check` ``(stores, measured, a, b, kpis) -> ContrastCheck``: every parameter set
+  with finished runs on both conditions (jammed runs and runs without all of ``kpis`` left out;
+  a run that two stores hold, as a discovery's copy of its baseline, counted once: same condition,
+  seed and KPI values), its runs and
+  KPI means on each; the DEM's replicate sd per condition and KPI pooled over the sets with two or
+  more runs there. A condition the data lack is a :class:`~torchdem.errors.ConfigError` naming it.
+* ``ContrastCheck.contrast(kpi)``: ``[n_sets]`` C; ``standard_error(kpi)``: ``[n_sets]`` its DEM
+  standard error from the pooled sds and the set's runs; ``consistent(kpi)``: ``[n_sets]`` bool,
+  ``|C - C_lab|`` within 1.96 x the combined standard error of the set's and the lab's.
+* :func:`format_contrast` turns it into markdown (``scripts/contrast_check.py``); with ``by_stage``
+  also C per stage (a discovery's candidates).
+
+Stores are opened read-only, so a running campaign is not disturbed.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from bo.campaign.progress import open_read_only
+from bo.screening.pipeline import measured_name
+from kpi.loadcell import discharge_jammed
+from torchdem.drawdown import CALIBRATION_KPIS_DEM
+from torchdem.errors import ConfigError
+from torchdem.measured import MeasuredData
+
+#: Normal quantile of a two-sided 95 % interval.
+Z95 = 1.959964
+
+
+@dataclass(frozen=True)
+class ContrastSet:
+    """One parameter set run on both conditions: where it came from, its parameters, and per
+    condition (``a``, ``b``) its runs' KPI values ``{kpi: [n_runs]}``."""
+
+    store: str
+    stage: str
+    params: Mapping[str, float]
+    a: Mapping[str, np.ndarray]
+    b: Mapping[str, np.ndarray]
+
+    def runs(self, side: str) -> int:
+        """Runs on condition ``side`` ("a" or "b")."""
+        values = self.a if side == "a" else self.b
+        return len(next(iter(values.values())))
+
+    def contrast(self, kpi: str) -> float:
+        """Mean on a less mean on b."""
+        return float(np.mean(self.a[kpi]) - np.mean(self.b[kpi]))
+
+
+@dataclass(frozen=True)
+class ContrastCheck:
+    """``between``: the two conditions (C = a - b); ``kpis``; ``lab``: KPI -> (C, 95 % half-width);
+    ``sets``: the parameter sets; ``noise``: (condition, KPI) -> (pooled replicate sd, degrees of
+    freedom), NaN sd without replicates."""
+
+    stores: tuple[str, ...]
+    between: tuple[str, str]
+    kpis: tuple[str, ...]
+    lab: Mapping[str, tuple[float, float]]
+    sets: tuple[ContrastSet, ...]
+    noise: Mapping[tuple[str, str], tuple[float, int]]
+
+    def contrast(self, kpi: str) -> np.ndarray:
+        """``[n_sets]`` C of each set."""
+        return np.array([s.contrast(kpi) for s in self.sets])
+
+    def standard_error(self, kpi: str) -> np.ndarray:
+        """``[n_sets]`` DEM standard error of each set's C: sqrt(sd_a^2 / n_a + sd_b^2 / n_b)."""
+        sd_a, sd_b = (self.noise[(c, kpi)][0] for c in self.between)
+        return np.array([math.sqrt(sd_a ** 2 / s.runs("a") + sd_b ** 2 / s.runs("b")) for s in self.sets])
+
+    def consistent(self, kpi: str) -> np.ndarray:
+        """``[n_sets]`` whether the set's C agrees with the lab's at 95 %: ``|C - C_lab| <= 1.96
+        sqrt(se^2 + (half-width / 1.96)^2)``; all False without the lab's C or the DEM's noise."""
+        if kpi not in self.lab:
+            return np.zeros(len(self.sets), dtype=bool)
+        value, half = self.lab[kpi]
+        se = self.standard_error(kpi)
+        return np.abs(self.contrast(kpi) - value) <= Z95 * np.sqrt(se ** 2 + (half / Z95) ** 2)
+
+    def by_stage(self) -> dict[str, list[ContrastSet]]:
+        """Stage -> its sets, stages in the order the stores list them."""
+        out: dict[str, list[ContrastSet]] = {}
+        for s in self.sets:
+            out.setdefault(s.stage, []).append(s)
+        return out
+
+
+def lab_contrast(measured: MeasuredData, a: str, b: str,
+                 kpis: Sequence[str] = CALIBRATION_KPIS_DEM) -> dict[str, tuple[float, float]]:
+    """KPI (DEM name) -> (mean on ``a`` less mean on ``b``, hypot of the two 95 % half-widths), for
+    the KPIs both conditions report."""
+    ca, cb = measured.condition(a), measured.condition(b)
+    out = {}
+    for kpi in kpis:
+        name = measured_name(kpi)
+        if name in ca.kpis and name in cb.kpis:
+            va, vb = ca.kpis[name], cb.kpis[name]
+            out[kpi] = (va.mean - vb.mean, math.hypot(va.ci95, vb.ci95))
+    return out
+
+
+def _store_runs(path: Path, conditions: Sequence[str], kpis: Sequence[str]):
+    """``(stage, params key, params, condition, seed, values)`` of every finished run on
+    ``conditions`` that flowed and has every KPI finite."""
+    conn = open_read_only(path, "contrast_check")
+    try:
+        rows = conn.execute("SELECT stage, params, condition, seed, kpis FROM evaluations "
+                            "WHERE status = 'done' AND kpis IS NOT NULL ORDER BY task_id").fetchall()
+    finally:
+        conn.close()
+    out = []
+    for stage, params, condition, seed, values in rows:
+        if condition not in conditions:
+            continue
+        k = {key: math.nan if v is None else float(v) for key, v in json.loads(values).items()}
+        if discharge_jammed(k) or not all(math.isfinite(k.get(n, math.nan)) for n in kpis):
+            continue
+        p = {n: float(v) for n, v in json.loads(params).items() if isinstance(v, (int, float))}
+        out.append((stage, json.dumps(p, sort_keys=True), p, condition, int(seed), tuple(k[n] for n in kpis)))
+    return out
+
+
+def _pooled_sd(groups: Sequence[np.ndarray]) -> tuple[float, int]:
+    """Replicate sd pooled over the groups of two or more values, and its degrees of freedom."""
+    ss = sum(float(((g - g.mean()) ** 2).sum()) for g in groups if len(g) > 1)
+    dof = sum(len(g) - 1 for g in groups if len(g) > 1)
+    return (math.sqrt(ss / dof) if dof else math.nan), dof
+
+
+def contrast_check(stores: Sequence[str | Path], measured: MeasuredData, a: str = "25-75", b: str = "75-25",
+                   kpis: Sequence[str] = CALIBRATION_KPIS_DEM) -> ContrastCheck:
+    """The lab's contrast between ``a`` and ``b`` and the model's at every parameter set the stores
+    ran on both (module docstring)."""
+    for name in (a, b):
+        if name not in measured.names:
+            raise ConfigError(f"contrast_check: condition {name!r} is not in {measured.origin or 'the measured data'}; "
+                              f"known conditions: {', '.join(measured.names)}")
+    if a == b:
+        raise ConfigError(f"contrast_check: the two conditions are both {a!r}; expected two different conditions")
+    kpis = tuple(kpis)
+    seen: set = set()
+    groups: dict[tuple[str, str, str], dict] = {}
+    for s in stores:
+        for stage, key, params, condition, seed, values in _store_runs(Path(s), (a, b), kpis):
+            if (condition, seed, values) in seen:  # the same run in two stores (a discovery's copy of its baseline)
+                continue
+            seen.add((condition, seed, values))
+            group = groups.setdefault((str(s), stage, key), {"params": params, a: [], b: []})
+            group[condition].append(values)
+    sets = tuple(ContrastSet(store, stage, g["params"],
+                             {k: np.array([v[i] for v in g[a]]) for i, k in enumerate(kpis)},
+                             {k: np.array([v[i] for v in g[b]]) for i, k in enumerate(kpis)})
+                 for (store, stage, _), g in groups.items() if g[a] and g[b])
+    noise = {}
+    for condition in (a, b):
+        for i, k in enumerate(kpis):
+            noise[(condition, k)] = _pooled_sd([np.array([v[i] for v in g[condition]]) for g in groups.values()])
+    return ContrastCheck(tuple(str(s) for s in stores), (a, b), kpis, lab_contrast(measured, a, b, kpis), sets, noise)
+
+
+def _short(kpi: str) -> str:
+    return {"angle_of_repose_deg": "angle of repose, deg", "shear_angle_deg": "shear angle, deg",
+            "mass_flow_rate_full_kg_s": "flow, kg/s", "mass_lower_box_full_kg": "lower box, kg"}.get(kpi, kpi)
+
+
+def format_contrast(check: ContrastCheck, by_stage: bool = False) -> str:
+    """Markdown: per KPI the lab's contrast and the model's over the sets, how many agree with the
+    lab's; ``by_stage``: then the mean contrast per stage."""
+    a, b = check.between
+    lines = [f"## Contrast between conditions, C = KPI({a}) - KPI({b}), at each parameter set", "",
+             "Stores: " + ", ".join(check.stores), "",
+             f"{len(check.sets)} parameter sets ran on both conditions. DEM replicate sd pooled over the sets "
+             "(degrees of freedom): " + "; ".join(
+                 f"{_short(k)} {check.noise[(a, k)][0]:.3g} ({check.noise[(a, k)][1]}) at {a}, "
+                 f"{check.noise[(b, k)][0]:.3g} ({check.noise[(b, k)][1]}) at {b}" for k in check.kpis), "",
+             "| KPI | lab C (95 % CI) | model C: mean (sd over sets) | model range | sets agreeing with the lab |",
+             "| --- | ---: | ---: | ---: | ---: |"]
+    for k in check.kpis:
+        c = check.contrast(k)
+        lab = f"{check.lab[k][0]:+.2f} +- {check.lab[k][1]:.2f}" if k in check.lab else "-"
+        model = (f"{c.mean():+.2f} ({c.std(ddof=1) if len(c) > 1 else 0.0:.2f}) | {c.min():+.2f} to {c.max():+.2f}"
+                 if len(c) else "- | -")
+        lines.append(f"| {_short(k)} | {lab} | {model} | {int(check.consistent(k).sum())} of {len(c)} |")
+    if by_stage:
+        lines += ["", "Mean C per stage (sets)", "",
+                  "| store | stage | sets | " + " | ".join(_short(k) for k in check.kpis) + " |",
+                  "| --- | --- | ---: |" + " ---: |" * len(check.kpis)]
+        for stage, sets in check.by_stage().items():
+            for store in dict.fromkeys(s.store for s in sets):
+                mine = [s for s in sets if s.store == store]
+                lines.append(f"| {Path(store).name} | {stage} | {len(mine)} | "
+                             + " | ".join(f"{np.mean([s.contrast(k) for s in mine]):+.2f}" for k in check.kpis) + " |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,35 @@
+"""The change of each KPI between two conditions at one parameter set, C = KPI(a) - KPI(b), of the lab
+and at every parameter set that one or more campaign stores ran on both (``bo.discovery.contrast``):
+does any parameter or candidate a campaign varied give the lab's C? The stores are only read, so it
+may be run beside a campaign.
+
+    python scripts/contrast_check.py campaigns/table2/*.sqlite --by-stage       # 25-75 less 75-25
+    python scripts/contrast_check.py STORE --between 50-50 75-25 --data my_lab.json
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from bo.discovery.contrast import contrast_check, format_contrast
+from torchdem.errors import ConfigError
+from torchdem.measured import load_measured
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("stores", nargs="+", help="campaign stores (SQLite)")
+    parser.add_argument("--between", nargs=2, default=["25-75", "75-25"], metavar=("A", "B"),
+                        help="the two conditions, C = KPI(A) - KPI(B) (default 25-75 75-25)")
+    parser.add_argument("--data", default=None, help="measured-data JSON (default: the paper's Table 2)")
+    parser.add_argument("--by-stage", action="store_true", help="also the mean C per stage (a discovery's candidates)")
+    args = parser.parse_args()
+    check = contrast_check(args.stores, load_measured(args.data), *args.between)
+    print(format_contrast(check, by_stage=args.by_stage), end="")
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except ConfigError as exc:
+        sys.exit(f"error: {exc}")

@@ -1,0 +1,125 @@
+"""The contrast of a mixture's make-up (bo/discovery/contrast.py, scripts/contrast_check.py).
+
+- The lab's contrast between two conditions and its 95 % half-width are recomputed by hand from
+  Table 2's 25-75 and 75-25 cells (difference of means, the two CIs in quadrature).
+- From a store written through the campaign API, with known KPIs: each parameter set run on both
+  conditions gives the difference of its means (rel 1e-12); a set run on one condition only, a
+  jammed run and a run that a second store copies are left out; the pooled replicate sd equals the
+  textbook pooled sd; a set agrees with the lab exactly when |C - C_lab| <= 1.96 x the combined
+  standard error.
+- Bad input (an unknown condition, the same condition twice) names the value and what is allowed.
+"""
+from __future__ import annotations
+
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bo.campaign.executor import EvalOutcome
+from bo.campaign.store import CampaignStore
+from bo.discovery.contrast import Z95, contrast_check, format_contrast, lab_contrast
+from torchdem.errors import ConfigError
+from torchdem.measured import Condition, KPIValue, MeasuredData, load_measured
+
+REPO = Path(__file__).resolve().parent.parent
+KPIS = ("angle_of_repose_deg", "shear_angle_deg")
+
+
+def test_the_labs_contrast_is_the_difference_of_table_2s_means():
+    lab = lab_contrast(load_measured(), "25-75", "75-25")
+    assert lab["angle_of_repose_deg"] == pytest.approx((29.63 - 28.55, math.hypot(0.75, 0.65)), rel=1e-12)
+    assert lab["shear_angle_deg"] == pytest.approx((44.76 - 39.03, math.hypot(1.21, 1.49)), rel=1e-12)
+    assert lab["mass_flow_rate_full_kg_s"] == pytest.approx((10.24 - 10.29, math.hypot(0.45, 0.1)), abs=1e-12)
+
+
+def _measured() -> MeasuredData:
+    def cond(name, aor, shear):
+        return Condition(name=name, pellet_mass_fraction=0.5, layering=("pellet", "sinter"), fill_mass_kg=40.0,
+                         kpis={"angle_of_repose_deg": KPIValue(aor, 0.4, "deg"),
+                               "shear_angle_deg": KPIValue(shear, 0.3, "deg")}, replicates=5)
+    return MeasuredData(source="test lab", conditions=(cond("A", 30.0, 44.0), cond("B", 29.0, 40.0)))
+
+
+# runs of each parameter set per condition: (angle of repose, shear angle); None: a jammed run
+RUNS = {
+    0.1: {"A": [(31.0, 41.0), (31.4, 41.6)], "B": [(27.0, 38.6), (27.2, 39.4), None]},
+    0.2: {"A": [(30.2, 43.0)], "B": [(29.0, 39.5)]},
+    0.3: {"A": [(32.0, 45.0), (32.5, 44.0), (31.5, 44.5)], "B": []},  # one condition only: no contrast
+}
+
+
+def _store(tmp_path) -> Path:
+    path = tmp_path / "store.sqlite"
+    store = CampaignStore(path, "hash")
+    for condition in ("A", "B"):
+        for knob, runs in RUNS.items():
+            if not runs[condition]:
+                continue
+            key = f"{condition}{knob}"
+            store.batch("initial", key, lambda: [{"knob": knob}], seeds=list(range(len(runs[condition]))),
+                        conditions=[condition])
+
+            def kpis(row):
+                if row is None:
+                    return {"angle_of_repose_deg": 1.0, "shear_angle_deg": 0.0, "discharge_jammed": 1.0}
+                return {"angle_of_repose_deg": row[0], "shear_angle_deg": row[1], "discharge_jammed": 0.0}
+
+            store.record([(t, EvalOutcome.success(kpis(runs[condition][t.seed]), 1.0))
+                          for t in store.claim(100, stage="initial", batch_key=key)])
+    return path
+
+
+def test_each_set_on_both_conditions_gives_its_difference_of_means(tmp_path):
+    path = _store(tmp_path)
+    copy = tmp_path / "copy.sqlite"
+    shutil.copy(path, copy)  # the same runs again, as a discovery's copy of its baseline: counted once
+    before = path.read_bytes()
+    check = contrast_check([path, copy], _measured(), "A", "B", kpis=KPIS)
+    assert path.read_bytes() == before  # only read
+    assert [s.params["knob"] for s in check.sets] == [0.1, 0.2]
+    assert check.contrast("angle_of_repose_deg") == pytest.approx([31.2 - 27.1, 30.2 - 29.0], rel=1e-12)
+    assert check.contrast("shear_angle_deg") == pytest.approx([41.3 - 39.0, 43.0 - 39.5], rel=1e-12)
+    assert [s.runs("b") for s in check.sets] == [2, 1]  # the jammed run left out
+    # pooled over the sets with replicates: at A the two sets of 0.1 and 0.3 (2 + 3 runs), at B 0.1 only
+    aor_a = [np.array([31.0, 31.4]), np.array([32.0, 32.5, 31.5])]
+    ss = sum(float(((g - g.mean()) ** 2).sum()) for g in aor_a)
+    assert check.noise[("A", "angle_of_repose_deg")] == pytest.approx((math.sqrt(ss / 3), 3), rel=1e-12)
+    assert check.noise[("B", "angle_of_repose_deg")] == pytest.approx((np.std([27.0, 27.2], ddof=1), 1), rel=1e-12)
+
+
+def test_a_set_agrees_with_the_lab_within_the_combined_standard_error(tmp_path):
+    check = contrast_check([_store(tmp_path)], _measured(), "A", "B", kpis=KPIS)
+    lab, half = check.lab["shear_angle_deg"]
+    assert (lab, half) == pytest.approx((4.0, math.hypot(0.3, 0.3)), rel=1e-12)
+    sd_a, sd_b = check.noise[("A", "shear_angle_deg")][0], check.noise[("B", "shear_angle_deg")][0]
+    se = np.array([math.sqrt(sd_a ** 2 / 2 + sd_b ** 2 / 2), math.sqrt(sd_a ** 2 + sd_b ** 2)])
+    assert check.standard_error("shear_angle_deg") == pytest.approx(se, rel=1e-12)
+    expected = np.abs(check.contrast("shear_angle_deg") - lab) <= Z95 * np.sqrt(se ** 2 + (half / Z95) ** 2)
+    assert list(check.consistent("shear_angle_deg")) == list(expected)
+    assert list(expected) == [False, True]  # 2.3 misses 4.0; 3.5 is within its larger error
+    text = format_contrast(check, by_stage=True)
+    assert "| shear angle, deg | +4.00 +- 0.42 | +2.90 (0.85) | +2.30 to +3.50 | 1 of 2 |" in text
+    assert "| store.sqlite | initial | 2 | +2.65 | +2.90 |" in text
+
+
+def test_bad_conditions_name_the_value_and_the_known_ones(tmp_path):
+    path = _store(tmp_path)
+    with pytest.raises(ConfigError, match="condition 'C' is not in .*known conditions: A, B"):
+        contrast_check([path], _measured(), "C", "B")
+    with pytest.raises(ConfigError, match="both 'A'; expected two different conditions"):
+        contrast_check([path], _measured(), "A", "A")
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "contrast_check.py"), str(path),
+                          "--between", "25-75", "99-1"], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode != 0 and "condition '99-1' is not in" in out.stderr
+
+
+def test_script_prints_the_table_for_table_2(tmp_path):
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "contrast_check.py"), str(_store(tmp_path))],
+                         capture_output=True, text=True, cwd=REPO, check=True).stdout
+    assert out.startswith("## Contrast between conditions, C = KPI(25-75) - KPI(75-25)")
+    assert "| angle of repose, deg | +1.08 +- 0.99 | - | - | 0 of 0 |" in out  # the store has no 25-75 runs
