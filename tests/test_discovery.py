@@ -371,11 +371,14 @@ def test_an_unresolved_fit_has_its_fitted_points_run_before_its_verdict(tmp_path
     assert h0.points == 4 and not fit_check(h0, 0.05)[0] and h0.score > 100
     after = _discover(tmp_path / "twice", lab, escalations=1, **small)
     h1 = next(h for h in after.hypotheses if h.name == "density_per_material")
-    # near the cells' count (12, plus 2 x 2 for the parameters): with 8 points the fit without 75-25, the
-    # pellet-rich condition, still leaves the pellet density a few % off, so that cell carries most of it
-    # (how much moves with the GP libraries' builds: 38, 30.5 of it at 75-25, with botorch 0.18.1, gpytorch
-    # 1.15.2 and numpy 2.4.6, where it had been below 30)
-    assert h1.points == 8 and fit_check(h1, 0.05)[0] and h1.score < 50 and h1.score < h0.score / 3
+    # with 8 points the held-out conditions whose fits saw the pellet-rich 75-25 land within their 4 cells'
+    # chi^2 scale (< 12 each); the fit without 75-25 still leaves the pellet density a few % off, so that
+    # cell carries most of the score. How much moves with the machine and the GP libraries' builds (the
+    # mini-box twin's runs round differently on another CPU): 30.5 of 38 with botorch 0.18.1, gpytorch
+    # 1.15.2 and numpy 2.4.6 on one machine, 100.9 of 109.1 with the same builds on a 2.0 GHz Xeon, against
+    # 490 unresolved. So the test asks for a third of the unresolved score, not an absolute one.
+    assert h1.points == 8 and fit_check(h1, 0.05)[0] and h1.score < h0.score / 3
+    assert all(v < 12.0 for c, v in h1.held_out_chi2.items() if c != "75-25"), h1.held_out_chi2
     assert after.cause == "density_per_material" and not after.unresolved
     assert after.extension["density_sinter"] == pytest.approx(km.NOMINAL_DENSITY["sinter"] * 1.25, rel=0.05)
     store = CampaignStore(tmp_path / "twice" / "d.sqlite", "known", extra_stages=discovery_stages())
