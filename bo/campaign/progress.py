@@ -139,6 +139,21 @@ def open_read_only(path: Path, source: str = "store_progress") -> sqlite3.Connec
     return conn
 
 
+def finished_runs(path: Path, source: str = "store_progress") -> list[tuple[str, str, int, dict, dict]]:
+    """``(stage, condition, seed, parameters, KPIs)`` of every finished run of a store, in task order, read
+    only: the numeric parameters as floats, the KPIs as floats (a KPI stored as null is NaN)."""
+    conn = open_read_only(path, source)
+    try:
+        rows = conn.execute("SELECT stage, condition, seed, params, kpis FROM evaluations "
+                            "WHERE status = 'done' AND kpis IS NOT NULL ORDER BY task_id").fetchall()
+    finally:
+        conn.close()
+    return [(stage, condition, int(seed),
+             {n: float(v) for n, v in json.loads(params).items() if isinstance(v, (int, float))},
+             {k: float("nan") if v is None else float(v) for k, v in json.loads(values).items()})
+            for stage, condition, seed, params, values in rows]
+
+
 def store_progress(path: str | Path) -> StoreProgress:
     """Tasks per status, worker time spent and the estimated worker time left in a store."""
     path = Path(path)

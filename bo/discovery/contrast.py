@@ -41,7 +41,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from bo.campaign.progress import open_read_only
+from bo.campaign.progress import finished_runs
 from bo.screening.pipeline import measured_name
 from kpi.loadcell import discharge_jammed
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
@@ -129,21 +129,12 @@ def lab_contrast(measured: MeasuredData, a: str, b: str,
 def _store_runs(path: Path, conditions: Sequence[str], kpis: Sequence[str]):
     """``(stage, params key, params, condition, seed, values)`` of every finished run on
     ``conditions`` that flowed and has every KPI finite."""
-    conn = open_read_only(path, "contrast_check")
-    try:
-        rows = conn.execute("SELECT stage, params, condition, seed, kpis FROM evaluations "
-                            "WHERE status = 'done' AND kpis IS NOT NULL ORDER BY task_id").fetchall()
-    finally:
-        conn.close()
     out = []
-    for stage, params, condition, seed, values in rows:
-        if condition not in conditions:
+    for stage, condition, seed, p, k in finished_runs(path, "contrast_check"):
+        if condition not in conditions or discharge_jammed(k) or not all(
+                math.isfinite(k.get(n, math.nan)) for n in kpis):
             continue
-        k = {key: math.nan if v is None else float(v) for key, v in json.loads(values).items()}
-        if discharge_jammed(k) or not all(math.isfinite(k.get(n, math.nan)) for n in kpis):
-            continue
-        p = {n: float(v) for n, v in json.loads(params).items() if isinstance(v, (int, float))}
-        out.append((stage, json.dumps(p, sort_keys=True), p, condition, int(seed), tuple(k[n] for n in kpis)))
+        out.append((stage, json.dumps(p, sort_keys=True), p, condition, seed, tuple(k[n] for n in kpis)))
     return out
 
 

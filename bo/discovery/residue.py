@@ -36,7 +36,6 @@ Stores are opened read-only, so a running campaign is not disturbed.
 """
 from __future__ import annotations
 
-import json
 import math
 from collections import defaultdict
 from dataclasses import dataclass
@@ -45,7 +44,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from bo.campaign.progress import open_read_only
+from bo.campaign.progress import finished_runs
 from bo.screening.effects import least_squares
 from kpi.loadcell import discharge_jammed
 from torchdem.errors import ConfigError
@@ -168,20 +167,12 @@ def lab_residue(measured: MeasuredData) -> dict[str, tuple[float, float]]:
 
 
 def _store_runs(path: Path) -> list[ResidueRun]:
-    conn = open_read_only(path, "residue_check")
-    try:
-        rows = conn.execute("SELECT stage, condition, params, kpis FROM evaluations "
-                            "WHERE status = 'done' AND kpis IS NOT NULL ORDER BY task_id").fetchall()
-    finally:
-        conn.close()
     out = []
-    for stage, condition, params, values in rows:
-        k = {key: math.nan if v is None else float(v) for key, v in json.loads(values).items()}
+    for stage, condition, _, p, k in finished_runs(path, "residue_check"):
         theta, fill, lower = (k.get(n, math.nan) for n in ("shear_angle_deg", "fill_mass_full_kg",
                                                           "mass_lower_box_full_kg"))
         if discharge_jammed(k) or not (0 < theta < 90 and 0 <= lower <= fill):
             continue
-        p = {n: float(v) for n, v in json.loads(params).items() if isinstance(v, (int, float))}
         out.append(ResidueRun(stage, condition, p, residue_per_slope(fill, lower, theta, str(path))))
     return out
 
