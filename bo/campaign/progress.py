@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import median
 
-from bo.campaign.store import affinity_distance
+from bo.campaign.store import RECORD_COLUMNS, EvaluationRecord, affinity_distance, record_from_row
 from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.errors import ConfigError
 
@@ -152,6 +152,29 @@ def finished_runs(path: Path, source: str = "store_progress") -> list[tuple[str,
              {n: float(v) for n, v in json.loads(params).items() if isinstance(v, (int, float))},
              {k: float("nan") if v is None else float(v) for k, v in json.loads(values).items()})
             for stage, condition, seed, params, values in rows]
+
+
+def done_records(path: Path, stage: str, source: str = "store_progress") -> list[EvaluationRecord]:
+    """Every finished run of ``stage`` in a store, as records, in task order, read only (a shipped or
+    running store is not written, and no config hash is asked for: the caller compares
+    :func:`config_hash_of` with its own)."""
+    conn = open_read_only(path, source)
+    try:
+        rows = conn.execute(f"SELECT {RECORD_COLUMNS} FROM evaluations WHERE stage = ? AND status = 'done' "
+                            "AND kpis IS NOT NULL ORDER BY task_id", (stage,)).fetchall()
+    finally:
+        conn.close()
+    return [record_from_row(r) for r in rows]
+
+
+def config_hash_of(path: Path, source: str = "store_progress") -> str | None:
+    """The config hash a store was created with, read only."""
+    conn = open_read_only(path, source)
+    try:
+        row = conn.execute("SELECT value FROM meta WHERE key = 'config_hash'").fetchone()
+    finally:
+        conn.close()
+    return None if row is None else row[0]
 
 
 def store_progress(path: str | Path) -> StoreProgress:

@@ -276,6 +276,18 @@ def _kpis_from_json(text: str | None) -> dict[str, float] | None:
     return {k: (math.nan if v is None else float(v)) for k, v in json.loads(text).items()}
 
 
+#: The ``evaluations`` columns of an :class:`EvaluationRecord`, in its fields' order.
+RECORD_COLUMNS = ("task_id, stage, batch_key, point_index, params, seed, condition, config_hash, status, kpis, "
+                  "error, wall_time, code_version, created_at, claimed_by, claimed_at, finished_at, attempts")
+
+
+def record_from_row(row: Sequence) -> "EvaluationRecord":
+    """The record of a row selected as :data:`RECORD_COLUMNS` (parameters and KPIs parsed, a KPI
+    stored as null NaN)."""
+    return EvaluationRecord(row[0], row[1], row[2], row[3], json.loads(row[4]), row[5], row[6], row[7], row[8],
+                            _kpis_from_json(row[9]), *row[10:])
+
+
 @dataclass(frozen=True)
 class EvaluationRecord:
     """One row of the ``evaluations`` table (times in Unix seconds, wall time in seconds)."""
@@ -879,15 +891,10 @@ class CampaignStore:
         where = (" WHERE " + " AND ".join(clauses)) if clauses else ""
         conn = self._connect()
         try:
-            rows = conn.execute(
-                "SELECT task_id, stage, batch_key, point_index, params, seed, condition, "
-                "config_hash, status, kpis, error, wall_time, code_version, created_at, "
-                "claimed_by, claimed_at, finished_at, attempts FROM evaluations" + where +
-                " ORDER BY task_id", args).fetchall()
+            rows = conn.execute(f"SELECT {RECORD_COLUMNS} FROM evaluations{where} ORDER BY task_id", args).fetchall()
         finally:
             conn.close()
-        return [EvaluationRecord(r[0], r[1], r[2], r[3], json.loads(r[4]), r[5], r[6], r[7], r[8],
-                                 _kpis_from_json(r[9]), *r[10:]) for r in rows]
+        return [record_from_row(r) for r in rows]
 
     def arrays(self, stage: str | None = None, *, batch_key: str | None = None,
                condition: str | None = None, param_names: Sequence[str] | None = None,

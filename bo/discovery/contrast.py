@@ -181,9 +181,36 @@ def _short(kpi: str) -> str:
             "mass_flow_rate_full_kg_s": "flow, kg/s", "mass_lower_box_full_kg": "lower box, kg"}.get(kpi, kpi)
 
 
-def format_contrast(check: ContrastCheck, by_stage: bool = False) -> str:
+def set_labels(sets: Sequence[ContrastSet]) -> list[str]:
+    """A short name of each set: the parameters whose values differ between the sets of its store and
+    stage, as ``name=value``: where it leaves the value most of them share, or, for a parameter without
+    such a value, its own (``"(only set)"`` when its store and stage hold one set, ``"(common)"`` for
+    the set of the shared values)."""
+    labels = []
+    for s in sets:
+        peers = [t for t in sets if t.store == s.store and t.stage == s.stage]
+        if len(peers) == 1:
+            labels.append("(only set)")
+            continue
+        names = sorted(set().union(*(t.params for t in peers)))
+        varying = [n for n in names if len({t.params.get(n) for t in peers}) > 1]
+        values = {n: [t.params.get(n) for t in peers] for n in varying}
+        # a value that more peers share than any other is the common one, and a set is labelled by where
+        # it leaves it; without one (two sets, say), by the value it has
+        def common(n):
+            counts = {v: values[n].count(v) for v in values[n]}
+            top = max(counts.values())
+            modes = [v for v, c in counts.items() if c == top]
+            return modes[0] if len(modes) == 1 else None
+        own = [n for n in varying if s.params.get(n) is not None and s.params[n] != common(n)]
+        labels.append(", ".join(f"{n}={s.params[n]:.4g}" for n in own) or "(common)")
+    return labels
+
+
+def format_contrast(check: ContrastCheck, by_stage: bool = False, by_set: bool = False) -> str:
     """Markdown: per KPI the lab's contrast and the model's over the sets, how many agree with the
-    lab's; ``by_stage``: then the mean contrast per stage."""
+    lab's; ``by_stage``: then the mean contrast per stage; ``by_set``: then every set's C, its DEM
+    standard error, and ``*`` where it agrees with the lab's."""
     a, b = check.between
     lines = [f"## Contrast between conditions, C = KPI({a}) - KPI({b}), at each parameter set", "",
              "Stores: " + ", ".join(check.stores), "",
@@ -208,4 +235,13 @@ def format_contrast(check: ContrastCheck, by_stage: bool = False) -> str:
                 mine = [s for s in sets if s.store == store]
                 lines.append(f"| {Path(store).name} | {stage} | {len(mine)} | "
                              + " | ".join(f"{np.mean([s.contrast(k) for s in mine]):+.2f}" for k in check.kpis) + " |")
+    if by_set:
+        se = {k: check.standard_error(k) for k in check.kpis}
+        agree = {k: check.consistent(k) for k in check.kpis}
+        lines += ["", "C per set (DEM standard error; * agrees with the lab's)", "",
+                  f"| store | stage | set | runs {a} / {b} | " + " | ".join(_short(k) for k in check.kpis) + " |",
+                  "| --- | --- | --- | ---: |" + " ---: |" * len(check.kpis)]
+        for i, (s, label) in enumerate(zip(check.sets, set_labels(check.sets))):
+            lines.append(f"| {Path(s.store).name} | {s.stage} | {label} | {s.runs('a')} / {s.runs('b')} | " + " | ".join(
+                f"{s.contrast(k):+.2f} ({se[k][i]:.2f}){'*' if agree[k][i] else ''}" for k in check.kpis) + " |")
     return "\n".join(lines) + "\n"

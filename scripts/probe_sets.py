@@ -1,0 +1,211 @@
+"""Named parameter sets run on chosen conditions and seeds, kept in a campaign store: a designed probe
+that resumes, instead of one-off runs.
+
+A probe file (YAML) names the model (the calibrate config's Hydra overrides), the conditions, the seeds,
+a ``base`` set and the sets to run, each as changes to the base. Every set is stored as the base with
+its changes, under stage ``probe`` and its own name, so all sets name the same parameters and a set
+differs from the base exactly where the file says. The runs are the runs a campaign task of these
+parameters makes (same model, same store hash as ``torchdem-calibrate`` with these overrides). A rerun
+with the same store runs only what is missing; a change of a set's values needs a new set name.
+
+    python scripts/probe_sets.py campaigns/table2/probe_contrast.yaml --workers 2
+    python scripts/contrast_check.py campaigns/table2/probe_contrast.sqlite --by-set   # C per set
+
+Probe file::
+
+    overrides: [profile=lab_box]
+    store: campaigns/table2/probe_contrast.sqlite   # relative to the working directory
+    conditions: [75-25, 25-75]
+    seeds: [0, 1]
+    base: {geometry_upper_width: 0.3431, fill_friction: 0.654}
+    sets:
+      base: {}
+      pellets_less_elastic: {e_pp: 0.6}
+    sets_seeds: {base: [0, 1, 2]}     # optional: set -> its own seeds
+    adopt: {set: base, store: campaigns/table2/lab_box.sqlite, stage: validation}   # optional
+
+``adopt`` takes a set's runs from another store of the same model (a campaign's validation runs of the
+base, say) instead of running them: the runs of that stage whose parameters equal the set's on every
+parameter they name (the others must be the model's own values: the file vouches for that), on the
+set's seeds and conditions.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import yaml
+
+from torchdem.errors import ConfigError, out_of_range
+
+#: The store stage of a probe's runs.
+STAGE = "probe"
+
+
+def load_probe(path: str | Path) -> dict[str, Any]:
+    """The probe file, checked: ``{"overrides", "store", "conditions", "seeds", "sets"}`` with
+    ``sets`` name -> (full parameter set, its seeds), every set the base with its changes."""
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the probe file ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+    source = str(path)
+    if not isinstance(raw, Mapping):
+        raise out_of_range("probe file", type(raw).__name__, "a mapping with overrides, store, conditions, seeds, "
+                           "base and sets", source)
+    missing = [k for k in ("store", "conditions", "seeds", "sets") if k not in raw]
+    if missing:
+        raise ConfigError(f"{source}: missing {missing}; a probe file needs store, conditions, seeds and sets")
+    overrides = raw.get("overrides") or []
+    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+        raise out_of_range("overrides", overrides, "a list of Hydra overrides, e.g. [profile=lab_box]", source)
+    conditions = raw["conditions"]
+    if not isinstance(conditions, list) or not conditions or not all(isinstance(c, str) for c in conditions):
+        raise out_of_range("conditions", conditions, "a non-empty list of condition names, e.g. [75-25, 25-75]",
+                           source)
+
+    def seed_list(value, key: str) -> list[int]:
+        if (not isinstance(value, list) or not value or len(set(value)) != len(value)
+                or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in value)):
+            raise out_of_range(key, value, "a non-empty list of distinct integers >= 0", source)
+        return list(value)
+
+    seeds = seed_list(raw["seeds"], "seeds")
+    base = _parameters(raw.get("base") or {}, "base", source)
+    sets_raw = raw["sets"]
+    if not isinstance(sets_raw, Mapping) or not sets_raw:
+        raise out_of_range("sets", sets_raw, "a mapping of set names to parameter changes ({} for the base itself)",
+                           source)
+    changes = {str(name): _parameters(v or {}, f"sets.{name}", source) for name, v in sets_raw.items()}
+    names = sorted(set(base).union(*changes.values()))
+    if not names:
+        raise ConfigError(f"{source}: no parameter is named in base or sets; name at least one (the base's values "
+                          "of the ones the sets change)")
+    unbased = sorted(set(names) - set(base))
+    if unbased:
+        raise ConfigError(f"{source}: {unbased} are changed by a set but have no base value; give every parameter "
+                          "a set changes its base value under base, so that all sets name the same parameters")
+    per_set = raw.get("sets_seeds") or {}
+    if not isinstance(per_set, Mapping) or set(per_set) - set(changes):
+        raise out_of_range("sets_seeds", per_set, f"a mapping of some of the sets {sorted(changes)} to seed lists",
+                           source)
+    sets = {name: ({**base, **c}, seed_list(per_set[name], f"sets_seeds.{name}") if name in per_set else seeds)
+            for name, c in changes.items()}
+    adopt = raw.get("adopt")
+    if adopt is not None and (not isinstance(adopt, Mapping) or set(adopt) != {"set", "store", "stage"}
+                              or adopt["set"] not in sets):
+        raise out_of_range("adopt", adopt, f"a mapping with set (one of {sorted(sets)}), store and stage", source)
+    return {"overrides": list(overrides), "store": str(raw["store"]), "conditions": list(conditions),
+            "seeds": seeds, "sets": sets, "adopt": dict(adopt) if adopt else None}
+
+
+def _parameters(value, key: str, source: str) -> dict[str, float]:
+    if not isinstance(value, Mapping):
+        raise out_of_range(key, value, "a mapping of parameter names to numbers", source)
+    out = {}
+    for name, v in value.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            raise out_of_range(f"{key}.{name}", v, "a finite number", source)
+        out[str(name)] = float(v)
+    return out
+
+
+def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> "CampaignStore":  # noqa: F821
+    """Every set's missing runs, in the probe's store; returns the store."""
+    from bo.campaign.executor import run_pending
+    from bo.campaign.store import CampaignStore
+    from bo.cli.calibrate import calibration_model_for
+    from bo.cli.common import MODEL_KEYS, ExecutorSettings, checkpoint_dir_for, config_hash, executor_from
+
+    plain, model, _ = calibration_model_for(probe["overrides"])
+    unknown = [c for c in probe["conditions"] if c not in model.conditions]
+    if unknown:
+        raise out_of_range("conditions", unknown, f"conditions of the model {sorted(model.conditions)}", "probe file")
+    path = Path(probe["store"])
+    store = CampaignStore(path, config_hash(plain, MODEL_KEYS + ("measured",)), extra_stages=(STAGE,))
+    for name, (params, seeds) in probe["sets"].items():
+        store.batch(STAGE, name, lambda p=params: [p], seeds=seeds, conditions=probe["conditions"])
+    if probe.get("adopt"):
+        echo(adopt_runs(store, probe))
+    counts = store.counts(STAGE)
+    echo(f"probe: store {path}, {len(probe['sets'])} sets on {probe['conditions']}; "
+         + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    settings = ExecutorSettings(kind="dask" if workers > 1 else "inprocess", batch_size=1, n_workers=workers)
+    with executor_from(settings, model, checkpoints=checkpoint_dir_for(path)) as executor:
+        summary = run_pending(store, executor, STAGE)
+    echo(f"probe: {summary}")
+    return store
+
+
+def adopt_runs(store, probe: Mapping[str, Any]) -> str:
+    """Complete the ``adopt`` set's tasks with the matching done runs of the other store (module
+    docstring); returns a line saying how many."""
+    from bo.campaign.progress import config_hash_of, done_records
+
+    spec = probe["adopt"]
+    params, seeds = probe["sets"][spec["set"]]
+    source = Path(spec["store"])
+    stored_hash = config_hash_of(source, "probe file: adopt")  # read only: a shipped store is not written
+    if stored_hash != store.config_hash:
+        raise ConfigError(f"probe file: adopt: {source} has config hash {stored_hash}, the probe's model "
+                          f"{store.config_hash}: its runs are of another model")
+    runs = done_records(source, spec["stage"], "probe file: adopt")
+    runs = [r for r in runs if r.seed in seeds and r.condition in probe["conditions"] and r.params
+            and all(n in params and math.isclose(v, params[n], rel_tol=1e-12, abs_tol=0.0)
+                    for n, v in r.params.items())]
+    taken = {}
+    for r in runs:  # one run per seed and condition
+        taken.setdefault((r.seed, r.condition), r)
+    n = store.adopt(STAGE, spec["set"], list(taken.values()), str(spec["store"]))
+    return f"probe: set {spec['set']!r}: {n} runs taken from {spec['store']} ({spec['stage']}), {len(taken)} matched"
+
+
+def summary_table(store, probe: Mapping[str, Any], kpis) -> str:
+    """Markdown: per set and condition, the runs that flowed and their KPI means (sd)."""
+    from kpi.loadcell import discharge_jammed
+
+    lines = ["| set | condition | runs (jammed) | " + " | ".join(kpis) + " |",
+             "| --- | --- | ---: |" + " ---: |" * len(kpis)]
+    for name in probe["sets"]:
+        for condition in probe["conditions"]:
+            recs = [r for r in store.records(STAGE, batch_key=name)
+                    if r.condition == condition and r.status == "done" and r.kpis]
+            flowed = [r.kpis for r in recs if not discharge_jammed(r.kpis)]
+            cells = []
+            for k in kpis:
+                v = np.array([f.get(k, math.nan) for f in flowed], dtype=float)
+                cells.append("-" if not len(v) else f"{np.nanmean(v):.2f}" + (f" ({np.nanstd(v, ddof=1):.2f})"
+                                                                                 if len(v) > 1 else ""))
+            lines.append(f"| {name} | {condition} | {len(flowed)} ({len(recs) - len(flowed)}) | " + " | ".join(cells)
+                         + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("probe", help="the probe file (YAML)")
+    parser.add_argument("--workers", type=int, default=1, help="one-thread worker processes (default 1)")
+    parser.add_argument("--store", help="the store, instead of the probe file's")
+    args = parser.parse_args()
+    if args.workers < 1:
+        raise out_of_range("--workers", args.workers, "an integer >= 1", "probe_sets.py")
+    probe = load_probe(args.probe)
+    if args.store:
+        probe["store"] = args.store
+    store = run_probe(probe, args.workers)
+    from torchdem.drawdown import CALIBRATION_KPIS_DEM
+    print(summary_table(store, probe, CALIBRATION_KPIS_DEM), end="")
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except ConfigError as exc:
+        sys.exit(f"probe_sets.py: error: {exc}")

@@ -1,0 +1,119 @@
+"""``scripts/probe_sets.py``: named parameter sets in a campaign store, on the calibration's own model
+(the mini box of ``profile=smoke`` here).
+
+- Each set is stored as the base with its changes, so every set names the same parameters; the changes
+  reach the DEM (the slippery set's fill empties further, as in tests/test_run_parameter_set.py).
+- A rerun runs nothing; ``adopt`` takes a set's runs from another store of the same model instead of
+  running them, and refuses a store of another model; ``contrast_check --by-set`` names each set by
+  what it changes.
+- A bad probe file names the key, the value and what is allowed.
+"""
+import importlib.util
+import json
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from torchdem.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "probe_sets.py"
+_spec = importlib.util.spec_from_file_location("probe_sets", SCRIPT)
+probe_sets = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(probe_sets)
+
+
+def _write(tmp_path, name, **doc) -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], capture_output=True, text=True, cwd=ROOT)
+
+
+def _rows(store: Path) -> list[tuple]:
+    conn = sqlite3.connect(store)
+    try:
+        return conn.execute("SELECT batch_key, params, condition, seed, status, kpis, claimed_by FROM evaluations "
+                            "ORDER BY task_id").fetchall()
+    finally:
+        conn.close()
+
+
+@pytest.mark.xdist_group("probe_sets")
+def test_sets_run_once_reach_the_dem_and_can_be_adopted(tmp_path):
+    store = tmp_path / "probe.sqlite"
+    probe = _write(tmp_path, "probe.yaml", overrides=["profile=smoke"], store=str(store), conditions=["50-50"],
+                   seeds=[0], base={"mu_s_pp": 0.9, "mu_s_ss": 0.9},
+                   sets={"base": {}, "slippery": {"mu_s_pp": 0.1, "mu_s_ss": 0.1}})
+    out = _run(probe)
+    assert out.returncode == 0, out.stderr
+    assert "n_done=2" in out.stdout and "| slippery | 50-50 | 1 (0) |" in out.stdout
+    rows = {r[0]: r for r in _rows(store)}
+    assert json.loads(rows["base"][1]) == {"mu_s_pp": 0.9, "mu_s_ss": 0.9}
+    assert json.loads(rows["slippery"][1]) == {"mu_s_pp": 0.1, "mu_s_ss": 0.1}
+    lower = {k: json.loads(r[5])["mass_lower_box_kg"] for k, r in rows.items()}
+    assert lower["slippery"] > lower["base"] + 0.02  # 0.715 against 0.672 kg at seed 0
+
+    again = _run(probe)  # the store has every run: nothing runs
+    assert again.returncode == 0, again.stderr
+    assert "done 2" in again.stdout and "n_done=0" in again.stdout
+
+    # a second probe takes the base's run from the first store instead of running it
+    second = tmp_path / "second.sqlite"
+    adopting = _write(tmp_path, "adopt.yaml", overrides=["profile=smoke"], store=str(second), conditions=["50-50"],
+                      seeds=[0], base={"mu_s_pp": 0.9, "mu_s_ss": 0.9}, sets={"base": {}},
+                      adopt={"set": "base", "store": str(store), "stage": "probe"})
+    before = store.read_bytes()
+    out = _run(adopting)
+    assert out.returncode == 0, out.stderr
+    assert "1 runs taken from" in out.stdout and "n_done=0" in out.stdout
+    assert store.read_bytes() == before  # the source is only read
+    (row,) = _rows(second)
+    assert row[4] == "done" and row[6].startswith("imported:") and json.loads(row[5]) == json.loads(rows["base"][5])
+
+    # a store of another model (a shorter time step) is refused with both hashes
+    other = _write(tmp_path, "other.yaml", overrides=["profile=smoke", "sim.time_step_fraction=0.1"],
+                   store=str(tmp_path / "third.sqlite"), conditions=["50-50"], seeds=[0],
+                   base={"mu_s_pp": 0.9, "mu_s_ss": 0.9}, sets={"base": {}},
+                   adopt={"set": "base", "store": str(store), "stage": "probe"})
+    out = _run(other)
+    assert out.returncode != 0 and "its runs are of another model" in out.stderr and "Traceback" not in out.stderr
+
+    # contrast_check names each set by what it changes (one condition here: no contrast, but the labels)
+    from bo.discovery.contrast import ContrastSet, set_labels
+    sets = [ContrastSet(str(store), "probe", json.loads(rows[k][1]), {}, {}) for k in ("base", "slippery")]
+    assert set_labels(sets) == ["mu_s_pp=0.9, mu_s_ss=0.9", "mu_s_pp=0.1, mu_s_ss=0.1"]
+
+
+def test_labels_name_where_a_set_leaves_the_common_values():
+    from bo.discovery.contrast import ContrastSet, set_labels
+    base = {"a": 1.0, "b": 2.0, "c": 3.0}
+    sets = [ContrastSet("s", "probe", p, {}, {}) for p in (base, {**base, "a": 0.5}, {**base, "b": 9.0})]
+    sets.append(ContrastSet("t", "validation", base, {}, {}))
+    assert set_labels(sets) == ["(common)", "a=0.5", "b=9", "(only set)"]
+
+
+@pytest.mark.parametrize("doc, message", [
+    ({"store": "s", "conditions": ["50-50"], "seeds": [0]}, r"missing \['sets'\]"),
+    ({"store": "s", "conditions": ["50-50"], "seeds": [0, 0], "sets": {"x": {}}, "base": {"e_pp": 0.5}},
+     "seeds = \\[0, 0\\] is not allowed; expected a non-empty list of distinct integers >= 0"),
+    ({"store": "s", "conditions": ["50-50"], "seeds": [0], "base": {"e_pp": 0.5}, "sets": {"x": {"mu_r_pp": 0.2}}},
+     r"\['mu_r_pp'\] are changed by a set but have no base value"),
+    ({"store": "s", "conditions": ["50-50"], "seeds": [0], "base": {"e_pp": "high"}, "sets": {"x": {}}},
+     "base.e_pp = 'high' is not allowed; expected a finite number"),
+    ({"store": "s", "conditions": ["50-50"], "seeds": [0], "base": {"e_pp": 0.5}, "sets": {"x": {}},
+      "adopt": {"set": "y", "store": "t", "stage": "validation"}}, "adopt = .* a mapping with set \\(one of \\['x'\\]\\)"),
+])
+def test_a_bad_probe_file_names_the_key_and_what_is_allowed(tmp_path, doc, message):
+    path = _write(tmp_path, "bad.yaml", **doc)
+    with pytest.raises(ConfigError, match=message):
+        probe_sets.load_probe(path)
+    with pytest.raises(ConfigError, match="cannot read the probe file"):
+        probe_sets.load_probe(tmp_path / "missing.yaml")
