@@ -174,9 +174,9 @@ def summary_table(store, probe: Mapping[str, Any], kpis) -> str:
     lines = ["| set | condition | runs (jammed) | " + " | ".join(kpis) + " |",
              "| --- | --- | ---: |" + " ---: |" * len(kpis)]
     for name in probe["sets"]:
+        done = store.records(STAGE, batch_key=name, status="done")
         for condition in probe["conditions"]:
-            recs = [r for r in store.records(STAGE, batch_key=name)
-                    if r.condition == condition and r.status == "done" and r.kpis]
+            recs = [r for r in done if r.condition == condition and r.kpis]
             flowed = [r.kpis for r in recs if not discharge_jammed(r.kpis)]
             cells = []
             for k in kpis:

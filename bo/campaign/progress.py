@@ -142,26 +142,20 @@ def open_read_only(path: Path, source: str = "store_progress") -> sqlite3.Connec
 def finished_runs(path: Path, source: str = "store_progress") -> list[tuple[str, str, int, dict, dict]]:
     """``(stage, condition, seed, parameters, KPIs)`` of every finished run of a store, in task order, read
     only: the numeric parameters as floats, the KPIs as floats (a KPI stored as null is NaN)."""
-    conn = open_read_only(path, source)
-    try:
-        rows = conn.execute("SELECT stage, condition, seed, params, kpis FROM evaluations "
-                            "WHERE status = 'done' AND kpis IS NOT NULL ORDER BY task_id").fetchall()
-    finally:
-        conn.close()
-    return [(stage, condition, int(seed),
-             {n: float(v) for n, v in json.loads(params).items() if isinstance(v, (int, float))},
-             {k: float("nan") if v is None else float(v) for k, v in json.loads(values).items()})
-            for stage, condition, seed, params, values in rows]
+    return [(r.stage, r.condition, int(r.seed),
+             {n: float(v) for n, v in r.params.items() if isinstance(v, (int, float))}, r.kpis)
+            for r in done_records(path, None, source)]
 
 
-def done_records(path: Path, stage: str, source: str = "store_progress") -> list[EvaluationRecord]:
-    """Every finished run of ``stage`` in a store, as records, in task order, read only (a shipped or
-    running store is not written, and no config hash is asked for: the caller compares
-    :func:`config_hash_of` with its own)."""
+def done_records(path: Path, stage: str | None = None, source: str = "store_progress") -> list[EvaluationRecord]:
+    """Every finished run (of ``stage``; None: of every stage) in a store, as records, in task order,
+    read only (a shipped or running store is not written, and no config hash is asked for: the caller
+    compares :func:`config_hash_of` with its own)."""
+    where, args = ("", ()) if stage is None else (" AND stage = ?", (stage,))
     conn = open_read_only(path, source)
     try:
-        rows = conn.execute(f"SELECT {RECORD_COLUMNS} FROM evaluations WHERE stage = ? AND status = 'done' "
-                            "AND kpis IS NOT NULL ORDER BY task_id", (stage,)).fetchall()
+        rows = conn.execute(f"SELECT {RECORD_COLUMNS} FROM evaluations WHERE status = 'done' AND kpis IS NOT NULL"
+                            f"{where} ORDER BY task_id", args).fetchall()
     finally:
         conn.close()
     return [record_from_row(r) for r in rows]
