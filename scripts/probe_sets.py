@@ -25,9 +25,10 @@ Probe file::
     adopt: {set: base, store: campaigns/table2/lab_box.sqlite, stage: validation}   # optional
 
 ``adopt`` takes a set's runs from another store of the same model (a campaign's validation runs of the
-base, say) instead of running them: the runs of that stage whose parameters equal the set's on every
+base, say) instead of running them: the runs of that stage (or of a list of stages, e.g. ``[verification,
+validation]`` for a calibrated set on every condition) whose parameters equal the set's on every
 parameter they name (the others must be the model's own values: the file vouches for that), on the
-set's seeds and conditions.
+set's seeds and conditions; of several runs of one seed and condition, the first stage's.
 """
 from __future__ import annotations
 
@@ -102,6 +103,13 @@ def load_probe(path: str | Path) -> dict[str, Any]:
     if adopt is not None and (not isinstance(adopt, Mapping) or set(adopt) != {"set", "store", "stage"}
                               or adopt["set"] not in sets):
         raise out_of_range("adopt", adopt, f"a mapping with set (one of {sorted(sets)}), store and stage", source)
+    if adopt is not None:
+        stages = [adopt["stage"]] if isinstance(adopt["stage"], str) else adopt["stage"]
+        if (not isinstance(stages, list) or not stages or len(set(map(str, stages))) != len(stages)
+                or not all(isinstance(s, str) and s for s in stages)):
+            raise out_of_range("adopt.stage", adopt["stage"], "a stage name or a non-empty list of distinct stage "
+                               "names, e.g. [verification, validation]", source)
+        adopt = {**adopt, "stage": list(stages)}
     return {"overrides": list(overrides), "store": str(raw["store"]), "conditions": list(conditions),
             "seeds": seeds, "sets": sets, "adopt": dict(adopt) if adopt else None}
 
@@ -156,7 +164,7 @@ def adopt_runs(store, probe: Mapping[str, Any]) -> str:
     if stored_hash != store.config_hash:
         raise ConfigError(f"probe file: adopt: {source} has config hash {stored_hash}, the probe's model "
                           f"{store.config_hash}: its runs are of another model")
-    runs = done_records(source, spec["stage"], "probe file: adopt")
+    runs = [r for stage in spec["stage"] for r in done_records(source, stage, "probe file: adopt")]
     runs = [r for r in runs if r.seed in seeds and r.condition in probe["conditions"] and r.params
             and all(n in params and math.isclose(v, params[n], rel_tol=1e-12, abs_tol=0.0)
                     for n, v in r.params.items())]
@@ -164,7 +172,8 @@ def adopt_runs(store, probe: Mapping[str, Any]) -> str:
     for r in runs:  # one run per seed and condition
         taken.setdefault((r.seed, r.condition), r)
     n = store.adopt(STAGE, spec["set"], list(taken.values()), str(spec["store"]))
-    return f"probe: set {spec['set']!r}: {n} runs taken from {spec['store']} ({spec['stage']}), {len(taken)} matched"
+    return (f"probe: set {spec['set']!r}: {n} runs taken from {spec['store']} ({', '.join(spec['stage'])}), "
+            f"{len(taken)} matched")
 
 
 def summary_table(store, probe: Mapping[str, Any], kpis) -> str:

@@ -69,11 +69,11 @@ def test_sets_run_once_reach_the_dem_and_can_be_adopted(tmp_path):
     second = tmp_path / "second.sqlite"
     adopting = _write(tmp_path, "adopt.yaml", overrides=["profile=smoke"], store=str(second), conditions=["50-50"],
                       seeds=[0], base={"mu_s_pp": 0.9, "mu_s_ss": 0.9}, sets={"base": {}},
-                      adopt={"set": "base", "store": str(store), "stage": "probe"})
+                      adopt={"set": "base", "store": str(store), "stage": ["validation", "probe"]})
     before = store.read_bytes()
     out = _run(adopting)
     assert out.returncode == 0, out.stderr
-    assert "1 runs taken from" in out.stdout and "n_done=0" in out.stdout
+    assert "1 runs taken from" in out.stdout and "(validation, probe)" in out.stdout and "n_done=0" in out.stdout
     assert store.read_bytes() == before  # the source is only read
     (row,) = _rows(second)
     assert row[4] == "done" and row[6].startswith("imported:") and json.loads(row[5]) == json.loads(rows["base"][5])
@@ -110,6 +110,9 @@ def test_labels_name_where_a_set_leaves_the_common_values():
      "base.e_pp = 'high' is not allowed; expected a finite number"),
     ({"store": "s", "conditions": ["50-50"], "seeds": [0], "base": {"e_pp": 0.5}, "sets": {"x": {}},
       "adopt": {"set": "y", "store": "t", "stage": "validation"}}, "adopt = .* a mapping with set \\(one of \\['x'\\]\\)"),
+    ({"store": "s", "conditions": ["50-50"], "seeds": [0], "base": {"e_pp": 0.5}, "sets": {"x": {}},
+      "adopt": {"set": "x", "store": "t", "stage": ["validation", "validation"]}},
+     r"adopt.stage = \['validation', 'validation'\] is not allowed; expected a stage name or a non-empty list"),
 ])
 def test_a_bad_probe_file_names_the_key_and_what_is_allowed(tmp_path, doc, message):
     path = _write(tmp_path, "bad.yaml", **doc)
