@@ -11,6 +11,10 @@ with the same store runs only what is missing; a change of a set's values needs 
     python scripts/probe_sets.py campaigns/table2/probe_contrast.yaml --workers 2
     python scripts/contrast_check.py campaigns/table2/probe_contrast.sqlite --by-set   # C per set
 
+After the runs it prints each set's KPI means per condition and their relative errors against the
+measured data (``--data``; default the paper's Table 2), with each set's largest error over the conditions
+but ``--calibration-condition``.
+
 Probe file::
 
     overrides: [profile=lab_box]
@@ -197,11 +201,48 @@ def summary_table(store, probe: Mapping[str, Any], kpis) -> str:
     return "\n".join(lines) + "\n"
 
 
+def error_table(store, probe: Mapping[str, Any], kpis, measured, calibration_condition: str | None = None) -> str:
+    """Markdown: per set and condition, each KPI's mean relative error against the measured data, in %
+    (``*``: the mean lies outside the lab's 95 % CI), and per set the largest |error| over its
+    conditions but ``calibration_condition``: how far a set is from validating, as the paper's Table
+    A.6 reports it."""
+    from bo.screening.pipeline import measured_name
+    from kpi.loadcell import discharge_jammed
+
+    lines = ["| set | condition | runs | " + " | ".join(kpis) + " | largest error |",
+             "| --- | --- | ---: |" + " ---: |" * (len(kpis) + 1)]
+    for name in probe["sets"]:
+        done = store.records(STAGE, batch_key=name, status="done")
+        worst = (0.0, "")
+        for condition in probe["conditions"]:
+            lab = measured.condition(condition).kpis if condition in measured.names else {}
+            flowed = [r.kpis for r in done if r.condition == condition and r.kpis and not discharge_jammed(r.kpis)]
+            cells = []
+            for k in kpis:
+                ref = lab.get(measured_name(k))
+                v = np.array([f.get(k, math.nan) for f in flowed], dtype=float)
+                if ref is None or not len(v) or not np.isfinite(v).any() or ref.mean == 0:
+                    cells.append("-")
+                    continue
+                mean = float(np.nanmean(v))
+                error = 100.0 * (mean - ref.mean) / ref.mean
+                cells.append(f"{error:+.1f}" + ("*" if abs(mean - ref.mean) > ref.ci95 else ""))
+                if condition != calibration_condition and abs(error) > abs(worst[0]):
+                    worst = (error, f"{condition} {k}")
+            lines.append(f"| {name} | {condition} | {len(flowed)} | " + " | ".join(cells) + " | |")
+        if worst[1]:
+            lines[-1] = lines[-1][:-3] + f"| {worst[0]:+.1f} % ({worst[1]}) |"
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("probe", help="the probe file (YAML)")
     parser.add_argument("--workers", type=int, default=1, help="one-thread worker processes (default 1)")
     parser.add_argument("--store", help="the store, instead of the probe file's")
+    parser.add_argument("--data", default=None, help="measured-data JSON for the errors (default: the paper's Table 2)")
+    parser.add_argument("--calibration-condition", default=None,
+                        help="a condition left out of each set's largest error (the one calibrated on, e.g. 50-50)")
     args = parser.parse_args()
     if args.workers < 1:
         raise out_of_range("--workers", args.workers, "an integer >= 1", "probe_sets.py")
@@ -211,6 +252,10 @@ def main() -> None:
     store = run_probe(probe, args.workers)
     from torchdem.drawdown import CALIBRATION_KPIS_DEM
     print(summary_table(store, probe, CALIBRATION_KPIS_DEM), end="")
+    from torchdem.measured import load_measured
+    print("\nRelative error against the measured data, % (* outside its 95 % CI):\n")
+    print(error_table(store, probe, CALIBRATION_KPIS_DEM, load_measured(args.data), args.calibration_condition),
+          end="")
 
 
 if __name__ == "__main__":

@@ -57,13 +57,23 @@ def test_sets_run_once_reach_the_dem_and_can_be_adopted(tmp_path):
     assert "n_done=2" in out.stdout and "| slippery | 50-50 | 1 (0) |" in out.stdout
     rows = {r[0]: r for r in _rows(store)}
     assert json.loads(rows["base"][1]) == {"mu_s_pp": 0.9, "mu_s_ss": 0.9}
+    # the errors against Table 2's 50-50 (angle of repose 29.47 deg), each set's largest over its conditions
+    aor = json.loads(rows["base"][5])["angle_of_repose_deg"]
+    (line,) = [x for x in out.stdout.splitlines() if x.startswith("| base | 50-50 | 1 | ")]
+    error = 100 * (aor - 29.47) / 29.47
+    assert line.split("|")[4].strip().rstrip("*") == f"{error:+.1f}"
+    assert line.split("|")[4].strip().endswith("*") == (abs(aor - 29.47) > 0.48)
+    cells = [float(c.strip().rstrip("*")) for c in line.split("|")[4:8]]
+    assert line.split("|")[8].strip().startswith(f"{max(cells, key=abs):+.1f} % (50-50 ")
     assert json.loads(rows["slippery"][1]) == {"mu_s_pp": 0.1, "mu_s_ss": 0.1}
     lower = {k: json.loads(r[5])["mass_lower_box_kg"] for k, r in rows.items()}
     assert lower["slippery"] > lower["base"] + 0.02  # 0.715 against 0.672 kg at seed 0
 
-    again = _run(probe)  # the store has every run: nothing runs
+    again = _run(probe, "--calibration-condition", "50-50")  # the store has every run: nothing runs
     assert again.returncode == 0, again.stderr
     assert "done 2" in again.stdout and "n_done=0" in again.stdout
+    (line,) = [x for x in again.stdout.splitlines() if x.startswith("| base | 50-50 | 1 | ")]
+    assert line.endswith("| |")  # the calibration's condition is not in a set's largest error
 
     # a second probe takes the base's run from the first store instead of running it
     second = tmp_path / "second.sqlite"
