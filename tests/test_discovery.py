@@ -447,6 +447,36 @@ def test_no_candidates_measures_the_discrepancy_only(tmp_path):
     assert result.evaluations == {"discrepancy": 9, "total": 9}  # 3 conditions x 3 replicates, nothing else
 
 
+def _refit_alone(tmp_path, lab, calibrated_changes: dict, refit: tuple):
+    settings = DiscoverySettings(kpis=KPIS, seeds=(0, 1, 2), fit_seeds=(0, 1), candidates=(), refit=refit)
+    store = CampaignStore(tmp_path / "d.sqlite", "known", extra_stages=discovery_stages())
+    executor_for = lambda model: InProcessExecutor(functools.partial(km.known_batch), batch_size=12)  # noqa: E731
+    calibrated = {**_known_model().fixed, **km.TRUE, **calibrated_changes}
+    return run_discovery(store, executor_for, _known_model(), calibrated, lab, settings, echo=lambda s: None)
+
+
+def test_refit_alone_finds_a_parameter_the_calibration_set_wrong(tmp_path):
+    """The calibrated set has the pellets' friction 15 % high, the lab is the model at the truth: refitting
+    it on the other conditions predicts every held-out one better, and the fit on all three finds it."""
+    result = _refit_alone(tmp_path, _lab({}), {"mu_s_pp": km.TRUE["mu_s_pp"] * 1.15}, ("mu_s_pp",))
+    assert result.discrepancy.significant and result.cause is None and result.gain == ()
+    (refit,) = result.hypotheses
+    assert refit.name == PARAMETERS and refit.parameters == ("mu_s_pp",)
+    assert "predicts the held-out conditions better than the calibrated set" in result.explanation
+    assert refit.score < 0.2 * result.discrepancy.chi2
+    assert refit.fitted_all["mu_s_pp"] == pytest.approx(km.TRUE["mu_s_pp"], rel=0.05)
+
+
+def test_refit_alone_does_not_explain_a_misfit_outside_the_refit_parameters(tmp_path):
+    """The sinter 25 % heavier in the lab (a mechanism, not a value): refitting a parameter that moves no
+    KPI (mu_r_ss in the known model) cannot predict the held-out conditions better."""
+    lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
+    result = _refit_alone(tmp_path, lab, {}, ("mu_r_ss",))
+    assert result.discrepancy.significant and result.cause is None
+    assert "does not predict the held-out conditions better" in result.explanation
+    assert result.evaluations["discovery-parameters"] > 0
+
+
 def test_the_report_sets_what_the_calibration_s_bounds_allowed_and_the_residue_beside_the_discrepancy(tmp_path):
     """calibration=<calibration.json> with an ``attainable`` list (the shipped lab calibration's): the
     discovery report repeats it, in discovery.md and as discovery.json's calibration_attainable; with a

@@ -26,7 +26,11 @@ returns an executor (``bo.campaign.executor``) that evaluates a ``torchdem.model
 2. Hypotheses (stage ``discovery-<name>``): ``parameters`` (the calibrated parameters named in
    ``settings.refit`` free within ``+- refit_fraction`` of their value; no new physics) and every
    candidate of the registry (``torchdem.mechanisms``; ``settings.candidates`` or all available), each
-   with its extra parameters and prior ranges plus the refit ones. Per hypothesis: a Latin
+   with its extra parameters and prior ranges plus the refit ones. With no candidate
+   (``candidates`` empty) and ``refit`` given, ``parameters`` is fitted alone and
+   :func:`refit_verdict` says whether it predicts the held-out conditions better than the calibrated
+   set: whether the misfit lies in the values a one-condition calibration gave those parameters
+   (the model's parameters, calibrated or held). Per hypothesis: a Latin
    hypercube of ``max(min_points, points_per_parameter x d)`` points, each run on every condition
    with ``fit_seeds``, and one GP per (condition, KPI) (``bo.surrogate.gp``, per-output strategy).
    Leave-one-condition-out: for each condition c, the parameters that minimise the chi^2 of the
@@ -1037,13 +1041,25 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
          f"over these runs)")
     hypotheses: list[HypothesisScore] = []
     cause, explanation, tied, unresolved = None, "", (), ()
-    if not names:
+    if not names and not settings.refit:
         explanation = (f"discovery.candidates = []: only the discrepancy was measured (chi^2 = {discrepancy.chi2:.1f} "
                        f"on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g}); no candidate was scored.")
     elif not discrepancy.significant and not settings.always_score:
         explanation = (f"The model agrees with the measurements within their uncertainty and the DEM's stochasticity "
                        f"(chi^2 = {discrepancy.chi2:.1f} on {discrepancy.dof} cells, p = {discrepancy.p_value:.3g} >= "
                        f"{settings.alpha}): there is nothing to explain, so no candidate was fitted.")
+    elif not names:  # discovery.refit alone: is the misfit in the values the calibration gave these parameters?
+        echo(f"fitting hypotheses: {PARAMETERS} alone (discovery.refit: {', '.join(settings.refit)})")
+        fitted = _fit_hypothesis(PARAMETERS, None, model, context, store, executor_for, calibrated, measured,
+                                 settings, reps, echo)
+        noise = discrepancy.noise.pooled(ReplicateNoise.of(kpis, fitted.groups))
+        discrepancy = _discrepancy(reps, conditions, kpis, lab, noise, settings.alpha, discrepancy.jammed)
+        refit = _score(fitted, kpis, lab, noise, settings.penalty)
+        refit = dataclasses.replace(refit, gain_noise_sd=gain_noise_sd(discrepancy.cells, refit.held_out_cells))
+        hypotheses = [refit]
+        echo(f"  {PARAMETERS}: held-out chi^2 (DEM) " + ", ".join(f"{c} {v:.1f}" for c, v in
+                                                                refit.held_out_chi2.items()))
+        explanation = refit_verdict(refit, discrepancy, settings)
     else:
         echo(f"fitting hypotheses: {PARAMETERS}, " + ", ".join(names))
         fitted = [_fit_hypothesis(PARAMETERS, None, model, context, store, executor_for, calibrated, measured,
@@ -1384,6 +1400,34 @@ def tied_with(best: HypothesisScore, candidates: Sequence[HypothesisScore], refe
         if beats and close:
             out.append(h)
     return sorted(out, key=lambda h: h.score)
+
+
+def refit_verdict(refit: HypothesisScore, discrepancy: Discrepancy, settings: DiscoverySettings) -> str:
+    """``discovery.refit`` without candidates: does fitting the refit parameters on the other conditions
+    predict each condition better than the calibrated set does? The calibrated set's chi^2 on the same
+    cells (the discrepancy's, from its runs) against the refit's held-out chi^2, by step 3's rule: the
+    refit must gain more than ``max(margin, 2 x the gain's DEM-noise sd)``. The calibrated set was fitted
+    on one of these conditions, so the comparison favours it there."""
+    before = {(c.condition, c.kpi): c for c in discrepancy.cells}
+    cells = [c for c in refit.held_out_cells if (c.condition, c.kpi) in before and math.isfinite(c.z)]
+    base = {}
+    for c in cells:
+        base[c.condition] = base.get(c.condition, 0.0) + before[c.condition, c.kpi].z ** 2
+    total = sum(base.values())
+    need = max(settings.margin, 2 * refit.gain_noise_sd)
+    per = "; ".join(f"{c} {base.get(c, math.nan):.1f} -> {v:.1f}" for c, v in refit.held_out_chi2.items())
+    names = ", ".join(settings.refit)
+    rule = f"a gain must exceed max(margin {settings.margin:g}, 2 x its DEM-noise sd) = {need:.1f}"
+    if refit.score < total - need:
+        share, partial, remaining = explained_share(refit, discrepancy, settings.alpha)
+        text = (f"Refitting {names} on the other conditions predicts the held-out conditions better than the "
+                f"calibrated set: chi^2 {total:.1f} -> {refit.score:.1f} ({per}; {rule}), {100 * share:.0f} % "
+                f"less. The misfit lies, at least in part, in the values the calibration gave these parameters on "
+                f"its own condition.")
+        return text + (f" What is left: {remaining}" if partial else "")
+    return (f"Refitting {names} on the other conditions does not predict the held-out conditions better than the "
+            f"calibrated set: chi^2 {total:.1f} -> {refit.score:.1f} ({per}; {rule}). Within their ranges "
+            f"(+- {100 * settings.refit_fraction:g} %), the misfit is not in the values the calibration gave them.")
 
 
 def explained_share(cause: HypothesisScore, discrepancy: Discrepancy, alpha: float) -> tuple[float, bool, str]:
