@@ -203,35 +203,37 @@ def summary_table(store, probe: Mapping[str, Any], kpis) -> str:
 
 def error_table(store, probe: Mapping[str, Any], kpis, measured, calibration_condition: str | None = None) -> str:
     """Markdown: per set and condition, each KPI's mean relative error against the measured data, in %
-    (``*``: the mean lies outside the lab's 95 % CI), and per set the largest |error| over its
-    conditions but ``calibration_condition``: how far a set is from validating, as the paper's Table
-    A.6 reports it."""
-    from bo.screening.pipeline import measured_name
-    from kpi.loadcell import discharge_jammed
+    (``*``: the mean lies outside the lab's 95 % CI), over the runs that flowed (the calibration's
+    :func:`bo.calibration.pipeline.agreement`), and per set the largest |error| over its conditions but
+    ``calibration_condition``: how far a set is from validating, as the paper's Table A.6 reports it, and
+    the conditions where its discharge jammed (the runs column counts those that flowed)."""
+    from bo.calibration.pipeline import JAMMED, agreement
 
+    columns = list(kpis) + [JAMMED]
     lines = ["| set | condition | runs | " + " | ".join(kpis) + " | largest error |",
              "| --- | --- | ---: |" + " ---: |" * (len(kpis) + 1)]
     for name in probe["sets"]:
         done = store.records(STAGE, batch_key=name, status="done")
-        worst = (0.0, "")
+        rows, worst, jams = [], None, []
         for condition in probe["conditions"]:
+            runs = np.array([[r.kpis.get(k, math.nan) for k in columns] for r in done
+                             if r.condition == condition and r.kpis], dtype=float).reshape(-1, len(columns))
             lab = measured.condition(condition).kpis if condition in measured.names else {}
-            flowed = [r.kpis for r in done if r.condition == condition and r.kpis and not discharge_jammed(r.kpis)]
-            cells = []
-            for k in kpis:
-                ref = lab.get(measured_name(k))
-                v = np.array([f.get(k, math.nan) for f in flowed], dtype=float)
-                if ref is None or not len(v) or not np.isfinite(v).any() or ref.mean == 0:
-                    cells.append("-")
-                    continue
-                mean = float(np.nanmean(v))
-                error = 100.0 * (mean - ref.mean) / ref.mean
-                cells.append(f"{error:+.1f}" + ("*" if abs(mean - ref.mean) > ref.ci95 else ""))
-                if condition != calibration_condition and abs(error) > abs(worst[0]):
-                    worst = (error, f"{condition} {k}")
-            lines.append(f"| {name} | {condition} | {len(flowed)} | " + " | ".join(cells) + " | |")
-        if worst[1]:
-            lines[-1] = lines[-1][:-3] + f"| {worst[0]:+.1f} % ({worst[1]}) |"
+            found = {a.kpi: a for a in agreement(runs, columns, lab) if a.n}
+            cells = [f"{found[k].relative_error_pct:+.1f}" + ("" if found[k].within_ci else "*") if k in found
+                     else "-" for k in kpis]
+            for a in found.values():
+                if condition != calibration_condition and (worst is None or abs(a.relative_error_pct)
+                                                           > abs(worst[0])):
+                    worst = (a.relative_error_pct, f"{condition} {a.kpi}")
+            jammed = int((runs[:, -1] == 1).sum())
+            if jammed:  # a set that jams on a condition cannot validate, whatever its flowing runs' errors
+                jams.append(f"{condition} {jammed} of {len(runs)}")
+            rows.append(f"| {name} | {condition} | {len(runs) - jammed} | " + " | ".join(cells) + " |")
+        last = " ".join(([f"{worst[0]:+.1f} % ({worst[1]})"] if worst else []) + ([f"jammed: {', '.join(jams)}"]
+                                                                                 if jams else []))
+        rows = [r + " |" for r in rows[:-1]] + [rows[-1] + (f" {last} |" if last else " |")]
+        lines += rows
     return "\n".join(lines) + "\n"
 
 

@@ -130,3 +130,21 @@ def test_a_bad_probe_file_names_the_key_and_what_is_allowed(tmp_path, doc, messa
         probe_sets.load_probe(path)
     with pytest.raises(ConfigError, match="cannot read the probe file"):
         probe_sets.load_probe(tmp_path / "missing.yaml")
+
+
+def test_the_error_table_leaves_jammed_runs_out_and_names_where_a_set_jammed():
+    """Errors over the runs that flowed (Table 2: 75-25 angle of repose 28.55 +- 0.65 deg, flow 10.29 +- 0.10
+    kg/s); a jammed run is counted apart and named in the set's last column, since it cannot validate."""
+    from types import SimpleNamespace
+    from torchdem.measured import load_measured
+
+    kpis = ("angle_of_repose_deg", "mass_flow_rate_full_kg_s")
+    runs = [SimpleNamespace(condition="75-25", kpis={"angle_of_repose_deg": 28.55 * 1.02,
+                                                     "mass_flow_rate_full_kg_s": 10.29 * 0.95, "discharge_jammed": 0.0}),
+            SimpleNamespace(condition="25-75", kpis={"angle_of_repose_deg": 0.0, "mass_flow_rate_full_kg_s": 0.0,
+                                                     "discharge_jammed": 1.0})]
+    store = SimpleNamespace(records=lambda stage, batch_key, status: runs)
+    probe = {"sets": {"s": ({}, [0])}, "conditions": ["75-25", "25-75"]}
+    lines = probe_sets.error_table(store, probe, kpis, load_measured()).splitlines()
+    assert lines[2] == "| s | 75-25 | 1 | +2.0 | -5.0* | |"
+    assert lines[3] == "| s | 25-75 | 0 | - | - | -5.0 % (75-25 mass_flow_rate_full_kg_s) jammed: 25-75 1 of 1 |"
