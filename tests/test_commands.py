@@ -126,6 +126,7 @@ def test_extension_reaches_the_model(extension):
     mixture = test.member_mixtures[0] if test.member_mixtures else test.mixture
     changed = {
         "clump_shape": lambda: {m.shape for m in mixture.materials if m.name == "sinter"} == {"trilobe_s0.1500"},
+        "clump_size": lambda: {m.shape for m in mixture.materials if m.name == "sinter"} == {"trilobe_s0.1500_k1.1600"},
         "cohesion": lambda: test.parameter_sets[0]["coh_pp"] == values["coh_pp"],
         "density_per_material": lambda: [m.density for m in mixture.materials] == [values["density_pellet"],
                                                                                    values["density_sinter"]],

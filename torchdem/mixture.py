@@ -43,41 +43,76 @@ SINTER_TRILOBE = ClumpTemplate(
 )
 
 
-def trilobe_template(lobe_spacing: float) -> ClumpTemplate:
+def trilobe_template(lobe_spacing: float, scale: float = 1.0) -> ClumpTemplate:
     """The trilobe family of :data:`SINTER_TRILOBE`: three equal spheres on an equilateral
     triangle of circumradius ``lobe_spacing`` (units of the sieve diameter d), each of radius
     ``0.5 - lobe_spacing`` so the clump just fits a sphere of diameter d. 0 is a sphere, 0.15
     the default sinter, larger values are flatter and more angular; allowed (0, 0.3]. The lobes
     (centres ``sqrt(3) lobe_spacing`` apart) touch at ``1 / (2 + sqrt 3)`` = 0.2679 and part
-    beyond it: at 0.3 the clump is three separate spheres 0.12 d apart."""
+    beyond it: at 0.3 the clump is three separate spheres 0.12 d apart.
+
+    ``scale`` multiplies every length of the clump (allowed (0.5, 2]): 1 fits the sphere of the sieve
+    diameter, which passes a square aperture of only :func:`trilobe_aperture` d; ``1 /
+    trilobe_aperture(s)`` passes the aperture d itself, as a grain sieved into a class of size d does."""
     if not 0 < lobe_spacing <= 0.3:
         raise out_of_range("lobe_spacing", lobe_spacing, "(0, 0.3] of the sieve diameter", "trilobe_template")
+    if not (math.isfinite(scale) and 0.5 < scale <= 2.0):
+        raise out_of_range("clump scale", scale, "(0.5, 2] of the clump that fits the sieve diameter", "trilobe_template")
     a = (0.0, 2 * math.pi / 3, 4 * math.pi / 3)
-    return ClumpTemplate(trilobe_shape(lobe_spacing),
-                         np.array([[lobe_spacing * math.cos(t), lobe_spacing * math.sin(t), 0.0] for t in a]),
-                         np.full(3, 0.5 - lobe_spacing))
+    return ClumpTemplate(trilobe_shape(lobe_spacing, scale),
+                         scale * np.array([[lobe_spacing * math.cos(t), lobe_spacing * math.sin(t), 0.0] for t in a]),
+                         np.full(3, scale * (0.5 - lobe_spacing)))
+
+
+def trilobe_aperture(lobe_spacing: float) -> float:
+    """Side of the smallest square sieve aperture the trilobe of unit scale passes, in units of its
+    sieve diameter d: ``1 - (2 - 3 / (2 sqrt 2)) lobe_spacing`` (0.859 at 0.15, 0.758 at 0.2574). The
+    clump passes standing, its plane along the travel and along the aperture's diagonal, with the lobes
+    in a row across the triangle's height (1.5 s): each side of the square holds two lobe radii,
+    1 - 2 s, and that height's share on it, 1.5 s / sqrt 2 (tests/test_clump_size.py finds no
+    orientation that passes a smaller square)."""
+    if not 0 < lobe_spacing <= 0.3:
+        raise out_of_range("lobe_spacing", lobe_spacing, "(0, 0.3] of the sieve diameter", "trilobe_aperture")
+    return 1.0 - (2.0 - 1.5 / math.sqrt(2.0)) * lobe_spacing
 
 
 _TRILOBE_PREFIX = "trilobe_s"
+_SCALE_TAG = "_k"
 
 
-def trilobe_shape(lobe_spacing: float) -> str:
-    """Shape key of a trilobe of this lobe spacing (``"trilobe_s0.2000"``); :data:`TEMPLATES`
-    builds it on first use, in any process (the key is the recipe)."""
-    return f"{_TRILOBE_PREFIX}{lobe_spacing:.4f}"
+def trilobe_shape(lobe_spacing: float, scale: float = 1.0) -> str:
+    """Shape key of a trilobe of this lobe spacing and scale (``"trilobe_s0.2000"``,
+    ``"trilobe_s0.2000_k1.1500"``); :data:`TEMPLATES` builds it on first use, in any process (the key
+    is the recipe)."""
+    key = f"{_TRILOBE_PREFIX}{lobe_spacing:.4f}"
+    return key if scale == 1.0 else f"{key}{_SCALE_TAG}{scale:.4f}"
+
+
+def trilobe_parameters(shape: str) -> tuple[float, float] | None:
+    """``(lobe spacing, scale)`` of a trilobe shape key (``"sinter_trilobe"`` is ``(0.15, 1.0)``);
+    None for a shape that is no trilobe."""
+    if shape == "sinter_trilobe":
+        return _R, 1.0
+    if not shape.startswith(_TRILOBE_PREFIX):
+        return None
+    spacing, _, scale = shape[len(_TRILOBE_PREFIX):].partition(_SCALE_TAG)
+    try:
+        return float(spacing), float(scale) if scale else 1.0
+    except ValueError:
+        return None
 
 
 class _TemplateTable(dict):
-    """Named templates plus the parametric trilobe family (keys ``trilobe_s<spacing>``)."""
+    """Named templates plus the parametric trilobe family (keys ``trilobe_s<spacing>[_k<scale>]``)."""
 
     def _parametric(self, key) -> ClumpTemplate | None:
         if isinstance(key, str) and key.startswith(_TRILOBE_PREFIX):
-            try:
-                spacing = float(key[len(_TRILOBE_PREFIX):])
-            except ValueError:
+            parsed = trilobe_parameters(key)
+            if parsed is None:
                 return None
-            if 0 < spacing <= 0.3 and trilobe_shape(spacing) == key:
-                return trilobe_template(spacing)
+            spacing, scale = parsed
+            if 0 < spacing <= 0.3 and 0.5 < scale <= 2.0 and trilobe_shape(spacing, scale) == key:
+                return trilobe_template(spacing, scale)
         return None
 
     def __contains__(self, key) -> bool:

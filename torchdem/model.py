@@ -13,8 +13,9 @@ Contract:
   material's solid density in the mixture of the parameter set (bulk-density recalibration,
   section 3.6 of the paper, and density as a calibration parameter, which the paper
   recommends); ``lobe_spacing_<material>`` makes that material a trilobe clump of that lobe
-  spacing (:func:`torchdem.mixture.trilobe_template`). Such parameter sets run in one ensemble
-  with per-member mixtures.
+  spacing (:func:`torchdem.mixture.trilobe_template`) and ``clump_scale_<material>`` scales that
+  material's trilobes (1: the clump fits the sphere of its sieve size). Such parameter sets run in
+  one ensemble with per-member mixtures.
 - A parameter ``geometry_<field>`` (m) replaces that length of the boxes
   (:data:`GEOMETRY_PARAMETERS`, fields of :class:`~torchdem.geometry.DrawDownGeometry`): the
   outlet width, which the paper's text does not give, as a discovery candidate
@@ -37,13 +38,14 @@ from torchdem.drawdown import DrawDownTest, RunSettings
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.geometry import DrawDownGeometry
 from torchdem.measured import MeasuredData
-from torchdem.mixture import Mixture, ParticleMaterial, trilobe_shape
+from torchdem.mixture import Mixture, ParticleMaterial, trilobe_parameters, trilobe_shape
 
 #: Prefix of task parameters that set a material's solid density (kg/m^3), not a contact law.
 DENSITY_PREFIX = "density_"
 #: Per-material task parameters: prefix -> (exclusive low, inclusive high, allowed range text).
 MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3"),
-                     "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size")}
+                     "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size"),
+                     "clump_scale_": (0.5, 2.0, "a trilobe's size in (0.5, 2] of the one that fits the sieve size")}
 #: Prefix of task parameters that set a length of the boxes, m (``geometry_outlet_width``).
 GEOMETRY_PREFIX = "geometry_"
 #: The ``DrawDownGeometry`` lengths a task parameter may set (the depth stays: the lab geometry's
@@ -52,7 +54,8 @@ GEOMETRY_PARAMETERS = ("upper_width", "upper_height", "outlet_width", "upper_bot
 
 
 def mixture_parameters(params: Mapping[str, float]) -> tuple[tuple[str, float], ...]:
-    """The task parameters that change a member's mixture (``density_*``, ``lobe_spacing_*``) or
+    """The task parameters that change a member's mixture (``density_*``, ``lobe_spacing_*``,
+    ``clump_scale_*``) or
     the ensemble's boxes (``geometry_*``), sorted by name. Members of one ensemble share its time
     step (the smallest member's), its body count (the largest member's) and its walls, so a
     campaign batches tasks with equal or near values of these together
@@ -179,10 +182,13 @@ class DrawDownModel:
 def split_material_parameters(params: Mapping[str, float], mixture: Mixture, source: str
                               ) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
     """``(contact parameters, {material: {property: value}})`` of a parameter set: the per-material
-    parameters ``density_<material>`` (solid density, kg/m^3) and ``lobe_spacing_<material>``
+    parameters ``density_<material>`` (solid density, kg/m^3), ``lobe_spacing_<material>``
     (trilobe clump shape, :func:`torchdem.mixture.trilobe_template`, in (0, 0.3] of the sieve size)
-    are taken out; everything else is a contact parameter."""
+    and ``clump_scale_<material>`` (the trilobe's size, (0.5, 2] of the clump that fits the sieve
+    size; the material must be a trilobe or be made one by its ``lobe_spacing_*``) are taken out;
+    everything else is a contact parameter."""
     names = {m.name for m in mixture.materials}
+    shapes = {m.name: m.shape for m in mixture.materials}
     contact: dict[str, float] = {}
     material: dict[str, dict[str, float]] = {}
     for key, value in params.items():
@@ -198,6 +204,11 @@ def split_material_parameters(params: Mapping[str, float], mixture: Mixture, sou
         if not (math.isfinite(value) and low < value <= high):
             raise ConfigError(f"{source}: {key} = {value!r} is not allowed; expected {allowed}")
         material.setdefault(name, {})[prefix[:-1]] = float(value)
+    for name, props in material.items():
+        if "clump_scale" in props and "lobe_spacing" not in props and trilobe_parameters(shapes[name]) is None:
+            raise ConfigError(f"{source}: clump_scale_{name} = {props['clump_scale']!r} scales a trilobe clump, "
+                              f"but material {name!r} is a {shapes[name]!r}; give lobe_spacing_{name} too, or "
+                              "leave the scale out")
     return contact, material
 
 
@@ -212,15 +223,19 @@ def split_density(params: Mapping[str, float], mixture: Mixture, source: str
 
 
 def with_material_properties(mixture: Mixture, properties: Mapping[str, Mapping[str, float]]) -> Mixture:
-    """The mixture with the given materials' densities and trilobe lobe spacings replaced."""
+    """The mixture with the given materials' densities, trilobe lobe spacings and clump scales replaced
+    (a scale alone keeps the material's lobe spacing, a spacing alone its scale)."""
     materials = []
     for m in mixture.materials:
         props = properties.get(m.name, {})
         changes = {}
         if "density" in props:
             changes["density"] = props["density"]
-        if "lobe_spacing" in props:
-            changes["shape"] = trilobe_shape(props["lobe_spacing"])
+        if "lobe_spacing" in props or "clump_scale" in props:
+            spacing, scale = trilobe_parameters(m.shape) or (None, 1.0)
+            if "lobe_spacing" not in props and spacing is None:
+                raise ConfigError(f"clump_scale of material {m.name!r}: it is a {m.shape!r}, not a trilobe clump")
+            changes["shape"] = trilobe_shape(props.get("lobe_spacing", spacing), props.get("clump_scale", scale))
         materials.append(dataclasses.replace(m, **changes) if changes else m)
     return dataclasses.replace(mixture, materials=tuple(materials))
 

@@ -13,18 +13,19 @@ overflowed the fill column (2.3 m against 1.85 m on the slice)."""
 import dataclasses
 
 from torchdem.mechanisms import Mechanism
+from torchdem.mixture import trilobe_parameters
 
 LOW, HIGH = 0.05, 0.3
 MARGIN = 0.95  # fraction of the period the largest contact distance may use, twice
 
 
 def _trilobes(c):
-    return [m for m in c.materials if c.shapes[m] == "sinter_trilobe" or c.shapes[m].startswith("trilobe_s")]
+    return [m for m in c.materials if trilobe_parameters(c.shapes[m]) is not None]
 
 
 def _spacing(shape: str) -> float:
     """Lobe spacing of a trilobe shape key (the default sinter trilobe: 0.15)."""
-    return 0.15 if shape == "sinter_trilobe" else float(shape[len("trilobe_s"):])
+    return trilobe_parameters(shape)[0]
 
 
 def _low(c, m) -> float:
