@@ -55,10 +55,9 @@ GEOMETRY_PARAMETERS = ("upper_width", "upper_height", "outlet_width", "upper_bot
 
 def mixture_parameters(params: Mapping[str, float]) -> tuple[tuple[str, float], ...]:
     """The task parameters that change a member's mixture (``density_*``, ``lobe_spacing_*``,
-    ``clump_scale_*``) or
-    the ensemble's boxes (``geometry_*``), sorted by name. Members of one ensemble share its time
-    step (the smallest member's), its body count (the largest member's) and its walls, so a
-    campaign batches tasks with equal or near values of these together
+    ``clump_scale_*``) or the ensemble's boxes (``geometry_*``), sorted by name. Members of one
+    ensemble share its time step (the smallest member's), its body count (the largest member's) and
+    its walls, so a campaign batches tasks with equal or near values of these together
     (``CampaignStore.claim(affinity=...)``): a flat-sinter run (lobe spacing 0.3) batched with a
     default one made the latter take 1.75x its steps."""
     return tuple(sorted((k, float(v)) for k, v in params.items()
