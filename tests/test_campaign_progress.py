@@ -128,3 +128,24 @@ def test_runs_whose_discharge_had_not_ended_are_counted(tmp_path):
                          capture_output=True, text=True, check=True).stdout
     assert "Discharge of the done runs: 2 ended, 1 stopped while the upper box still emptied" in out
     assert "1 made before runs recorded it; 1 jammed (less than 5% of the fill" in out
+
+
+def test_a_larger_clump_scale_is_a_cheaper_class(tmp_path):
+    """Runs of another clump scale are a class of their own, and a figure borrowed from a larger scale
+    (fewer, larger grains: cheaper) is a lower bound, from a smaller one an upper bound."""
+    store = CampaignStore(tmp_path / "s.sqlite", "cfg", code_version="test")
+    points = [{"lobe_spacing_sinter": 0.25, "clump_scale_sinter": k, "mu_s_pp": mu}
+              for k, mu in ((1.0, 0.3), (1.3, 0.3), (1.15, 0.3))]
+    store.batch("screening", "design", lambda: points, seeds=[0], conditions=[LAB])
+    tasks = {t.params["clump_scale_sinter"]: t for t in store.claim(3, "screening")}
+    _finish(store, [tasks[1.3]], 60.0)
+    store.release([tasks[1.0].task_id, tasks[1.15].task_id])
+    by_scale = {dict(c.shape)["clump_scale_sinter"]: c for c in store_progress(store.path).classes}
+    assert set(by_scale) == {1.0, 1.15, 1.3}
+    assert (by_scale[1.3].seconds_per_run, by_scale[1.3].bound) == (pytest.approx(60.0), "")
+    assert (by_scale[1.0].seconds_per_run, by_scale[1.0].bound) == (pytest.approx(60.0), "at least")
+    _finish(store, [store.claim(1, "screening")[0]], 100.0)  # the oldest pending: scale 1.0
+    again = {dict(c.shape)["clump_scale_sinter"]: c for c in store_progress(store.path).classes}
+    assert again[1.0].seconds_per_run == pytest.approx(100.0) and again[1.0].bound == ""
+    # 1.15 is relatively nearer 1.3 (0.15 / 1.3) than 1.0 (0.15 / 1.15): it borrows the cheaper class's figure
+    assert (again[1.15].seconds_per_run, again[1.15].bound) == (pytest.approx(60.0), "at least")

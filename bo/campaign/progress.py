@@ -8,10 +8,11 @@ finished runs took, and an estimate of the worker time its unfinished ones will 
 grouped into cost classes, since a run's cost is set by its geometry and particle shape, not by
 its friction: a class is the geometry part of the condition (``"mirror=True|slice_depth=0.1"``,
 empty for the condition's own geometry) and the task's particle shape: its ``lobe_spacing_*``
-parameters, each rounded to the nearest ``SHAPE_BIN``, so that the continuous values a surrogate
-or a discovery fit proposes share classes. A flatter trilobe has smaller lobes, more clumps per
-kilogram and a shorter Rayleigh step: a lab-geometry run at lobe spacing 0.3 costs about 4x one at
-0.15. The densities change the step by sqrt(rho) only (about 5 % over the lab surrogate's
+and ``clump_scale_*`` parameters, each rounded to the nearest ``SHAPE_BIN``, so that the continuous
+values a surrogate or a discovery fit proposes share classes. A flatter trilobe has smaller lobes,
+more clumps per kilogram and a shorter Rayleigh step: a lab-geometry run at lobe spacing 0.3 costs
+about 4x one at 0.15. A larger clump scale has fewer, larger grains: at 1.32 a lab run had half
+the spheres and cost about 0.6 of one at 1. The densities change the step by sqrt(rho) only (about 5 % over the lab surrogate's
 +-10 %), so they do not split classes.
 
 Cost of a finished run, in worker seconds: its stored ``wall_time`` divided by the number of runs
@@ -21,10 +22,11 @@ another run's result (``reused:``) cost nothing and are left out.
 
 Estimate of an unfinished run: the median cost of its class's finished runs. A class without
 any takes the median of the nearest class of the same geometry (summed relative difference of the
-lobe spacings) and is marked ``borrowed``. The cost grows steeply with the lobe spacing, so a
-figure borrowed from a class of smaller spacings is a lower bound (``bound = "at least"``), one
-from larger spacings an upper bound (``"at most"``), not an estimate; the store's total left is
-then a bound of the same kind (``"roughly"`` if both kinds enter).
+lobe spacings and clump scales) and is marked ``borrowed``. The cost grows steeply with the lobe
+spacing and falls with the clump scale, so a figure borrowed from a cheaper class (smaller spacings,
+larger scales) is a lower bound (``bound = "at least"``), one from a costlier class an upper bound
+(``"at most"``), not an estimate; the store's total left is then a bound of the same kind
+(``"roughly"`` if both kinds enter).
 Unfinished rows of the same run (stage, parameters, seed, condition) count once. Runs in
 ``failed`` are not counted as remaining (``reset_failed`` re-queues them).
 
@@ -47,14 +49,22 @@ from torchdem.errors import ConfigError
 __all__ = ["SHAPE_BIN", "CostClass", "StoreProgress", "store_progress"]
 
 _REUSED = "reused:"
-_SHAPE_PREFIX = "lobe_spacing_"
-#: Width of a cost class in lobe spacing (a fraction of the sieve size).
+#: The particle-shape parameters that set a run's cost, and which way: +1 costlier as the value grows
+#: (a larger lobe spacing, smaller lobes: more spheres and a shorter step), -1 cheaper (a larger
+#: clump scale: fewer, larger grains at the same mass).
+_SHAPE_COST = {"lobe_spacing_": 1.0, "clump_scale_": -1.0}
+#: Width of a cost class in lobe spacing (a fraction of the sieve size) and in clump scale.
 SHAPE_BIN = 0.025
 
 
 def _shape(params: dict) -> tuple[tuple[str, float], ...]:
     return tuple(sorted((k, round(round(float(v) / SHAPE_BIN) * SHAPE_BIN, 6)) for k, v in params.items()
-                        if k.startswith(_SHAPE_PREFIX)))
+                        if k.startswith(tuple(_SHAPE_COST))))
+
+
+def _cost_order(shape: tuple[tuple[str, float], ...]) -> float:
+    """How costly a class's shape is, up to a monotone map: its values, each signed by ``_SHAPE_COST``."""
+    return sum(next(sign for p, sign in _SHAPE_COST.items() if k.startswith(p)) * v for k, v in shape)
 
 
 @dataclass(frozen=True)
@@ -63,8 +73,8 @@ class CostClass:
 
     Attributes:
         geometry: the geometry part of the condition ("" for the condition's own geometry).
-        shape: ``(name, value)`` pairs of the ``lobe_spacing_*`` parameters (to the nearest
-            ``SHAPE_BIN``), sorted by name.
+        shape: ``(name, value)`` pairs of the ``lobe_spacing_*`` and ``clump_scale_*`` parameters (to
+            the nearest ``SHAPE_BIN``), sorted by name.
         done: runs finished (their own, not reused).
         remaining: distinct runs pending or running.
         failed: runs failed.
@@ -217,8 +227,8 @@ def store_progress(path: str | Path) -> StoreProgress:
             if near:
                 nearest = min(near, key=lambda k: (affinity_distance(key[1], k[1]), [v for _, v in k[1]]))
                 per_run = median(costs[nearest])
-                smaller = sum(v for _, v in nearest[1]) < sum(v for _, v in key[1])
-                bound = "at least" if smaller else "at most"
+                cheaper = _cost_order(nearest[1]) < _cost_order(key[1])
+                bound = "at least" if cheaper else "at most"
         n_left = len(unfinished[key])
         classes.append(CostClass(key[0], key[1], counts[key]["done"], n_left, counts[key]["failed"], per_run,
                                  bool(bound), bound))
