@@ -174,7 +174,7 @@ class DrawDownModel:
             properties.append(props)
         mixtures = None
         if any(properties):
-            mixtures = [with_material_properties(mixture, props) for props in properties]
+            mixtures = [with_material_properties(mixture, props, source) for props in properties]
         return DrawDownTest(mixture, geometry, sets, settings, mixtures=mixtures)
 
 
@@ -184,10 +184,8 @@ def split_material_parameters(params: Mapping[str, float], mixture: Mixture, sou
     parameters ``density_<material>`` (solid density, kg/m^3), ``lobe_spacing_<material>``
     (trilobe clump shape, :func:`torchdem.mixture.trilobe_template`, in (0, 0.3] of the sieve size)
     and ``clump_scale_<material>`` (the trilobe's size, (0.5, 2] of the clump that fits the sieve
-    size; the material must be a trilobe or be made one by its ``lobe_spacing_*``) are taken out;
-    everything else is a contact parameter."""
+    size) are taken out; everything else is a contact parameter."""
     names = {m.name for m in mixture.materials}
-    shapes = {m.name: m.shape for m in mixture.materials}
     contact: dict[str, float] = {}
     material: dict[str, dict[str, float]] = {}
     for key, value in params.items():
@@ -203,11 +201,6 @@ def split_material_parameters(params: Mapping[str, float], mixture: Mixture, sou
         if not (math.isfinite(value) and low < value <= high):
             raise ConfigError(f"{source}: {key} = {value!r} is not allowed; expected {allowed}")
         material.setdefault(name, {})[prefix[:-1]] = float(value)
-    for name, props in material.items():
-        if "clump_scale" in props and "lobe_spacing" not in props and trilobe_parameters(shapes[name]) is None:
-            raise ConfigError(f"{source}: clump_scale_{name} = {props['clump_scale']!r} scales a trilobe clump, "
-                              f"but material {name!r} is a {shapes[name]!r}; give lobe_spacing_{name} too, or "
-                              "leave the scale out")
     return contact, material
 
 
@@ -221,9 +214,11 @@ def split_density(params: Mapping[str, float], mixture: Mixture, source: str
     return contact, {m: props["density"] for m, props in material.items()}
 
 
-def with_material_properties(mixture: Mixture, properties: Mapping[str, Mapping[str, float]]) -> Mixture:
+def with_material_properties(mixture: Mixture, properties: Mapping[str, Mapping[str, float]],
+                             source: str = "with_material_properties") -> Mixture:
     """The mixture with the given materials' densities, trilobe lobe spacings and clump scales replaced
-    (a scale alone keeps the material's lobe spacing, a spacing alone its scale)."""
+    (a scale alone keeps the material's lobe spacing, a spacing alone its scale). A scale for a material
+    that is no trilobe and gets no lobe spacing is a ConfigError naming ``source``."""
     materials = []
     for m in mixture.materials:
         props = properties.get(m.name, {})
@@ -233,7 +228,9 @@ def with_material_properties(mixture: Mixture, properties: Mapping[str, Mapping[
         if "lobe_spacing" in props or "clump_scale" in props:
             spacing, scale = trilobe_parameters(m.shape) or (None, 1.0)
             if "lobe_spacing" not in props and spacing is None:
-                raise ConfigError(f"clump_scale of material {m.name!r}: it is a {m.shape!r}, not a trilobe clump")
+                raise ConfigError(f"{source}: clump_scale_{m.name} = {props['clump_scale']!r} scales a trilobe clump, "
+                                  f"but material {m.name!r} is a {m.shape!r}; give lobe_spacing_{m.name} too, or "
+                                  "leave the scale out")
             changes["shape"] = trilobe_shape(props.get("lobe_spacing", spacing), props.get("clump_scale", scale))
         materials.append(dataclasses.replace(m, **changes) if changes else m)
     return dataclasses.replace(mixture, materials=tuple(materials))

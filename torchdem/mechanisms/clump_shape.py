@@ -19,7 +19,8 @@ LOW, HIGH = 0.05, 0.3
 MARGIN = 0.95  # fraction of the period the largest contact distance may use, twice
 
 
-def _trilobes(c):
+def trilobe_materials(c) -> list[str]:
+    """The context's materials whose shape is a trilobe clump (any lobe spacing and scale)."""
     return [m for m in c.materials if trilobe_parameters(c.shapes[m]) is not None]
 
 
@@ -35,9 +36,9 @@ def _low(c, m) -> float:
 
 
 def _unavailable(c):
-    if not _trilobes(c):
+    if not trilobe_materials(c):
         return "no material is a trilobe clump"
-    tight = [m for m in _trilobes(c) if _low(c, m) >= HIGH]
+    tight = [m for m in trilobe_materials(c) if _low(c, m) >= HIGH]
     if tight:
         return (f"the periodic slice ({c.period:g} m) is too thin for trilobes of {tight} up to lobe spacing {HIGH} "
                 "(widen geometry.slice_depth or use geometry=drawdown_full)")
@@ -47,9 +48,9 @@ def _unavailable(c):
 MECHANISM = Mechanism(
     name="clump_shape",
     description="shape of the three-sphere clumps (lobe spacing) free",
-    parameters=lambda c: {f"lobe_spacing_{m}": (round(_low(c, m), 4), HIGH) for m in _trilobes(c)},
+    parameters=lambda c: {f"lobe_spacing_{m}": (round(_low(c, m), 4), HIGH) for m in trilobe_materials(c)},
     available=_unavailable,
-    null=lambda c: {f"lobe_spacing_{m}": _spacing(c.shapes[m]) for m in _trilobes(c)},
+    null=lambda c: {f"lobe_spacing_{m}": _spacing(c.shapes[m]) for m in trilobe_materials(c)},
     apply=lambda model: dataclasses.replace(
         model, settings=dataclasses.replace(model.settings, fill_packing="lobes")),
 )

@@ -19,14 +19,10 @@ rains its fill by the clumps' lobes (``RunSettings.fill_packing = "lobes"``), as
 import dataclasses
 
 from torchdem.mechanisms import Mechanism
+from torchdem.mechanisms.clump_shape import MARGIN, trilobe_materials
 from torchdem.mixture import trilobe_parameters
 
 LOW, HIGH = 1.0, 1.4
-MARGIN = 0.95  # fraction of the period the largest contact distance may use, twice
-
-
-def _trilobes(c):
-    return [m for m in c.materials if trilobe_parameters(c.shapes[m]) is not None]
 
 
 def _spacing(c, m) -> float:
@@ -35,10 +31,10 @@ def _spacing(c, m) -> float:
 
 
 def _unavailable(c):
-    if not _trilobes(c):
+    if not trilobe_materials(c):
         return "no material is a trilobe clump"
     if c.period is not None:
-        tight = [m for m in _trilobes(c) if m in c.largest_size
+        tight = [m for m in trilobe_materials(c) if m in c.largest_size
                  and 4 * HIGH * (0.5 - _spacing(c, m)) * c.largest_size[m] > MARGIN * c.period]
         if tight:
             return (f"the periodic slice ({c.period:g} m) is too thin for trilobes of {tight} scaled by {HIGH} "
@@ -49,9 +45,9 @@ def _unavailable(c):
 MECHANISM = Mechanism(
     name="clump_size",
     description="size of the three-sphere clumps against their sieve size free (sieve convention)",
-    parameters=lambda c: {f"clump_scale_{m}": (LOW, HIGH) for m in _trilobes(c)},
+    parameters=lambda c: {f"clump_scale_{m}": (LOW, HIGH) for m in trilobe_materials(c)},
     available=_unavailable,
-    null=lambda c: {f"clump_scale_{m}": 1.0 for m in _trilobes(c)},
+    null=lambda c: {f"clump_scale_{m}": 1.0 for m in trilobe_materials(c)},
     apply=lambda model: dataclasses.replace(
         model, settings=dataclasses.replace(model.settings, fill_packing="lobes")),
 )
