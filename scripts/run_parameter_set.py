@@ -10,6 +10,9 @@ Usage::
 
     python scripts/run_parameter_set.py mu_s_pg=0.9 mu_s_sg=0.83 lobe_spacing_sinter=0.2679 \\
         --runs 50-50:0 50-50:1 -- profile=lab
+
+``--images DIR`` keeps each run's front views (the photos its angles and segregation were measured
+on), so another reading of them needs no new run.
 """
 from __future__ import annotations
 
@@ -17,7 +20,9 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -43,11 +48,22 @@ def parse_parameters(items: list[str]) -> dict[str, float]:
     return params
 
 
+def save_images(images: dict, folder: Path, tag: str) -> None:
+    """Writes a run's front views (``{"upper": BGR, "lower": BGR}``) as ``<view>_<tag>.png`` in ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for view, image in images.items():
+        path = folder / f"{view}_{tag}.png"
+        if not cv2.imwrite(str(path), image):
+            raise ConfigError(f"--images {folder}: could not write {path}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("parameters", nargs="*", help="NAME=VALUE, e.g. mu_s_pg=0.9 lobe_spacing_sinter=0.2679")
     parser.add_argument("--runs", nargs="+", default=["50-50:0"], help="CONDITION:SEED, e.g. 50-50:0")
     parser.add_argument("--json", help="write the rows as JSON here too")
+    parser.add_argument("--images", help="write each run's front views here (upper_/lower_<condition>_<seed>.png), "
+                                         "for a measurement other than the KPIs' (kpi's command line reads them)")
     argv = sys.argv[1:]
     cut = argv.index("--") if "--" in argv else len(argv)
     args = parser.parse_args(argv[:cut])
@@ -62,6 +78,8 @@ def main() -> None:
         started = time.perf_counter()
         res = model.test_for(condition, [params]).run_members([(0, 0, int(seed or 0))])
         k = res.kpis[0]
+        if args.images:
+            save_images(res.images[0], Path(args.images), f"{condition}_{int(seed or 0)}")
         row = {"condition": condition, "seed": int(seed or 0), "wall_s": round(time.perf_counter() - started, 1),
                "kpis": k, "not_measured": res.errors[0]}
         rows.append(row)

@@ -1,9 +1,15 @@
 """``scripts/run_parameter_set.py``: a parameter set's runs on the calibration's own model (the mini
-box of ``profile=smoke`` here), KPIs beside the measurement; the parameters reach the DEM."""
+box of ``profile=smoke`` here), KPIs beside the measurement; the parameters reach the DEM; ``--images``
+keeps each run's front views."""
 import json
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
+
+from kpi.io import read_image
+from kpi.segregation import segment_pellet_sinter
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "run_parameter_set.py"
@@ -14,18 +20,23 @@ def _run(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_a_parameter_set_runs_and_reaches_the_dem(tmp_path):
-    rows = {}
+    rows, photos = {}, {}
     for mu in ("0.1", "0.9"):
         out = _run(f"mu_s_pp={mu}", "mu_s_ss=" + mu, "--runs", "50-50:0", "--json", str(tmp_path / f"{mu}.json"),
-                   "--", "profile=smoke")
+                   "--images", str(tmp_path / mu), "--", "profile=smoke")
         assert out.returncode == 0, out.stderr
         assert "| measured |" in out.stdout and "| 50-50 | 1 |" in out.stdout
         doc = json.loads((tmp_path / f"{mu}.json").read_text())
         assert doc["parameters"] == {"mu_s_pp": float(mu), "mu_s_ss": float(mu)}
         rows[mu] = doc["rows"][0]["kpis"]
+        # --images keeps both front views; kpi reads them and finds pellets and sinter in the heap
+        photos[mu] = {view: read_image(tmp_path / mu / f"{view}_50-50_0.png") for view in ("upper", "lower")}
+        pellet, sinter = segment_pellet_sinter(photos[mu]["lower"])
+        assert pellet.sum() > 100 and sinter.sum() > 100
     # the same seed, the particle frictions 0.1 against 0.9: the slippery fill empties further (0.715
     # against 0.672 kg of ~0.8 kg at seed 0, 0.709 against 0.659 at seed 1), so the values reached the contacts
     assert rows["0.1"]["mass_lower_box_kg"] > rows["0.9"]["mass_lower_box_kg"] + 0.02
+    assert not np.array_equal(photos["0.1"]["lower"], photos["0.9"]["lower"])  # each run's own photo
 
 
 def test_bad_parameters_name_the_item():
