@@ -4,6 +4,7 @@ beside the lab's value and how many runs came within its CI.
 
     python scripts/kpi_response.py campaigns/table2/lab.sqlite --condition 50-50
     python scripts/kpi_response.py STORE --kpis segregation_rsd_horizontal --data my_lab.json
+    python scripts/kpi_response.py campaigns/table2/discover_lab.sqlite --condition 75-25 --stage discovery-free_interaction
 
 The effect is the KPI's change from the lowest to the highest value of the parameter that the runs
 span (its standard error in brackets), largest |effect / se| first.
@@ -32,14 +33,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("stores", nargs="+", help="campaign stores (SQLite) of one model")
     parser.add_argument("--condition", default="50-50", help="the condition whose runs are fitted (default 50-50)")
+    parser.add_argument("--stage", nargs="+", help="only these stages' runs (e.g. a discovery's discovery-free_interaction)")
     parser.add_argument("--kpis", nargs="+", default=list(KPIS), help="KPIs (default: the calibration's and segregation)")
     parser.add_argument("--data", default=None, help="measured-data JSON (default: the paper's Table 2)")
     parser.add_argument("--top", type=int, default=6, help="parameters shown per KPI (default 6)")
     args = parser.parse_args()
-    runs = [(p, k) for path in args.stores for _, condition, _, p, k in finished_runs(Path(path), "kpi_response")
-            if condition == args.condition and not discharge_jammed(k)]
+    runs = [(p, k) for path in args.stores for stage, condition, _, p, k in finished_runs(Path(path), "kpi_response")
+            if condition == args.condition and not discharge_jammed(k) and (not args.stage or stage in args.stage)]
     measured = load_measured(args.data).condition(args.condition).kpis
-    source = f"{', '.join(args.stores)} at {args.condition}"
+    source = f"{', '.join(args.stores)} at {args.condition}" + (f", stage {', '.join(args.stage)}" if args.stage else "")
     print(f"{len(runs)} runs that flowed at {args.condition} ({source})\n")
     print("| KPI | runs | range | residual sd | replicate sd (dof) | R^2 | lab (95 % CI) | runs in the lab's CI |")
     print("| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |")
