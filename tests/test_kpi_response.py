@@ -88,9 +88,9 @@ def test_the_script_reads_a_store_and_leaves_jammed_runs_out(tmp_path):
     assert "| angle_of_repose_deg | 4 | 30 to 32.9 |" in out.stdout and "| 29.47 +- 0.48 | 0 |" in out.stdout
     assert "knob 0.1-0.4 +2.94" in out.stdout
     # a second stage's run joins the fit unless --stage names the first stage only
-    store.batch("other", "o", lambda: [{"knob": 0.6}], seeds=[0], conditions=["50-50"])
+    store.batch("verification", "o", lambda: [{"knob": 0.6}], seeds=[0], conditions=["50-50"])
     store.record([(t, EvalOutcome.success({"angle_of_repose_deg": 40.0, "discharge_jammed": 0.0}, 1.0))
-                  for t in store.claim(10, stage="other", batch_key="o")])
+                  for t in store.claim(10, stage="verification", batch_key="o")])
     script = [sys.executable, str(REPO / "scripts" / "kpi_response.py"), str(path), "--kpis", "angle_of_repose_deg"]
     both = subprocess.run(script, capture_output=True, text=True, cwd=REPO, check=True).stdout
     assert both.startswith("5 runs that flowed at 50-50") and "knob 0.1-0.6" in both
