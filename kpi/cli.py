@@ -69,6 +69,7 @@ def run_segregation(args: argparse.Namespace) -> dict:
         vertical_segregation_slices=args.vertical_slices,
         horizontal_segregation_slices=args.horizontal_slices,
         ddof=args.ddof,
+        min_component_fraction=args.min_component_fraction,
     )
     image = read_image(args.image)
     result = measure_segregation(image, crop_box=_crop_box(args), config=config, source=str(args.image))
@@ -156,6 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
                              help="strips side by side for horizontal segregation (default %(default)s)")
     segregation.add_argument("--ddof", type=int, default=defaults.ddof, choices=(0, 1),
                              help="1: sample standard deviation (default), 0: population")
+    segregation.add_argument("--min-component-fraction", type=float, default=defaults.min_component_fraction,
+                             help="regions smaller than this share of the largest are not part of the heap "
+                                  "(default %(default)s; 0 keeps all)")
     segregation.set_defaults(run=run_segregation)
 
     loadcell = commands.add_parser("loadcell", help="mass flow rate and lower-box mass from the load-cell record")

@@ -21,6 +21,11 @@ name                   BGR              CIE L*, a*, b* (D65, sRGB) and why
 ``PELLET_BGR``         (200, 110, 30)   46.3, +10.1, -53.4. Painted-pellet blue (the lab's
                                         final paint, chosen because it separates well in Lab).
 ``SINTER_BGR``         (70, 70, 70)     29.6, 0.0, 0.0. Dark grey, neutral.
+``SHADOW_BGR``         (25, 25, 25)     8.7, 0.0, 0.0. Near black, neutral: what a photo shows
+                                        through the gaps of the front layer, where the lamps do not
+                                        reach (``torchdem.render``'s ``shadow_depth``). Dark and
+                                        neutral, so the default thresholds class it as sinter, as
+                                        a threshold on dark grey classes a lab photo's shadows.
 =====================  ===============  =====================================================
 
 :func:`bgr_to_lab` converts 8-bit BGR images to CIE L*a*b* in the field's own units
@@ -36,6 +41,7 @@ BACKGROUND_BGR: tuple[int, int, int] = (0, 255, 0)
 WALL_BGR: tuple[int, int, int] = (60, 140, 200)
 PELLET_BGR: tuple[int, int, int] = (200, 110, 30)
 SINTER_BGR: tuple[int, int, int] = (70, 70, 70)
+SHADOW_BGR: tuple[int, int, int] = (25, 25, 25)
 
 
 def bgr_to_lab(image_bgr: np.ndarray) -> np.ndarray:

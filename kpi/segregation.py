@@ -10,8 +10,9 @@ Contract (paper section 2.3.2):
    neither and is not counted. The defaults separate the render colours of
    :mod:`kpi.colors`; tune :class:`SegmentationConfig` for lab photos.
 2. **Heap region**: the bounding box of all pellet and sinter pixels after a morphological
-   opening removes specks, so the slicing does not depend on how much empty space the crop
-   leaves around the heap.
+   opening removes specks and connected regions smaller than ``min_component_fraction`` of the
+   largest are dropped (a grain left resting apart from the heap, e.g. wedged under the slot), so
+   the slicing does not depend on how much empty space the crop leaves around the heap.
 3. **Slice** the heap region into equal slices (boundaries rounded to whole pixels) and count
    pellet and sinter pixels N_i,k in each slice k. The pixel fraction of component i is the
    paper's Eq. (1), C_i,k = N_i,k / sum_i N_i,k (only pellet and sinter pixels count).
@@ -69,6 +70,8 @@ class SegmentationConfig:
         ddof: delta degrees of freedom of sigma_i in Eq. (2): 1 (sample std, MATLAB's
             default) or 0 (population std).
         speck_size_px: opening kernel in pixels used to find the heap region (1: none).
+        min_component_fraction: connected regions smaller than this fraction of the largest are not
+            part of the heap region (0 keeps them all).
     """
 
     pellet_b_max: float = -20.0
@@ -80,6 +83,7 @@ class SegmentationConfig:
     horizontal_segregation_slices: int = 6
     ddof: int = 1
     speck_size_px: int = 5
+    min_component_fraction: float = 0.05
 
     def __post_init__(self) -> None:
         source = "SegmentationConfig"
@@ -100,6 +104,8 @@ class SegmentationConfig:
                 raise out_of_range(source, name, value, f"an integer >= {smallest}")
         if self.ddof not in (0, 1):
             raise out_of_range(source, "ddof", self.ddof, "0 (population std) or 1 (sample std)")
+        if not 0 <= self.min_component_fraction <= 1:
+            raise out_of_range(source, "min_component_fraction", self.min_component_fraction, "a fraction in [0, 1]")
 
 
 @dataclass(frozen=True)
@@ -250,6 +256,12 @@ def measure_segregation(
     if config.speck_size_px > 1:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (config.speck_size_px, config.speck_size_px))
         material = cv2.morphologyEx(material, cv2.MORPH_OPEN, kernel)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(material, connectivity=8)
+    if count > 2 and config.min_component_fraction > 0:
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        keep = np.zeros(count, dtype=bool)
+        keep[1:] = areas >= config.min_component_fraction * areas.max()
+        material = keep[labels]
     rows = np.flatnonzero(material.any(axis=1))
     columns = np.flatnonzero(material.any(axis=0))
     if rows.size == 0:

@@ -170,3 +170,19 @@ def test_config_values_are_validated():
         SegmentationConfig(vertical_segregation_slices=1)
     with pytest.raises(KPIInputError, match=r"SegmentationConfig: pellet_b_max = 5\.0 is not allowed"):
         SegmentationConfig(pellet_b_max=5.0)
+
+
+def test_a_grain_resting_apart_from_the_heap_does_not_stretch_the_region():
+    """A sinter grain at rest above the heap (in a draw-down photo: wedged under the slot) is a region of
+    its own, far smaller than the heap: the heap region and the RSDs stay those of the grid, unless
+    ``min_component_fraction`` = 0 keeps it, when the top band takes the empty rows above the grid."""
+    image = paint_grid()
+    image[14:26, 300:312] = SINTER_BGR  # 12 x 12 px, 0.08 % of the heap's area, above the grid (TOP = 40)
+    clean = measure_segregation(paint_grid())
+    result = measure_segregation(image)
+    assert result.heap_box == clean.heap_box == CropBox(LEFT, TOP, LEFT + 6 * CELL_PX, TOP + 3 * CELL_PX)
+    assert result.vertical.pellet_rsd == pytest.approx(clean.vertical.pellet_rsd, rel=1e-12)
+    kept = measure_segregation(image, config=SegmentationConfig(min_component_fraction=0.0))
+    assert kept.heap_box.y0 == 14 and kept.vertical.pellet_rsd != pytest.approx(clean.vertical.pellet_rsd, rel=1e-3)
+    with pytest.raises(KPIInputError, match=r"min_component_fraction = 1\.5 is not allowed; expected a fraction in \[0, 1\]"):
+        SegmentationConfig(min_component_fraction=1.5)

@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from kpi.angles import angle_of_repose, shear_angle
-from kpi.colors import BACKGROUND_BGR, PELLET_BGR, SINTER_BGR, WALL_BGR
+from kpi.colors import BACKGROUND_BGR, PELLET_BGR, SHADOW_BGR, SINTER_BGR, WALL_BGR
 from kpi.io import CropBox
-from kpi.segregation import measure_segregation
+from kpi.segregation import measure_segregation, segment_pellet_sinter
 from torchdem.errors import ConfigError
 from torchdem.materials import Material, interaction_table
 from torchdem.render import (
@@ -365,6 +365,27 @@ def test_bad_spheres_are_rejected(centres, radii, labels, message):
         render_front(centres, radii, labels, View(0.0, 0.4, 0.0, 0.3))
 
 
+def test_shadow_paints_what_lies_behind_the_front_layer():
+    """A lab photo is lit through the glass: with ``shadow_depth`` the spheres seen through the gaps of the
+    front layer are near black (kpi counts them as sinter), the front layer keeps its colours, and None
+    changes nothing."""
+    view = View(-0.02, 0.02, -0.02, 0.02, metres_per_pixel=0.0005)  # 80 x 80 px
+    # a pellet against the glass (surface at y = 0) and a pellet 30 mm behind, beside it
+    centres = np.array([[-0.008, 0.004, 0.0], [0.008, 0.034, 0.0]])
+    radii = np.array([0.004, 0.004])
+    labels = np.array([PELLET_LABEL, PELLET_LABEL])
+    flat = render_front(centres, radii, labels, view)
+    assert np.array_equal(render_front(centres, radii, labels, view, shadow_depth=None), flat)
+    lit = render_front(centres, radii, labels, view, shadow_depth=0.01)
+    front, back = (40, 24), (40, 56)  # the discs' centre pixels (x = -7.75 mm and +8.25 mm)
+    assert tuple(lit[front]) == PELLET_BGR and tuple(lit[back]) == SHADOW_BGR
+    assert (lit == PELLET_BGR).all(-1).sum() == (flat == PELLET_BGR).all(-1).sum() // 2
+    assert segment_pellet_sinter(lit)[1].sum() == (lit == SHADOW_BGR).all(-1).sum() > 0  # shadow counts as sinter
+    # the front disc's own rim lies up to a radius (4 mm) behind its centre: a depth of 2 mm shades it
+    rim = render_front(centres, radii, labels, view, shadow_depth=0.002)
+    assert tuple(rim[front]) == PELLET_BGR and tuple(rim[40, 16]) == SHADOW_BGR  # x = -11.75 mm: 3.75 mm out, 2.6 mm deep
+
+
 def test_bad_palette_and_options_are_rejected():
     args = (np.zeros((1, 3)), np.array([0.01]), np.array([0]), View(-0.1, 0.1, -0.1, 0.1))
     with pytest.raises(ConfigError, match=r"palette\[0\] = \(0, 0, 300\) is not allowed; expected three integers"):
@@ -373,6 +394,8 @@ def test_bad_palette_and_options_are_rejected():
         render_front(*args, rim_darkening=1.0)
     with pytest.raises(ConfigError, match=r"wall_thickness = 0.0 is not allowed; expected a finite thickness > 0 m"):
         render_front(*args, wall_thickness=0.0)
+    with pytest.raises(ConfigError, match=r"shadow_depth = -0.01 is not allowed; expected a depth > 0 m behind the front"):
+        render_front(*args, shadow_depth=-0.01)
     with pytest.raises(ConfigError, match=r"view is a tuple; expected a torchdem.render.View"):
         render_front(*args[:3], (0, 1, 0, 1))
 

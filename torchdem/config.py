@@ -189,6 +189,8 @@ def run_settings_from(sim: Mapping[str, Any], run: Mapping[str, Any]) -> RunSett
         guards=guards_from(_get(sim, "guards", "sim")),
         metres_per_pixel=_number(run, "metres_per_pixel", "run", 0.0, open_low=True, allowed="> 0 m"),
         rsd_component=str(_get(run, "rsd_component", "run")),
+        photo_shadow_depth=_number(run, "photo_shadow_depth_m", "run", 0.0, open_low=True, default=None,
+                                   allowed="> 0 m behind the front layer, or null (no shadows)"),
         loose_fraction=_number(run, "loose_fraction", "run", 0.0, 0.6, open_low=True),
         fines_cut=None if fines is None else fines / 1000.0,
         skin_fraction=_number(sim, "skin_fraction", "sim", 0.0, 2.0, open_low=True, default=0.2,

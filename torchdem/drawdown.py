@@ -120,7 +120,9 @@ class RunSettings:
         geometry_material: Material of the walls. rolling_damping: eta_r for every pair.
         dtype: torch dtype name. compile: torch.compile the kernels. guards: blow-up guards.
         metres_per_pixel: render resolution. rsd_component: which component's RSD to report
-            ("sinter" or "pellet"). loose_fraction: packing fraction of the rained fill (a member
+            ("sinter" or "pellet"). photo_shadow_depth: surfaces more than this (m) behind the front
+            layer are painted in shadow in the photos (:func:`torchdem.render.render_front`); None: none.
+            loose_fraction: packing fraction of the rained fill (a member
             whose loose stack would overflow the fill column is rained denser, up to 0.375:
             :func:`torchdem.fill.rain_to_fit`).
         skin_fraction: Verlet skin as a fraction of the largest sphere radius.
@@ -161,6 +163,7 @@ class RunSettings:
     guards: GuardSettings = GuardSettings(check_every=500)
     metres_per_pixel: float = 0.001
     rsd_component: str = "sinter"
+    photo_shadow_depth: float | None = None
     loose_fraction: float = 0.3
     fines_cut: float | None = None
     skin_fraction: float = 0.2
@@ -220,6 +223,9 @@ class RunSettings:
             raise out_of_range("shear_modulus", self.shear_modulus, "> 0 Pa or null", source)
         if self.rsd_component not in ("sinter", "pellet"):
             raise out_of_range("rsd_component", self.rsd_component, "'sinter' or 'pellet'", source)
+        if self.photo_shadow_depth is not None and not self.photo_shadow_depth > 0:
+            raise out_of_range("photo_shadow_depth", self.photo_shadow_depth,
+                               "> 0 m behind the front layer, or null (no shadows)", source)
         return self
 
 
@@ -695,8 +701,10 @@ class DrawDownTest:
             jammed = k["mass_lower_box_kg"] < JAM_FRACTION * fill_mass
             k["discharge_jammed"] = float(jammed)
             at_rest = b.velocity[m].norm(dim=-1) < AT_REST_SPEED_M_S  # the photo after the discharge
-            upper_img = render_state(system, state, m, labels, upper_view, shown=at_rest)
-            lower_img = render_state(system, state, m, labels, lower_view, shown=at_rest)
+            upper_img = render_state(system, state, m, labels, upper_view, shown=at_rest,
+                                     shadow_depth=s.photo_shadow_depth)
+            lower_img = render_state(system, state, m, labels, lower_view, shown=at_rest,
+                                     shadow_depth=s.photo_shadow_depth)
             for name, fn, img, crop in (("shear_angle_deg", shear_angle, upper_img, up_crop),
                                         ("angle_of_repose_deg", angle_of_repose, lower_img, low_crop)):
                 if jammed and name == "shear_angle_deg":

@@ -22,6 +22,11 @@ Contract:
   each sphere the ``palette`` colour of its component label (default ``0 -> PELLET_BGR``,
   ``1 -> SINTER_BGR``). ``rim_darkening`` > 0 shades each disc towards its rim (a Lambert term
   with ambient light); the default 0 keeps colours flat.
+* **Shadows.** A lab photo is lit through the glass, so what it shows through the gaps of the front
+  layer lies in shadow. With ``shadow_depth`` (m) set, a pixel whose visible surface lies more
+  than ``shadow_depth`` behind the nearest sphere surface of the image (the bed against the glass)
+  is painted ``SHADOW_BGR``, near black, which kpi's default thresholds class as sinter; None (the
+  default) paints every surface in its own colour.
 * **Walls** (:class:`torchdem.walls.Walls` or a sequence of :class:`torchdem.walls.WallSpec`)
   are drawn after the spheres as the front view of a plate ``wall_thickness`` thick, lying on
   the side of the wall plane *opposite* its normal. Box walls' normals point into the box
@@ -52,7 +57,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from kpi.colors import BACKGROUND_BGR, PELLET_BGR, SINTER_BGR, WALL_BGR
+from kpi.colors import BACKGROUND_BGR, PELLET_BGR, SHADOW_BGR, SINTER_BGR, WALL_BGR
 from kpi.io import CropBox
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.integrate import sphere_active, sphere_positions
@@ -257,7 +262,8 @@ def _check_spheres(centres, radii, labels, palette: dict, source: str):
 
 
 def _rasterise_spheres(view: View, centres: np.ndarray, radii: np.ndarray):
-    """Z-buffer the sphere discs: ``(owner [H*W] int64, -1 = none; rim [H*W] d/r in [0, 1])``.
+    """Z-buffer the sphere discs: ``(owner [H*W] int64, -1 = none; rim [H*W] d/r in [0, 1];
+    depth [H*W] y of the visible surface, m, inf where none)``.
 
     Spheres are grouped by their radius in whole pixels; each group is rasterised in chunks
     of candidate pixels (a square patch around every centre) with array operations. A disc
@@ -304,7 +310,7 @@ def _rasterise_spheres(view: View, centres: np.ndarray, radii: np.ndarray):
             cols = np.floor(col[k]).astype(np.int64)[:, None] + d_col[None, :]
             rows = np.floor(row[k]).astype(np.int64)[:, None] + d_row[None, :]
             draw(np.broadcast_to(k[:, None], cols.shape).ravel(), rows.ravel(), cols.ravel())
-    return owner, rim
+    return owner, rim, depth_buffer
 
 
 def _wall_arrays(walls, time: float | None, source: str):
@@ -398,6 +404,7 @@ def render_front(
     time: float | None = None,
     wall_thickness: float | None = None,
     rim_darkening: float = 0.0,
+    shadow_depth: float | None = None,
     source: str = "render_front",
 ) -> np.ndarray:
     """Front view (camera along +y) of spheres and walls as an 8-bit BGR image ``[H, W, 3]``.
@@ -413,6 +420,8 @@ def render_front(
             every wall at its t = 0 position.
         wall_thickness: thickness of the wall bands, m (default 6 pixels).
         rim_darkening: fraction in [0, 1) by which a disc darkens at its rim (0: flat colours).
+        shadow_depth: surfaces more than this behind the nearest one are painted ``SHADOW_BGR``, m
+            (> 0); None: none (see the module docstring).
         source: name used in error messages.
     """
     if not isinstance(view, View):
@@ -422,6 +431,10 @@ def render_front(
     rim_darkening = _finite_number(rim_darkening, "rim_darkening", source)
     if not 0 <= rim_darkening < 1:
         raise out_of_range("rim_darkening", rim_darkening, "a fraction in [0, 1) (0: flat colours)", source)
+    if shadow_depth is not None:
+        shadow_depth = _finite_number(shadow_depth, "shadow_depth", source)
+        if not shadow_depth > 0:
+            raise out_of_range("shadow_depth", shadow_depth, "a depth > 0 m behind the front layer, or None", source)
     if wall_thickness is None:
         wall_thickness = DEFAULT_WALL_THICKNESS_PX * view.metres_per_pixel
     wall_thickness = _finite_number(wall_thickness, "wall_thickness", source)
@@ -429,7 +442,7 @@ def render_front(
         raise out_of_range("wall_thickness", wall_thickness, "a finite thickness > 0 m", source)
 
     height, width = view.shape
-    owner, rim = _rasterise_spheres(view, centres, radii)
+    owner, rim, depth = _rasterise_spheres(view, centres, radii)
     image = np.empty((height * width, 3), dtype=np.uint8)
     image[:] = BACKGROUND_BGR
     covered = owner >= 0
@@ -440,6 +453,8 @@ def render_front(
         lambert = np.sqrt(np.clip(1.0 - rim[covered] ** 2, 0.0, 1.0))  # cos of the surface tilt
         colours *= (1.0 - rim_darkening * (1.0 - lambert))[:, None]
     image[covered] = np.clip(np.rint(colours), 0, 255).astype(np.uint8)
+    if shadow_depth is not None and covered.any():
+        image[covered & (depth > depth[covered].min() + shadow_depth)] = SHADOW_BGR
     image = image.reshape(height, width, 3)
     if walls is not None:
         _draw_walls(image, view, walls, time, wall_thickness, source)
@@ -457,6 +472,7 @@ def render_state(
     palette: Mapping[int, Sequence[int]] | None = None,
     wall_thickness: float | None = None,
     rim_darkening: float = 0.0,
+    shadow_depth: float | None = None,
     shown=None,
     source: str = "render_state",
 ) -> np.ndarray:
@@ -469,7 +485,7 @@ def render_state(
             of an active sphere, e.g. ``{0: PELLET_LABEL, 1: SINTER_LABEL}``.
         view: window and pixel size.
         walls: draw the system's walls that exist at the state's time (``system.time_of(step)``).
-        palette, wall_thickness, rim_darkening: as in :func:`render_front`.
+        palette, wall_thickness, rim_darkening, shadow_depth: as in :func:`render_front`.
         shown: optional ``[n_bodies]`` bool mask of the member's bodies to draw (e.g. the bodies at
             rest); None draws every active body.
     """
@@ -508,5 +524,6 @@ def render_state(
         time=system.time_of(state.step),
         wall_thickness=wall_thickness,
         rim_darkening=rim_darkening,
+        shadow_depth=shadow_depth,
         source=source,
     )

@@ -102,7 +102,7 @@ HASHED_AS = {"device": "cpu", "compile": False}
 
 #: ``run`` and ``sim`` settings added after stores were shipped: hashed as absent while null (their old
 #: behaviour).
-RUN_ABSENT_WHEN_NULL = ("max_discharge_time_s",)
+RUN_ABSENT_WHEN_NULL = ("max_discharge_time_s", "photo_shadow_depth_m")
 SIM_ABSENT_WHEN_NULL = ("discharge_time_step_fraction",)
 
 
