@@ -12,7 +12,8 @@ Usage::
         --runs 50-50:0 50-50:1 -- profile=lab
 
 ``--images DIR`` keeps each run's front views (the photos its angles and segregation were measured
-on), so another reading of them needs no new run.
+on), and ``--scenes DIR`` the spheres each photo shows, so another reading of them, or the photos
+drawn again with shadows (``scripts/photo_readings.py``), needs no new run.
 """
 from __future__ import annotations
 
@@ -57,6 +58,18 @@ def save_images(images: dict, folder: Path, tag: str) -> None:
             raise ConfigError(f"--images {folder}: could not write {path}")
 
 
+def save_scenes(scenes: dict, folder: Path, condition: str, seed: int) -> None:
+    """Writes each photo's spheres, view and crop box (``DrawDownResult.photo_scenes``) as
+    ``<view>_<condition>_<seed>.npz`` in ``folder`` (read back by ``scripts/photo_readings.py``)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for view_name, scene in scenes.items():
+        view, crop = scene["view"], scene["crop"]
+        np.savez_compressed(folder / f"{view_name}_{condition}_{seed}.npz", centres=scene["centres"],
+                            radii=scene["radii"], labels=scene["labels"], condition=condition, seed=seed,
+                            view=np.array([view.x_min, view.x_max, view.z_min, view.z_max, view.metres_per_pixel]),
+                            crop=np.array([crop.x0, crop.y0, crop.x1, crop.y1]))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("parameters", nargs="*", help="NAME=VALUE, e.g. mu_s_pg=0.9 lobe_spacing_sinter=0.2679")
@@ -64,6 +77,8 @@ def main() -> None:
     parser.add_argument("--json", help="write the rows as JSON here too")
     parser.add_argument("--images", help="write each run's front views here (upper_/lower_<condition>_<seed>.png), "
                                          "for a measurement other than the KPIs' (kpi's command line reads them)")
+    parser.add_argument("--scenes", help="write the spheres each photo shows here (upper_/lower_<condition>_<seed>.npz), "
+                                         "to draw and measure the photos again (scripts/photo_readings.py)")
     argv = sys.argv[1:]
     cut = argv.index("--") if "--" in argv else len(argv)
     args = parser.parse_args(argv[:cut])
@@ -80,6 +95,8 @@ def main() -> None:
         k = res.kpis[0]
         if args.images:
             save_images(res.images[0], Path(args.images), f"{condition}_{int(seed or 0)}")
+        if args.scenes:
+            save_scenes(res.photo_scenes[0], Path(args.scenes), condition, int(seed or 0))
         row = {"condition": condition, "seed": int(seed or 0), "wall_s": round(time.perf_counter() - started, 1),
                "kpis": k, "not_measured": res.errors[0]}
         rows.append(row)

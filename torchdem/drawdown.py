@@ -58,7 +58,7 @@ from torchdem.integrate import evaluate_forces, sphere_positions
 from torchdem.io import VTKWriter
 from torchdem.materials import Material, interaction_table
 from torchdem.mixture import Mixture, sample_layers, scalp_mixture
-from torchdem.render import PELLET_LABEL, SINTER_LABEL, View, crop_box_for, render_state
+from torchdem.render import PELLET_LABEL, SINTER_LABEL, View, crop_box_for, member_spheres, render_state
 from torchdem.simulation import GuardSettings, Simulation
 from torchdem.state import to_dict
 from torchdem.system import build_system
@@ -248,6 +248,10 @@ class DrawDownResult:
             ``discharge_dt`` from the gate's opening on).
         failed: member -> cause, for members the blow-up guard isolated
             (``guards.on_blowup = "isolate"``); their KPIs are not measured.
+        photo_scenes: per member {"upper" | "lower": {"centres" ``[N, 3]`` m, "radii" ``[N]`` m,
+            "labels" ``[N]``, "view": the :class:`torchdem.render.View`, "crop": the
+            :class:`kpi.io.CropBox` the KPI was measured in}}: the spheres each photo shows (float32
+            centres and radii), so it can be drawn and measured again (``render_front``).
         kpis_at_discharge_time: with ``max_discharge_time`` and ``run_members(...,
             kpis_at_discharge_time=True)``: the KPIs each member would have had had the run
             stopped at ``discharge_time`` (same trajectory); else empty.
@@ -268,6 +272,7 @@ class DrawDownResult:
     discharge_dt: float = 0.0
     failed: dict[int, str] = field(default_factory=dict)
     kpis_at_discharge_time: list[dict] = field(default_factory=list)
+    photo_scenes: list[dict] = field(default_factory=list)
 
     def kpi_table(self, name: str) -> np.ndarray:
         """``[members]`` values of one KPI (NaN where it could not be measured)."""
@@ -662,7 +667,7 @@ class DrawDownTest:
         upper = self._upper_mass(sim)
         in_lower = g.in_lower_box(b.position[..., 0], b.position[..., 2]) & b.active
         lower = (system.mass * in_lower).sum(-1)
-        kpis, images, errors, conservation, loadcells = [], [], [], [], []
+        kpis, images, errors, conservation, loadcells, scenes = [], [], [], [], [], []
         fill_masses = _fill_masses(system, state, counts)
         for m, (p, r, seed) in enumerate(members):
             fill_mass = float(fill_masses[m])
@@ -672,6 +677,7 @@ class DrawDownTest:
                 kpis.append(k)
                 errors.append({"blowup": sim.failed[m]})
                 images.append({})
+                scenes.append({})
                 loadcells.append((times, masses[m]))
                 conservation.append({"fill_kg": fill_mass, "lost_bodies": int(state.lost[m])})
                 continue
@@ -705,6 +711,12 @@ class DrawDownTest:
                                      shadow_depth=s.photo_shadow_depth)
             lower_img = render_state(system, state, m, labels, lower_view, shown=at_rest,
                                      shadow_depth=s.photo_shadow_depth)
+            scene = {}
+            for view_name, view, box in (("upper", upper_view, up_crop), ("lower", lower_view, low_crop)):
+                centres, radii, sphere_labels = member_spheres(system, state, m, labels, shown=at_rest)
+                scene[view_name] = {"centres": centres.astype(np.float32), "radii": radii.astype(np.float32),
+                                    "labels": sphere_labels.astype(np.int8), "view": view, "crop": box}
+            scenes.append(scene)
             for name, fn, img, crop in (("shear_angle_deg", shear_angle, upper_img, up_crop),
                                         ("angle_of_repose_deg", angle_of_repose, lower_img, low_crop)):
                 if jammed and name == "shear_angle_deg":
@@ -739,7 +751,8 @@ class DrawDownTest:
                                  "in_flight_kg": float(total[m] - upper[m] - lower[m]),
                                  "lost_bodies": int(state.lost[m]), "total_kg": float(total[m]),
                                  "fill_kg": fill_mass})
-        return DrawDownResult(kpis, loadcells, images, members, wall, state.step, counts, conservation, errors)
+        return DrawDownResult(kpis, loadcells, images, members, wall, state.step, counts, conservation, errors,
+                              photo_scenes=scenes)
 
 
 def _fill_masses(system, state, counts) -> torch.Tensor:

@@ -41,6 +41,8 @@ Contract:
   angle).
 * :func:`render_state` renders one ensemble member of a torchdem ``(System, State)``: active
   spheres only, labels from material ids, the system's walls at the state's time.
+  :func:`member_spheres` gives the spheres it draws (centres, radii, labels on the host), so a
+  photo can be drawn again later, with other settings, without the state.
 
 Inputs may be torch tensors (any device; they are detached and copied to the host) or numpy
 arrays. Bad input raises :class:`torchdem.errors.ConfigError` naming the value, the allowed
@@ -461,34 +463,11 @@ def render_front(
     return image
 
 
-def render_state(
-    system,
-    state,
-    member: int,
-    labels_by_material: Mapping[int, int],
-    view: View,
-    walls: bool = True,
-    *,
-    palette: Mapping[int, Sequence[int]] | None = None,
-    wall_thickness: float | None = None,
-    rim_darkening: float = 0.0,
-    shadow_depth: float | None = None,
-    shown=None,
-    source: str = "render_state",
-) -> np.ndarray:
-    """Front view of ensemble member ``member`` of a torchdem ``(System, State)``.
-
-    Args:
-        system, state: a :class:`torchdem.system.System` and its :class:`torchdem.state.State`.
-        member: ensemble member index in ``[0, B)``.
-        labels_by_material: material id -> component label (palette key), for every material
-            of an active sphere, e.g. ``{0: PELLET_LABEL, 1: SINTER_LABEL}``.
-        view: window and pixel size.
-        walls: draw the system's walls that exist at the state's time (``system.time_of(step)``).
-        palette, wall_thickness, rim_darkening, shadow_depth: as in :func:`render_front`.
-        shown: optional ``[n_bodies]`` bool mask of the member's bodies to draw (e.g. the bodies at
-            rest); None draws every active body.
-    """
+def member_spheres(system, state, member: int, labels_by_material: Mapping[int, int], shown=None,
+                   source: str = "member_spheres") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(centres [N, 3] m, radii [N] m, labels [N])`` on the host: the active spheres of ensemble member
+    ``member`` (of its ``shown`` bodies, when a ``[n_bodies]`` bool mask is given), labelled by
+    ``labels_by_material``: what :func:`render_state` draws, kept so a photo can be drawn again."""
     batch = system.batch
     if isinstance(member, bool) or not isinstance(member, numbers.Integral) or not 0 <= member < batch:
         raise out_of_range("member", member, f"an ensemble member index in [0, {batch - 1}]", source)
@@ -517,6 +496,38 @@ def render_state(
                 f"got keys {sorted(labels_by_material)}"
             )
         labels[materials == material] = labels_by_material[int(material)]
+    return centres.numpy(), radii.numpy(), labels
+
+
+def render_state(
+    system,
+    state,
+    member: int,
+    labels_by_material: Mapping[int, int],
+    view: View,
+    walls: bool = True,
+    *,
+    palette: Mapping[int, Sequence[int]] | None = None,
+    wall_thickness: float | None = None,
+    rim_darkening: float = 0.0,
+    shadow_depth: float | None = None,
+    shown=None,
+    source: str = "render_state",
+) -> np.ndarray:
+    """Front view of ensemble member ``member`` of a torchdem ``(System, State)``.
+
+    Args:
+        system, state: a :class:`torchdem.system.System` and its :class:`torchdem.state.State`.
+        member: ensemble member index in ``[0, B)``.
+        labels_by_material: material id -> component label (palette key), for every material
+            of an active sphere, e.g. ``{0: PELLET_LABEL, 1: SINTER_LABEL}``.
+        view: window and pixel size.
+        walls: draw the system's walls that exist at the state's time (``system.time_of(step)``).
+        palette, wall_thickness, rim_darkening, shadow_depth: as in :func:`render_front`.
+        shown: optional ``[n_bodies]`` bool mask of the member's bodies to draw (e.g. the bodies at
+            rest); None draws every active body.
+    """
+    centres, radii, labels = member_spheres(system, state, member, labels_by_material, shown, source)
     return render_front(
         centres, radii, labels, view,
         walls=system.walls if walls else None,
