@@ -14,14 +14,11 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 
-from bo.campaign.progress import finished_runs
 from bo.screening.pipeline import measured_name
-from bo.screening.response import kpi_response
-from kpi.loadcell import discharge_jammed
+from bo.screening.response import kpi_response, store_runs
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
 from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
@@ -38,8 +35,7 @@ def main() -> None:
     parser.add_argument("--data", default=None, help="measured-data JSON (default: the paper's Table 2)")
     parser.add_argument("--top", type=int, default=6, help="parameters shown per KPI (default 6)")
     args = parser.parse_args()
-    runs = [(p, k) for path in args.stores for stage, condition, _, p, k in finished_runs(Path(path), "kpi_response")
-            if condition == args.condition and not discharge_jammed(k) and (not args.stage or stage in args.stage)]
+    runs = store_runs(args.stores, args.condition, args.stage)
     measured = load_measured(args.data).condition(args.condition).kpis
     source = f"{', '.join(args.stores)} at {args.condition}" + (f", stage {', '.join(args.stage)}" if args.stage else "")
     print(f"{len(runs)} runs that flowed at {args.condition} ({source})\n")

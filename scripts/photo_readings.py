@@ -70,7 +70,7 @@ def main() -> None:
     parser.add_argument("--data", default=None, help="measured-data JSON (default: the paper's Table 2)")
     args = parser.parse_args()
     if any(not (math.isfinite(d) and d >= 0) for d in args.shadow_depths):
-        raise ConfigError(f"--shadow-depths {args.shadow_depths}: expected depths >= 0 m (0: no shadow)")
+        parser.error(f"--shadow-depths {args.shadow_depths}: expected depths >= 0 m (0: no shadow)")
     measured = load_measured(args.data)
     keys = [f"{r}, {c}, {d}" for r, _ in READINGS for c in ("sinter", "pellet") for d in ("V", "H")]
     print("| condition | seed | shadow depth, mm | " + " | ".join(keys) + " |")

@@ -7,7 +7,7 @@
 - A KPI with no relation to the parameters gets R^2 near 0 and effects within 3 se of 0.
 - Runs without the KPI are left out; too few runs for the fit raise ConfigError naming the count.
 - The script reads a store written through the campaign API, leaves the jammed run out, prints the
-  lab's CI count, and with ``--stage`` fits one stage's runs only.
+  lab's CI count; ``store_runs`` keeps one stage's runs when asked.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ import pytest
 
 from bo.campaign.executor import EvalOutcome
 from bo.campaign.store import CampaignStore
-from bo.screening.response import kpi_response
+from bo.screening.response import kpi_response, store_runs
 from torchdem.errors import ConfigError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -87,12 +87,9 @@ def test_the_script_reads_a_store_and_leaves_jammed_runs_out(tmp_path):
     # 29.47 +- 0.48 (Table 2) holds none of 30.0-32.9; the least-squares slope is 0.49 / 0.05 = 9.8 deg per unit, 2.94 over 0.1-0.4
     assert "| angle_of_repose_deg | 4 | 30 to 32.9 |" in out.stdout and "| 29.47 +- 0.48 | 0 |" in out.stdout
     assert "knob 0.1-0.4 +2.94" in out.stdout
-    # a second stage's run joins the fit unless --stage names the first stage only
+    # a second stage's run joins the runs unless the stages name the first one only
     store.batch("verification", "o", lambda: [{"knob": 0.6}], seeds=[0], conditions=["50-50"])
     store.record([(t, EvalOutcome.success({"angle_of_repose_deg": 40.0, "discharge_jammed": 0.0}, 1.0))
                   for t in store.claim(10, stage="verification", batch_key="o")])
-    script = [sys.executable, str(REPO / "scripts" / "kpi_response.py"), str(path), "--kpis", "angle_of_repose_deg"]
-    both = subprocess.run(script, capture_output=True, text=True, cwd=REPO, check=True).stdout
-    assert both.startswith("5 runs that flowed at 50-50") and "knob 0.1-0.6" in both
-    first = subprocess.run([*script, "--stage", "initial"], capture_output=True, text=True, cwd=REPO, check=True).stdout
-    assert first.startswith("4 runs that flowed at 50-50") and "stage initial" in first and "knob 0.1-0.4 +2.94" in first
+    assert len(store_runs([path], "50-50")) == 5 and len(store_runs([path], "75-25")) == 0
+    assert sorted(p["knob"] for p, _ in store_runs([path], "50-50", ["initial"])) == [0.1, 0.2, 0.3, 0.4]

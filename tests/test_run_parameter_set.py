@@ -2,6 +2,7 @@
 box of ``profile=smoke`` here), KPIs beside the measurement; the parameters reach the DEM; ``--images``
 keeps each run's front views and ``--scenes`` their spheres, which ``scripts/photo_readings.py`` draws
 and reads again."""
+import importlib.util
 import json
 import subprocess
 import sys
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 
 from kpi.io import read_image
+from torchdem.errors import ConfigError
 from kpi.segregation import segment_pellet_sinter
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,11 +61,10 @@ def test_bad_parameters_name_the_item():
 
 
 def test_photo_readings_refuses_a_file_that_is_no_scene(tmp_path):
+    spec = importlib.util.spec_from_file_location("photo_readings", ROOT / "scripts" / "photo_readings.py")
+    photo_readings = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(photo_readings)
     bad = tmp_path / "lower_50-50_0.npz"
     bad.write_text("not an archive")
-    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "photo_readings.py"), str(bad)],
-                         capture_output=True, text=True, cwd=ROOT)
-    assert out.returncode != 0 and "not a photo scene of run_parameter_set.py --scenes" in out.stderr
-    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "photo_readings.py"), str(bad), "--shadow-depths", "-1"],
-                         capture_output=True, text=True, cwd=ROOT)
-    assert out.returncode != 0 and "expected depths >= 0 m" in out.stderr
+    with pytest.raises(ConfigError, match="lower_50-50_0.npz: not a photo scene of run_parameter_set.py --scenes"):
+        photo_readings.load_scene(bad)

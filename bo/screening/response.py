@@ -11,6 +11,8 @@ explain much of its spread, it is not noise in this model.
 
 Contract:
 
+* :func:`store_runs` ``(stores, condition, stages) -> [(parameters, KPIs)]``: every finished run of one
+  condition in the stores (read only) that did not jam, of the given stages (None: every stage).
 * :func:`kpi_response` ``(runs, kpi, source) -> KPIResponse``: ``runs`` are ``(parameters, KPIs)``
   pairs of one condition (the caller drops jammed runs). Parameters are those every run carries and
   that vary; each is coded to [-1, 1] over the range the runs span, so an effect is the KPI's change
@@ -25,11 +27,14 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
 
+from bo.campaign.progress import finished_runs
 from bo.screening.effects import least_squares
+from kpi.loadcell import discharge_jammed
 from torchdem.errors import ConfigError
 
 
@@ -76,6 +81,14 @@ def _pooled_replicate_sd(keys: Sequence[str], values: np.ndarray) -> tuple[float
             squares += float(np.sum((np.array(group) - np.mean(group)) ** 2))
             dof += len(group) - 1
     return (math.sqrt(squares / dof), dof) if dof else (math.nan, 0)
+
+
+def store_runs(stores: Sequence[str | Path], condition: str,
+               stages: Sequence[str] | None = None) -> list[tuple[dict, dict]]:
+    """``(parameters, KPIs)`` of every finished run of ``condition`` in ``stores`` that did not jam, of
+    ``stages`` (None: every stage); the stores are opened read only."""
+    return [(p, k) for path in stores for stage, c, _, p, k in finished_runs(Path(path), "kpi_response")
+            if c == condition and not discharge_jammed(k) and (not stages or stage in stages)]
 
 
 def kpi_response(runs: Sequence[tuple[Mapping[str, float], Mapping[str, float]]], kpi: str,
