@@ -20,6 +20,11 @@ import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 EXTENSIONS = sorted(p.stem for p in (REPO / "conf" / "extension").glob("*.yaml"))
+#: Extensions that reach the model the way another one does, which the two campaign commands (the
+#: matrix's costliest rows, 12-18 s a job) leave to it: clump_shape's trilobe as clump_size's,
+#: free_interaction's and geometry_friction's contact parameters as cohesion's. Every extension still
+#: changes the model (the test above) and runs with simulate, screen and study.
+SAME_ROUTE = {"clump_shape": "clump_size", "free_interaction": "cohesion", "geometry_friction": "cohesion"}
 MODULES = {"demo": "torchdem.cli", "simulate": "torchdem.cli_simulate", "screen": "bo.cli.screen",
            "study": "bo.cli.study", "calibrate": "bo.cli.calibrate", "discover": "bo.cli.discover"}
 
@@ -153,15 +158,18 @@ def test_extension_reaches_the_model(extension):
 @pytest.mark.parametrize("command", ["simulate", "screen", "study", "calibrate", "discover"])
 def test_every_command_runs_with_every_extension(tmp_path, command):
     """One Hydra multirun per command sweeps every extension (``-m extension=a,b,...``), as a
-    user sweeps them: each job runs end to end in its own directory and records its extension.
+    user sweeps them: each job runs end to end in its own directory and records its extension
+    (calibrate and discover leave out the extensions of ``SAME_ROUTE``).
     One process per command instead of one per pair: the suite took 17.5 min instead of 18.3."""
     out = tmp_path / "sweep"
-    proc = run_command(command, *TINY_RUN, *TINY[command], f"extension={','.join(EXTENSIONS)}", out=out,
+    extensions = [e for e in EXTENSIONS if command not in ("calibrate", "discover") or e not in SAME_ROUTE]
+    assert set(SAME_ROUTE.values()) <= set(extensions) and set(SAME_ROUTE) <= set(EXTENSIONS)
+    proc = run_command(command, *TINY_RUN, *TINY[command], f"extension={','.join(extensions)}", out=out,
                        timeout=1800, multirun=True)
     assert proc.returncode == 0, f"torchdem-{command} -m extension=...:\n{proc.stdout[-1500:]}\n{proc.stderr[-3000:]}"
     written = {"simulate": "kpis.json", "screen": "screening.json", "study": "timestep.json",
                "calibrate": "calibration.json", "discover": "discovery.json"}[command]
-    for job, extension in enumerate(EXTENSIONS):
+    for job, extension in enumerate(extensions):
         assert json.loads((out / str(job) / written).read_text()), (command, extension)
         saved = (out / str(job) / ".hydra" / "config.yaml").read_text()
         assert f"name: {extension}" in saved or (extension == "none" and "name: null" in saved), (command, extension)
