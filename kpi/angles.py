@@ -174,6 +174,17 @@ class SurfaceAngle:
     source: str
 
 
+def large_regions(mask: np.ndarray, min_fraction: float) -> np.ndarray:
+    """``bool [H, W]``: the 8-connected regions of ``mask`` whose area is at least ``min_fraction`` of
+    the largest region's (debris and grains lying apart are dropped; all False if the mask is empty)."""
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(np.asarray(mask, dtype=np.uint8), connectivity=8)
+    keep = np.zeros(count, dtype=bool)
+    if count > 1:
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        keep[1:] = areas >= min_fraction * areas.max()
+    return keep[labels]
+
+
 def remove_background(
     image_bgr: np.ndarray, config: SurfaceConfig = SurfaceConfig(), source: str = "image"
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -210,14 +221,7 @@ def remove_background(
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (config.speck_size_px, config.speck_size_px))
         material = cv2.morphologyEx(material, cv2.MORPH_OPEN, kernel)
         material = cv2.morphologyEx(material, cv2.MORPH_CLOSE, kernel)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(material, connectivity=8)
-    if count > 1:
-        areas = stats[1:, cv2.CC_STAT_AREA]
-        keep = np.zeros(count, dtype=bool)
-        keep[1:] = areas >= config.min_component_fraction * areas.max()
-        material_mask = keep[labels]
-    else:
-        material_mask = np.zeros(material.shape, dtype=bool)
+    material_mask = large_regions(material, config.min_component_fraction)
 
     preprocessed = image_bgr.copy()
     preprocessed[~material_mask] = BACKGROUND_BGR

@@ -47,6 +47,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from kpi.angles import large_regions
 from kpi.colors import bgr_to_lab
 from kpi.errors import bad_input, out_of_range
 from kpi.io import CropBox, crop
@@ -256,12 +257,7 @@ def measure_segregation(
     if config.speck_size_px > 1:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (config.speck_size_px, config.speck_size_px))
         material = cv2.morphologyEx(material, cv2.MORPH_OPEN, kernel)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(material, connectivity=8)
-    if count > 2 and config.min_component_fraction > 0:
-        areas = stats[1:, cv2.CC_STAT_AREA]
-        keep = np.zeros(count, dtype=bool)
-        keep[1:] = areas >= config.min_component_fraction * areas.max()
-        material = keep[labels]
+    material = large_regions(material, config.min_component_fraction)
     rows = np.flatnonzero(material.any(axis=1))
     columns = np.flatnonzero(material.any(axis=0))
     if rows.size == 0:

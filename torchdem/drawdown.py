@@ -58,7 +58,7 @@ from torchdem.integrate import evaluate_forces, sphere_positions
 from torchdem.io import VTKWriter
 from torchdem.materials import Material, interaction_table
 from torchdem.mixture import Mixture, sample_layers, scalp_mixture
-from torchdem.render import PELLET_LABEL, SINTER_LABEL, View, crop_box_for, member_spheres, render_state
+from torchdem.render import PELLET_LABEL, SINTER_LABEL, View, crop_box_for, member_spheres, render_front
 from torchdem.simulation import GuardSettings, Simulation
 from torchdem.state import to_dict
 from torchdem.system import build_system
@@ -707,15 +707,17 @@ class DrawDownTest:
             jammed = k["mass_lower_box_kg"] < JAM_FRACTION * fill_mass
             k["discharge_jammed"] = float(jammed)
             at_rest = b.velocity[m].norm(dim=-1) < AT_REST_SPEED_M_S  # the photo after the discharge
-            upper_img = render_state(system, state, m, labels, upper_view, shown=at_rest,
-                                     shadow_depth=s.photo_shadow_depth)
-            lower_img = render_state(system, state, m, labels, lower_view, shown=at_rest,
-                                     shadow_depth=s.photo_shadow_depth)
-            scene = {}
-            for view_name, view, box in (("upper", upper_view, up_crop), ("lower", lower_view, low_crop)):
-                centres, radii, sphere_labels = member_spheres(system, state, m, labels, shown=at_rest)
-                scene[view_name] = {"centres": centres.astype(np.float32), "radii": radii.astype(np.float32),
-                                    "labels": sphere_labels.astype(np.int8), "view": view, "crop": box}
+            # the bodies at rest, taken from the state once for both photos and kept with them
+            centres, radii, sphere_labels = member_spheres(system, state, m, labels, shown=at_rest)
+            photos = {}
+            for view_name, view in (("upper", upper_view), ("lower", lower_view)):
+                photos[view_name] = render_front(centres, radii, sphere_labels, view, walls=system.walls,
+                                                 time=system.time_of(state.step), shadow_depth=s.photo_shadow_depth)
+            upper_img, lower_img = photos["upper"], photos["lower"]
+            kept = {"centres": centres.astype(np.float32), "radii": radii.astype(np.float32),
+                    "labels": sphere_labels.astype(np.int8)}
+            scene = {"upper": {**kept, "view": upper_view, "crop": up_crop},
+                     "lower": {**kept, "view": lower_view, "crop": low_crop}}
             scenes.append(scene)
             for name, fn, img, crop in (("shear_angle_deg", shear_angle, upper_img, up_crop),
                                         ("angle_of_repose_deg", angle_of_repose, lower_img, low_crop)):
