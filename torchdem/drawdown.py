@@ -709,11 +709,9 @@ class DrawDownTest:
             at_rest = b.velocity[m].norm(dim=-1) < AT_REST_SPEED_M_S  # the photo after the discharge
             # the bodies at rest, taken from the state once for both photos and kept with them
             centres, radii, sphere_labels = member_spheres(system, state, m, labels, shown=at_rest)
-            photos = {}
-            for view_name, view in (("upper", upper_view), ("lower", lower_view)):
-                photos[view_name] = render_front(centres, radii, sphere_labels, view, walls=system.walls,
+            upper_img, lower_img = (render_front(centres, radii, sphere_labels, view, walls=system.walls,
                                                  time=system.time_of(state.step), shadow_depth=s.photo_shadow_depth)
-            upper_img, lower_img = photos["upper"], photos["lower"]
+                                    for view in (upper_view, lower_view))
             kept = {"centres": centres.astype(np.float32), "radii": radii.astype(np.float32),
                     "labels": sphere_labels.astype(np.int8)}
             scene = {"upper": {**kept, "view": upper_view, "crop": up_crop},
