@@ -95,7 +95,7 @@ def mixture_from(cfg: Mapping[str, Any], where: str = "mixture") -> Mixture:
 
 
 def geometry_from(cfg: Mapping[str, Any], where: str = "geometry") -> DrawDownGeometry:
-    """A :class:`DrawDownGeometry` from the ``*_m`` keys of ``conf/geometry``."""
+    """A :class:`DrawDownGeometry` from the ``*_m`` keys of ``conf/geometry`` (and ``gate_opening_s``)."""
     fields = ("upper_width", "depth", "upper_height", "outlet_width", "upper_bottom_z", "lower_width", "lower_height")
     values = {f: _number(cfg, f + "_m", where, 0.0, open_low=True, allowed="a length > 0 m") for f in fields}
     values["slice_depth"] = _number(cfg, "slice_depth_m", where, 0.0, open_low=True, default=None,
@@ -105,6 +105,9 @@ def geometry_from(cfg: Mapping[str, Any], where: str = "geometry") -> DrawDownGe
         raise ConfigError(f"{where}: mirror = {mirror!r} is not allowed; expected true or false (a frictionless "
                           "elastic symmetry plane at the slice's back face)")
     values["mirror"] = mirror
+    opening = _number(cfg, "gate_opening_s", where, 0.0, default=None,
+                      allowed="a time >= 0 s or null (null or 0: the gate vanishes at once)")
+    values["gate_opening"] = 0.0 if opening is None else opening
     return DrawDownGeometry(**values).validate(where)
 
 
@@ -120,8 +123,9 @@ def parameter_range(name: str) -> tuple[float, float, bool, str]:
     """``(low, high, open low, allowed text)`` of a named model parameter by its prefix: the
     contact parameters of :data:`CONTACT_RANGES` and the material parameters of
     :data:`torchdem.model.MATERIAL_PREFIXES` (``density_<m>``, ``lobe_spacing_<m>``), the box lengths
-    ``geometry_<field>`` (> 0 m); any number for other names."""
-    from torchdem.model import GEOMETRY_PREFIX, MATERIAL_PREFIXES
+    ``geometry_<field>`` (> 0 m) and the gate's opening time ``geometry_gate_opening`` (>= 0 s); any
+    number for other names."""
+    from torchdem.model import GEOMETRY_PREFIX, MATERIAL_PREFIXES, geometry_parameter_range
 
     contact = next((p for p in CONTACT_RANGES if name.startswith(p)), None)
     if contact is not None:
@@ -131,7 +135,8 @@ def parameter_range(name: str) -> tuple[float, float, bool, str]:
         low, high, allowed = MATERIAL_PREFIXES[material]
         return low, high, True, allowed
     if name.startswith(GEOMETRY_PREFIX):
-        return 0.0, math.inf, True, "a length > 0 m"
+        low, open_low, allowed = geometry_parameter_range(name)
+        return low, math.inf, open_low, allowed
     return -math.inf, math.inf, False, "a number"
 
 

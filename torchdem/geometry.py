@@ -34,6 +34,7 @@ All of these are overridable (``conf/geometry/*.yaml``).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -42,9 +43,13 @@ from torchdem.walls import WallSpec
 
 #: Material name of the symmetry plane of a mirrored slice (``DrawDownGeometry.mirror``).
 MIRROR_MATERIAL = "mirror"
+#: How far under the upper box's floor a sliding gate runs, m (``DrawDownGeometry.gate_opening``):
+#: a plate drawn out under the floor's right half, not through it (two coplanar rectangles would
+#: both push a sphere lying on them).
+GATE_CLEARANCE = 0.002
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class DrawDownGeometry:
     """Dimensions of the draw down test, metres (see the module docstring).
 
@@ -60,6 +65,10 @@ class DrawDownGeometry:
         mirror: the slice's back face (y = slice_depth) is a symmetry plane, a frictionless
             elastic wall, and its front face the box's front wall; needs ``slice_depth``
             (``depth / 2`` for the lab box's mid-depth plane).
+        gate_opening: how long the gate takes to uncover the slot, s. 0: it vanishes the moment the
+            fill has settled. Else it is a plate :data:`GATE_CLEARANCE` under the floor that slides
+            at constant speed (``outlet_width / gate_opening``) towards +x, under the floor's right
+            half, dragging the grains on it by the wall friction; the slot opens from its left edge.
     """
 
     upper_width: float = 0.35
@@ -72,6 +81,13 @@ class DrawDownGeometry:
     slice_depth: float | None = None
     slice_walls: bool = False
     mirror: bool = False
+    gate_opening: float = 0.0
+
+    def __repr__(self) -> str:
+        """The fields, ``gate_opening`` only when the gate slides: campaign checkpoints are named by
+        the model's repr, and those of a gate that vanishes were named before the gate could slide."""
+        shown = [f for f in dataclasses.fields(self) if not (f.name == "gate_opening" and self.gate_opening == 0)]
+        return f"{type(self).__name__}({', '.join(f'{f.name}={getattr(self, f.name)!r}' for f in shown)})"
 
     def validate(self, source: str = "geometry") -> "DrawDownGeometry":
         for name in ("upper_width", "depth", "upper_height", "outlet_width", "upper_bottom_z",
@@ -87,6 +103,10 @@ class DrawDownGeometry:
             raise out_of_range("upper_bottom_z", self.upper_bottom_z, "> 0 m", source)
         if self.slice_depth is not None and not (0 < self.slice_depth <= self.depth):
             raise out_of_range("slice_depth", self.slice_depth, f"(0, depth = {self.depth}] m or null", source)
+        if not (isinstance(self.gate_opening, (int, float)) and math.isfinite(self.gate_opening)
+                and self.gate_opening >= 0):
+            raise out_of_range("gate_opening", self.gate_opening, "a time >= 0 s (0: the gate vanishes at once)",
+                               source)
         if self.mirror and self.slice_depth is None:
             raise out_of_range("mirror", self.mirror, "false for the full box (a mirror plane bounds a slice: set "
                                "slice_depth, e.g. depth / 2)", source)
@@ -126,7 +146,8 @@ class DrawDownGeometry:
 
     def walls(self, material: str, gate_open_time: float, fill_top: float | None = None,
               front_back_material: str | None = None, mirror_material: str = "mirror") -> list[WallSpec]:
-        """Walls of both boxes; the gate exists until ``gate_open_time`` (s). The front and back
+        """Walls of both boxes; the gate opens at ``gate_open_time`` (s): it vanishes then, or with
+        ``gate_opening`` it slides away under the floor's right half within ``gate_opening`` s. The front and back
         walls (full box or walled slice) are of ``front_back_material`` (default ``material``);
         with ``mirror`` the back walls are replaced by the symmetry plane, one rectangle of
         ``mirror_material`` over the whole width and height of the domain (nothing crosses a plane
@@ -151,7 +172,7 @@ class DrawDownGeometry:
             WallSpec("upper_right", (Wu / 2, yc, zb + Hu / 2), (-1, 0, 0), (0, 0, 1), Hu / 2, hy, material),
             WallSpec("upper_bottom_left", (-(b / 2 + side / 2), yc, zb), (0, 0, 1), (1, 0, 0), side / 2, hy, material),
             WallSpec("upper_bottom_right", (b / 2 + side / 2, yc, zb), (0, 0, 1), (1, 0, 0), side / 2, hy, material),
-            WallSpec("gate", (0.0, yc, zb), (0, 0, 1), (1, 0, 0), b / 2, hy, material, active_until=gate_open_time),
+            self._gate(material, gate_open_time, yc, hy),
             WallSpec("lower_bottom", (0.0, yc, 0.0), (0, 0, 1), (1, 0, 0), Wl / 2, hy, material),
             WallSpec("lower_left", (-Wl / 2, yc, Hl / 2), (1, 0, 0), (0, 0, 1), Hl / 2, hy, material),
             WallSpec("lower_right", (Wl / 2, yc, Hl / 2), (-1, 0, 0), (0, 0, 1), Hl / 2, hy, material),
@@ -187,6 +208,18 @@ class DrawDownGeometry:
                 walls += [WallSpec("upper_back", (0.0, D, zb + Hu / 2), (0, -1, 0), (0, 0, 1), Hu / 2, Wu / 2, fb),
                           WallSpec("lower_back", (0.0, D, Hl / 2), (0, -1, 0), (0, 0, 1), Hl / 2, Wl / 2, fb)]
         return walls
+
+    def _gate(self, material: str, gate_open_time: float, yc: float, hy: float) -> WallSpec:
+        """The gate under the slot: gone at ``gate_open_time``, or a plate sliding towards +x from
+        then on at ``outlet_width / gate_opening`` until the slot is open (see :attr:`gate_opening`)."""
+        b, zb = self.outlet_width, self.upper_bottom_z
+        if self.gate_opening == 0:
+            return WallSpec("gate", (0.0, yc, zb), (0, 0, 1), (1, 0, 0), b / 2, hy, material,
+                            active_until=gate_open_time)
+        open_at = gate_open_time + self.gate_opening
+        return WallSpec("gate", (0.0, yc, zb - GATE_CLEARANCE), (0, 0, 1), (1, 0, 0), b / 2, hy, material,
+                        active_until=open_at, velocity=(b / self.gate_opening, 0.0, 0.0),
+                        move_from=gate_open_time, move_until=open_at)
 
     def in_upper_box(self, x, z):
         """Bool mask of centres inside the upper box (above its bottom, between its walls)."""

@@ -19,7 +19,8 @@ Contract:
 - A parameter ``geometry_<field>`` (m) replaces that length of the boxes
   (:data:`GEOMETRY_PARAMETERS`, fields of :class:`~torchdem.geometry.DrawDownGeometry`): the
   outlet width, which the paper's text does not give, as a discovery candidate
-  (:mod:`torchdem.mechanisms.outlet_width`). An ensemble has one set of walls, so the parameter
+  (:mod:`torchdem.mechanisms.outlet_width`); ``geometry_gate_opening`` (s, :data:`GEOMETRY_TIMES`)
+  makes the gate slide out in that time instead of vanishing. An ensemble has one set of walls, so the parameter
   sets of one test agree on them (``bo.campaign.dem.evaluate_batch`` splits a batch that does not).
 - Model extensions (:mod:`torchdem.mechanisms`) change a model through
   :func:`torchdem.mechanisms.apply_extension`; every entry point applies the ``extension``
@@ -46,11 +47,22 @@ DENSITY_PREFIX = "density_"
 MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3"),
                      "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size"),
                      "clump_scale_": (0.5, 2.0, "a trilobe's size in (0.5, 2] of the one that fits the sieve size")}
-#: Prefix of task parameters that set a length of the boxes, m (``geometry_outlet_width``).
+#: Prefix of task parameters that set a length of the boxes, m (``geometry_outlet_width``), or how
+#: the gate opens (``geometry_gate_opening``, s).
 GEOMETRY_PREFIX = "geometry_"
 #: The ``DrawDownGeometry`` lengths a task parameter may set (the depth stays: the lab geometry's
 #: mirror plane sits at half of it).
 GEOMETRY_PARAMETERS = ("upper_width", "upper_height", "outlet_width", "upper_bottom_z", "lower_width", "lower_height")
+#: The ``DrawDownGeometry`` times a task parameter may set, s (``gate_opening``: 0 the gate vanishes).
+GEOMETRY_TIMES = ("gate_opening",)
+
+
+def geometry_parameter_range(name: str) -> tuple[float, bool, str]:
+    """``(low, open low, allowed text)`` of a ``geometry_<field>`` task parameter: a length > 0 m or,
+    for :data:`GEOMETRY_TIMES`, a time >= 0 s."""
+    if name[len(GEOMETRY_PREFIX):] in GEOMETRY_TIMES:
+        return 0.0, False, "a time >= 0 s (geometry_gate_opening 0: the gate vanishes at once)"
+    return 0.0, True, "a length > 0 m"
 
 
 def mixture_parameters(params: Mapping[str, float]) -> tuple[tuple[str, float], ...]:
@@ -76,11 +88,12 @@ def with_geometry_parameters(geometry: DrawDownGeometry, params: Mapping[str, fl
     changes = {}
     for key, value in geometry_parameters(params):
         field_name = key[len(GEOMETRY_PREFIX):]
-        if field_name not in GEOMETRY_PARAMETERS:
-            raise ConfigError(f"{source}: parameter {key!r} names no length a task may set; expected "
-                              f"{GEOMETRY_PREFIX}<field> with a field of {list(GEOMETRY_PARAMETERS)}")
-        if not (math.isfinite(value) and value > 0):
-            raise out_of_range(key, value, "a length > 0 m", source)
+        if field_name not in GEOMETRY_PARAMETERS + GEOMETRY_TIMES:
+            raise ConfigError(f"{source}: parameter {key!r} names no length or time a task may set; expected "
+                              f"{GEOMETRY_PREFIX}<field> with a field of {list(GEOMETRY_PARAMETERS + GEOMETRY_TIMES)}")
+        low, open_low, allowed = geometry_parameter_range(key)
+        if not (math.isfinite(value) and (value > low if open_low else value >= low)):
+            raise out_of_range(key, value, allowed, source)
         changes[field_name] = value
     return dataclasses.replace(geometry, **changes).validate(source) if changes else geometry
 

@@ -100,16 +100,18 @@ def check_kpis(kpis, where: str, name: str = "kpis") -> tuple[str, ...]:
 HASHED_AS = {"device": "cpu", "compile": False}
 
 
-#: ``run`` and ``sim`` settings added after stores were shipped: hashed as absent while null (their old
-#: behaviour).
+#: ``run``, ``sim`` and ``geometry`` settings added after stores were shipped: hashed as absent while
+#: null (their old behaviour).
 RUN_ABSENT_WHEN_NULL = ("max_discharge_time_s", "photo_shadow_depth_m")
 SIM_ABSENT_WHEN_NULL = ("discharge_time_step_fraction",)
+GEOMETRY_ABSENT_WHEN_NULL = ("gate_opening_s",)
 
 
 def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> str:
     """Hash of the result-deciding blocks (default ``MODEL_KEYS``) of the resolved config
     (``sim``'s execution-only settings hashed as :data:`HASHED_AS` says, ``run``'s
-    :data:`RUN_ABSENT_WHEN_NULL` and ``sim``'s :data:`SIM_ABSENT_WHEN_NULL` left out while null)."""
+    :data:`RUN_ABSENT_WHEN_NULL`, ``sim``'s :data:`SIM_ABSENT_WHEN_NULL` and ``geometry``'s
+    :data:`GEOMETRY_ABSENT_WHEN_NULL` left out while null)."""
     from torchdem.model import EXECUTION_ONLY
 
     part = {k: plain.get(k) for k in keys}
@@ -118,8 +120,9 @@ def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) ->
         part["sim"] = {**{k: v for k, v in sim.items() if k not in EXECUTION_ONLY
                           and not (k in SIM_ABSENT_WHEN_NULL and v is None)},
                        **{k: v for k, v in HASHED_AS.items() if k in sim}}
-    if isinstance(part.get("run"), Mapping):
-        part["run"] = {k: v for k, v in part["run"].items() if not (k in RUN_ABSENT_WHEN_NULL and v is None)}
+    for block, absent in (("run", RUN_ABSENT_WHEN_NULL), ("geometry", GEOMETRY_ABSENT_WHEN_NULL)):
+        if isinstance(part.get(block), Mapping):
+            part[block] = {k: v for k, v in part[block].items() if not (k in absent and v is None)}
     return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
