@@ -100,29 +100,27 @@ def check_kpis(kpis, where: str, name: str = "kpis") -> tuple[str, ...]:
 HASHED_AS = {"device": "cpu", "compile": False}
 
 
-#: ``run``, ``sim`` and ``geometry`` settings added after stores were shipped: hashed as absent while
-#: null (their old behaviour).
-RUN_ABSENT_WHEN_NULL = ("max_discharge_time_s", "photo_shadow_depth_m")
-SIM_ABSENT_WHEN_NULL = ("discharge_time_step_fraction",)
-GEOMETRY_ABSENT_WHEN_NULL = ("gate_opening_s",)
+#: Per config block, the settings added after stores were shipped: hashed as absent while null (their
+#: old behaviour).
+ABSENT_WHEN_NULL = {"run": ("max_discharge_time_s", "photo_shadow_depth_m"),
+                    "sim": ("discharge_time_step_fraction",),
+                    "geometry": ("gate_opening_s",)}
 
 
 def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> str:
     """Hash of the result-deciding blocks (default ``MODEL_KEYS``) of the resolved config
-    (``sim``'s execution-only settings hashed as :data:`HASHED_AS` says, ``run``'s
-    :data:`RUN_ABSENT_WHEN_NULL`, ``sim``'s :data:`SIM_ABSENT_WHEN_NULL` and ``geometry``'s
-    :data:`GEOMETRY_ABSENT_WHEN_NULL` left out while null)."""
+    (``sim``'s execution-only settings hashed as :data:`HASHED_AS` says, each block's
+    :data:`ABSENT_WHEN_NULL` settings left out while null)."""
     from torchdem.model import EXECUTION_ONLY
 
     part = {k: plain.get(k) for k in keys}
-    if isinstance(part.get("sim"), Mapping):
-        sim = part["sim"]
-        part["sim"] = {**{k: v for k, v in sim.items() if k not in EXECUTION_ONLY
-                          and not (k in SIM_ABSENT_WHEN_NULL and v is None)},
-                       **{k: v for k, v in HASHED_AS.items() if k in sim}}
-    for block, absent in (("run", RUN_ABSENT_WHEN_NULL), ("geometry", GEOMETRY_ABSENT_WHEN_NULL)):
+    for block, absent in ABSENT_WHEN_NULL.items():
         if isinstance(part.get(block), Mapping):
             part[block] = {k: v for k, v in part[block].items() if not (k in absent and v is None)}
+    if isinstance(part.get("sim"), Mapping):
+        sim = part["sim"]
+        part["sim"] = {**{k: v for k, v in sim.items() if k not in EXECUTION_ONLY},
+                       **{k: v for k, v in HASHED_AS.items() if k in sim}}
     return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
