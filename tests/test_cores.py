@@ -29,6 +29,14 @@ def test_a_batch_takes_its_share_of_the_cores(tmp_path, cores, busy, threads):
     assert share.busy() == busy and share.threads() == threads
 
 
+@pytest.mark.parametrize("n_workers, shared", [(3, 2), (2, 2), (1, 1), (None, 2)])
+def test_a_local_cluster_shares_no_more_cores_than_the_machine_has(monkeypatch, n_workers, shared):
+    """Three workers on two cores share two: a stage's last batch runs on the machine's two, never
+    three."""
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    assert cores.local_cores(n_workers) == shared
+
+
 def test_an_unreadable_share_leaves_a_batch_on_one_thread(tmp_path):
     share = CoreShare.create(4, directory=str(tmp_path))
     assert share.threads() == 4                     # nothing in flight yet

@@ -33,7 +33,15 @@ from pathlib import Path
 from torchdem.cpu_monitor import machine_busy_seconds, own_cpu_seconds
 from torchdem.errors import out_of_range
 
-__all__ = ["CoreShare", "ThreadFollower"]
+__all__ = ["CoreShare", "ThreadFollower", "local_cores"]
+
+
+def local_cores(n_workers: int | None) -> int:
+    """The cores a local cluster of ``n_workers`` one-thread workers shares (None: one per core):
+    its workers, but no more than the machine has. More workers than cores time-slice the machine's
+    cores, and a stage's last batch may still take no more than those."""
+    machine = os.cpu_count() or 1
+    return min(n_workers or machine, machine)
 
 
 @dataclass(frozen=True)

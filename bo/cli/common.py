@@ -158,7 +158,7 @@ def executor_from(settings: ExecutorSettings, model, client=None, checkpoints: P
     """The executor running ``bo.campaign.dem.evaluate_batch`` on ``model`` (dask: on ``client``
     when given, see :func:`executor_factory`); ``checkpoints``: the directory where its batches
     checkpoint and resume (:func:`checkpoint_dir_for`)."""
-    from bo.campaign.cores import CoreShare
+    from bo.campaign.cores import CoreShare, local_cores
     from bo.campaign.dem import evaluate_batch
     from bo.campaign.executor import DaskExecutor, InProcessExecutor
 
@@ -169,7 +169,7 @@ def executor_from(settings: ExecutorSettings, model, client=None, checkpoints: P
         return InProcessExecutor(functools.partial(evaluate_batch, model, checkpoint_dir=checkpoint_dir),
                                  settings.batch_size, affinity=mixture_parameters)
     # A local cluster (ours, or executor_factory's) runs on this machine: its workers share its cores.
-    share = (CoreShare.create(settings.n_workers or os.cpu_count() or 1)
+    share = (CoreShare.create(local_cores(settings.n_workers))
              if settings.share_cores and settings.address is None else None)
     evaluate = functools.partial(evaluate_batch, model, checkpoint_dir=checkpoint_dir, core_share=share)
     try:
