@@ -1,0 +1,164 @@
+"""The gap between two KPIs of one test, the lab's against every run a model has made.
+
+A calibration matches KPIs one at a time; a model can still be unable to produce the lab's
+*combination* of two of them. The draw down's case: the shear angle (the face the upper box keeps,
+a static slope in a confined box) and the angle of repose (the heap poured into the lower box). In
+the lab the face stands higher above the heap the more sinter the mixture holds; if no run of the
+model, over every parameter set and candidate mechanism it was ever run with, stands its face that
+far above its heap, the mismatch is in the model's structure, not in a value a campaign could find.
+
+    G = KPI_a - KPI_b      (per run; by default shear angle - angle of repose, deg)
+
+Contract:
+
+* :func:`lab_gap` ``(measured data, kpi_a, kpi_b) -> {condition: (G, half-width)}``: the lab's G
+  and a 95 % half-width that assumes nothing about how the two KPIs' errors correlate (the sum of
+  the two CIs' half-widths: the measurements of one test are not independent, and Table 2 gives no
+  covariance), conditions with both KPIs only.
+* :func:`gap_check` ``(store paths, measured data, kpi_a, kpi_b) -> GapCheck``: per condition, G of
+  every finished run in the stores that did not jam and has both KPIs (a run two stores hold, as a
+  probe's or a discovery's copy of its base, counted once: same condition, seed and values), and the runs with *both* KPIs
+  inside the lab's own 95 % CIs (a criterion that needs no covariance). A KPI name that no run of
+  the stores has raises :class:`~torchdem.errors.ConfigError` naming it and the KPIs they have.
+* :func:`format_gap` turns it into markdown (``scripts/gap_check.py``); with ``by_stage`` also G
+  per stage and condition, so a discovery store shows which candidate's runs moved it.
+
+Stores are opened read-only, so a running campaign is not disturbed.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from bo.campaign.progress import finished_runs
+from kpi.loadcell import discharge_jammed
+from torchdem.errors import ConfigError
+from torchdem.measured import MeasuredData
+
+#: The default pair: the face the upper box keeps above the heap poured into the lower box.
+FACE_ABOVE_HEAP = ("shear_angle_deg", "angle_of_repose_deg")
+
+
+@dataclass(frozen=True)
+class GapRun:
+    """One finished run: its store, stage, condition, the two KPIs and G = a - b."""
+
+    store: str
+    stage: str
+    condition: str
+    a: float
+    b: float
+
+    @property
+    def gap(self) -> float:
+        return self.a - self.b
+
+
+@dataclass(frozen=True)
+class GapCheck:
+    """``lab``: condition -> (G, half-width); ``ci``: condition -> (CI of a, CI of b), the lab's 95 %
+    half-widths; ``means``: condition -> (lab mean of a, of b); ``runs``: the model's."""
+
+    stores: tuple[str, ...]
+    kpis: tuple[str, str]
+    lab: Mapping[str, tuple[float, float]]
+    means: Mapping[str, tuple[float, float]]
+    ci: Mapping[str, tuple[float, float]]
+    runs: tuple[GapRun, ...]
+
+    def conditions(self) -> list[str]:
+        """The lab's conditions, then any other the runs have, in order."""
+        return list(dict.fromkeys([*self.lab, *(r.condition for r in self.runs)]))
+
+    def model(self, condition: str) -> np.ndarray:
+        """``[n]`` G of the model's runs at ``condition``."""
+        return np.array([r.gap for r in self.runs if r.condition == condition])
+
+    def reaching(self, condition: str) -> int:
+        """Runs whose G is at or beyond the near end of the lab's band (NaN-free count; 0 without a lab value)."""
+        if condition not in self.lab:
+            return 0
+        g, half = self.lab[condition]
+        model = self.model(condition)
+        below = model.mean() < g if len(model) else True
+        return int(np.sum(model >= g - half) if below else np.sum(model <= g + half))
+
+    def both_inside(self, condition: str) -> int:
+        """Runs with both KPIs inside the lab's own 95 % CIs at ``condition``."""
+        if condition not in self.means:
+            return 0
+        (ma, mb), (ca, cb) = self.means[condition], self.ci[condition]
+        return sum(1 for r in self.runs if r.condition == condition and abs(r.a - ma) <= ca and abs(r.b - mb) <= cb)
+
+    def by_stage(self) -> dict[tuple[str, str, str], np.ndarray]:
+        """``(store, stage, condition) -> [n]`` G, in the order the stores list them."""
+        out: dict[tuple[str, str, str], list[float]] = {}
+        for r in self.runs:
+            out.setdefault((r.store, r.stage, r.condition), []).append(r.gap)
+        return {k: np.array(v) for k, v in out.items()}
+
+
+def lab_gap(measured: MeasuredData, kpi_a: str = FACE_ABOVE_HEAP[0],
+            kpi_b: str = FACE_ABOVE_HEAP[1]) -> dict[str, tuple[float, float]]:
+    """Condition -> (mean of a - mean of b, CI of a + CI of b) (module docstring)."""
+    out = {}
+    for name in measured.names:
+        k = measured.condition(name).kpis
+        a, b = k.get(kpi_a), k.get(kpi_b)
+        if a is not None and b is not None:
+            out[name] = (a.mean - b.mean, (a.ci95 or 0.0) + (b.ci95 or 0.0))
+    return out
+
+
+def gap_check(stores: Sequence[str | Path], measured: MeasuredData, kpi_a: str = FACE_ABOVE_HEAP[0],
+              kpi_b: str = FACE_ABOVE_HEAP[1]) -> GapCheck:
+    """The lab's G and the model's over every run of ``stores`` that flowed (module docstring)."""
+    runs, seen, held = [], set(), set()
+    for s in stores:
+        for stage, condition, seed, _, k in finished_runs(Path(s), "gap_check"):
+            seen.update(k)
+            a, b = float(k.get(kpi_a, math.nan)), float(k.get(kpi_b, math.nan))
+            if discharge_jammed(k) or not (math.isfinite(a) and math.isfinite(b)) or (condition, seed, a, b) in held:
+                continue                # jammed, without the pair, or a copy of a run another store holds
+            held.add((condition, seed, a, b))
+            runs.append(GapRun(Path(s).name, stage, condition, a, b))
+    for name in (kpi_a, kpi_b):
+        if seen and name not in seen:
+            raise ConfigError(f"gap_check: KPI {name!r} is in no run of {', '.join(map(str, stores))}; "
+                              f"their KPIs: {', '.join(sorted(seen))}")
+    means, ci = {}, {}
+    for name in measured.names:
+        k = measured.condition(name).kpis
+        if kpi_a in k and kpi_b in k:
+            means[name] = (k[kpi_a].mean, k[kpi_b].mean)
+            ci[name] = (k[kpi_a].ci95 or 0.0, k[kpi_b].ci95 or 0.0)
+    return GapCheck(tuple(str(s) for s in stores), (kpi_a, kpi_b), lab_gap(measured, kpi_a, kpi_b), means, ci,
+                    tuple(runs))
+
+
+def format_gap(check: GapCheck, by_stage: bool = False) -> str:
+    """Markdown: per condition the lab's G and the model's over its runs, how many reach the lab's band
+    and how many have both KPIs inside the lab's CIs; ``by_stage``: G per store and stage too."""
+    a, b = check.kpis
+    lines = [f"## The gap {a} - {b}, the lab's against every run", "",
+             "Stores: " + ", ".join(check.stores), "",
+             "The lab's band is the sum of the two CIs' half-widths (no assumption on how the two correlate).", "",
+             "| condition | lab (95 % band) | model runs | model median | model range | runs reaching the band "
+             "| runs with both KPIs inside the lab's CIs |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for c in check.conditions():
+        lab = f"{check.lab[c][0]:.2f} +- {check.lab[c][1]:.2f}" if c in check.lab else "-"
+        g = check.model(c)
+        model = (f"{len(g)} | {np.median(g):.2f} | {g.min():.2f} to {g.max():.2f}" if len(g) else "0 | - | -")
+        lines.append(f"| {c} | {lab} | {model} | {check.reaching(c)} | {check.both_inside(c)} |")
+    if by_stage:
+        groups = check.by_stage()
+        lines += ["", "G per store and stage: median (max, runs)", "",
+                  "| store | stage | condition | G |", "| --- | --- | --- | ---: |"]
+        for (store, stage, c), g in groups.items():
+            lines.append(f"| {store} | {stage} | {c} | {np.median(g):.2f} ({g.max():.2f}, {len(g)}) |")
+    return "\n".join(lines) + "\n"
