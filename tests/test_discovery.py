@@ -517,6 +517,23 @@ def test_the_report_sets_what_the_calibration_s_bounds_allowed_and_the_residue_b
     from_app = residue_from({"discovery": {"baseline_store": str(lab_store)}}, tmp_path / "d.sqlite", load_measured(None))
     assert len(from_app.model("50-50")) == len(residue.model("50-50"))
     assert residue_from({}, tmp_path / "d.sqlite", _lab({})) is None  # the known model reports no fill mass
+    # and how far the face stands above the heap, the lab's against the same runs
+    from bo.cli.discover import gap_from
+    from bo.discovery.gap import gap_check
+
+    gap = gap_check([lab_store], load_measured(None))
+    files = write_discovery_report(result, tmp_path / "gap", gap=gap)
+    md = files["md"].read_text()
+    assert "## How far the face stands above the heap" in md and "| 25-75 | 15.13 +- 1.96 |" in md
+    doc = json.loads(files["json"].read_text())
+    assert doc["gap"]["conditions"]["50-50"]["runs"] == len(gap.model("50-50")) > 100
+    assert doc["gap"]["conditions"]["25-75"]["both_inside"] == gap.both_inside("25-75")
+    assert ("Out of every run's reach: " in md) == bool(gap.out_of_reach())
+    # the discovery app: the baseline store's runs and its own (not started yet here: none)
+    from_app = gap_from({"discovery": {"baseline_store": str(lab_store)}}, tmp_path / "new.sqlite",
+                        load_measured(None))
+    assert len(from_app.model("50-50")) == len(gap.model("50-50"))
+    assert gap_from({}, tmp_path / "new.sqlite", load_measured(None)) is None    # no store, no runs
 
 
 def _calibration_store(path, calibrated_subset: dict) -> CampaignStore:

@@ -170,6 +170,16 @@ def residue_from(plain: Mapping[str, Any], store_path, measured):
     return check if check.lab and check.runs else None
 
 
+def gap_from(plain: Mapping[str, Any], store_path, measured):
+    """How far the face stands above the heap (``bo.discovery.gap``), the lab's against the runs in the
+    baseline store and the discovery's own; None when the data or the runs give none."""
+    from bo.discovery.gap import gap_check
+
+    stores = [p for p in ((plain.get("discovery") or {}).get("baseline_store"), store_path) if p and Path(p).is_file()]
+    check = gap_check(stores, measured) if stores else None
+    return check if check is not None and check.lab and check.runs else None
+
+
 def extension_command(name: str | None, values: Mapping[str, float]) -> str | None:
     """The Hydra overrides that switch mechanism ``name`` on at ``values`` in any command."""
     if name is None:
@@ -225,7 +235,8 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
         result = run_discovery(store, executor_for, model, calibrated, measured, settings, echo=echo,
                                baseline=baseline)
     command = extension_command(result.cause, result.extension)
-    files = write_discovery_report(result, out, command, attainable_from(plain), residue_from(plain, path, measured))
+    files = write_discovery_report(result, out, command, attainable_from(plain), residue_from(plain, path, measured),
+                                   gap_from(plain, path, measured))
     wall = time.perf_counter() - started
     if command:
         echo(f"use it: torchdem-calibrate {command}")

@@ -20,6 +20,8 @@ Contract:
   probe's or a discovery's copy of its base, counted once: same condition, seed and values), and the runs with *both* KPIs
   inside the lab's own 95 % CIs (a criterion that needs no covariance). A KPI name that no run of
   the stores has raises :class:`~torchdem.errors.ConfigError` naming it and the KPIs they have.
+* ``GapCheck.to_dict()`` the same as plain data (the discovery report's ``gap``);
+  ``GapCheck.out_of_reach()`` the lab's conditions where no run has both KPIs inside the lab's CIs.
 * :func:`format_gap` turns it into markdown (``scripts/gap_check.py``); with ``by_stage`` also G
   per stage and condition, so a discovery store shows which candidate's runs moved it.
 
@@ -94,6 +96,22 @@ class GapCheck:
         (ma, mb), (ca, cb) = self.means[condition], self.ci[condition]
         return sum(1 for r in self.runs if r.condition == condition and abs(r.a - ma) <= ca and abs(r.b - mb) <= cb)
 
+    def to_dict(self) -> dict:
+        """Plain data (the discovery report's ``gap``): the KPIs, the stores and per condition the lab's G
+        and band, the model's runs, median, range, runs reaching the band and runs with both inside."""
+        per = {}
+        for c in self.conditions():
+            g = self.model(c)
+            per[c] = {"lab": list(self.lab[c]) if c in self.lab else None, "runs": int(len(g)),
+                      "median": float(np.median(g)) if len(g) else math.nan,
+                      "min": float(g.min()) if len(g) else math.nan, "max": float(g.max()) if len(g) else math.nan,
+                      "reaching": self.reaching(c), "both_inside": self.both_inside(c)}
+        return {"kpis": list(self.kpis), "stores": list(self.stores), "conditions": per}
+
+    def out_of_reach(self) -> list[str]:
+        """The lab's conditions with runs where none has both KPIs inside the lab's CIs."""
+        return [c for c in self.lab if len(self.model(c)) and not self.both_inside(c)]
+
     def by_stage(self) -> dict[tuple[str, str, str], np.ndarray]:
         """``(store, stage, condition) -> [n]`` G, in the order the stores list them."""
         out: dict[tuple[str, str, str], list[float]] = {}
@@ -140,11 +158,12 @@ def gap_check(stores: Sequence[str | Path], measured: MeasuredData, kpi_a: str =
                     tuple(runs))
 
 
-def format_gap(check: GapCheck, by_stage: bool = False) -> str:
+def format_gap(check: GapCheck, by_stage: bool = False, heading: bool = True) -> str:
     """Markdown: per condition the lab's G and the model's over its runs, how many reach the lab's band
-    and how many have both KPIs inside the lab's CIs; ``by_stage``: G per store and stage too."""
+    and how many have both KPIs inside the lab's CIs; ``by_stage``: G per store and stage too;
+    ``heading``: the section's own title first (a report that titles it itself leaves it out)."""
     a, b = check.kpis
-    lines = [f"## The gap {a} - {b}, the lab's against every run", "",
+    lines = ([f"## The gap {a} - {b}, the lab's against every run", ""] if heading else []) + [
              "Stores: " + ", ".join(check.stores), "",
              "The lab's band is the sum of the two CIs' half-widths (no assumption on how the two correlate).", "",
              "| condition | lab (95 % band) | model runs | model median | model range | runs reaching the band "

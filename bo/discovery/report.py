@@ -2,11 +2,13 @@
 
 Contract
 --------
-``write_discovery_report(result, out_dir, extension_command=None, attainable=(), residue=None)``
+``write_discovery_report(result, out_dir, extension_command=None, attainable=(), residue=None, gap=None)``
 writes into ``out_dir`` (``attainable``: the calibration's "what the bounds allow",
 ``bo.surrogate.attainable``, from its calibration.json, reported beside the discrepancy and as
 ``calibration_attainable``; ``residue``: the upper box's residue per unit slope of the lab and of
-the runs, ``bo.discovery.residue``, reported in a last section and as ``residue``):
+the runs, ``bo.discovery.residue``, reported in a last section and as ``residue``; ``gap``: how far
+the face stands above the heap, the lab's against the runs, ``bo.discovery.gap``, after it and as
+``gap``):
 
 * ``discovery.json`` (strict JSON, NaN as null): ``cause`` (a registry name or null),
   ``explanation``, ``discrepancy`` (chi^2, degrees of freedom, p-value, significant,
@@ -43,6 +45,7 @@ from matplotlib.figure import Figure
 from bo.discovery.pipeline import DiscoveryResult, gain_rows, jam_counts, jammed_runs_note
 from bo.report.plots import save_png
 from bo.screening.pipeline import json_ready
+from bo.discovery.gap import GapCheck, format_gap
 from bo.discovery.residue import ResidueCheck, format_residue
 from bo.surrogate.attainable import AttainableRange, format_attainable
 
@@ -133,7 +136,7 @@ def _gain_line(g) -> str:
 
 def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: str | None = None,
                            attainable: Sequence[AttainableRange] = (),
-                           residue: ResidueCheck | None = None) -> dict[str, Path]:
+                           residue: ResidueCheck | None = None, gap: GapCheck | None = None) -> dict[str, Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {"discrepancy_png": save_png(_discrepancy_figure(result), out / "discrepancy.png")}
@@ -146,6 +149,8 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
         payload["calibration_attainable"] = [r.to_dict() for r in attainable]
     if residue is not None:
         payload["residue"] = json_ready(residue.to_dict())
+    if gap is not None:
+        payload["gap"] = json_ready(gap.to_dict())
     files["json"] = out / "discovery.json"
     files["json"].write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
     d = result.discrepancy
@@ -268,6 +273,15 @@ def write_discovery_report(result: DiscoveryResult, out_dir, extension_command: 
                   "density, not by the angle: a model whose R is not the lab's can match the shear angle or the lower "
                   "box, not both, whatever its contact parameters (`bo/discovery/residue.py`)."]
         lines += [""] + format_residue(residue, heading=False).splitlines()
+    if gap is not None:
+        lines += ["", "## How far the face stands above the heap", "",
+                  "G = shear angle - angle of repose of one test, the lab's against every run of the stores: where no "
+                  "run has both inside the lab's CIs, no value of the parameters or candidates run can close that "
+                  "condition's misfit; its cause lies in what all of them share (`bo/discovery/gap.py`)."]
+        far = gap.out_of_reach()
+        if far:
+            lines += ["", "Out of every run's reach: " + ", ".join(far) + "."]
+        lines += [""] + format_gap(gap, heading=False).splitlines()
     lines += ["", "DEM evaluations: " + ", ".join(f"{k} {v}" for k, v in result.evaluations.items())]
     files["md"] = out / "discovery.md"
     files["md"].write_text("\n".join(lines) + "\n")
