@@ -22,6 +22,9 @@ sphere of the sieve diameter d (it passes the sieve) and is 0.7 d thick (a flat,
 grain). The smallest sphere of the smallest sinter (d = 5.6 mm) then has r = 1.96 mm, which
 with rho = 3449 kg/m^3 and G = 1e8 Pa gives 15% of the Rayleigh time step = 5.9e-6 s — the time
 step Hadi et al. report (Section 3.2.4), i.e. the same smallest-sphere size as their clumps.
+The trilobe family (:func:`trilobe_template`) varies the lobe spacing and scale; the tetralobe
+family (:func:`tetralobe_template`, four lobes on a tetrahedron) is the same sphere budget per lobe
+out of the plane, a grain that stands out of every plane it rests on.
 """
 from __future__ import annotations
 
@@ -64,6 +67,24 @@ def trilobe_template(lobe_spacing: float, scale: float = 1.0) -> ClumpTemplate:
                          np.full(3, scale * (0.5 - lobe_spacing)))
 
 
+def tetralobe_template(lobe_spacing: float, scale: float = 1.0) -> ClumpTemplate:
+    """Four equal spheres on the corners of a regular tetrahedron of circumradius ``lobe_spacing``
+    (units of the sieve diameter d), each of radius ``0.5 - lobe_spacing``, so the clump just fits a
+    sphere of diameter d as the trilobe of the same spacing does; allowed (0, 0.3], ``scale`` as for
+    :func:`trilobe_template`. The trilobe is flat: its lobes lie in a plane, and clumps can slide on
+    one another plane to plane. The tetralobe stands out of every plane it rests on. The lobes
+    (centres ``sqrt(8/3) lobe_spacing`` apart) touch at ``1 / (2 + sqrt(8/3))`` = 0.2753 and part
+    beyond it."""
+    if not 0 < lobe_spacing <= 0.3:
+        raise out_of_range("lobe_spacing", lobe_spacing, "(0, 0.3] of the sieve diameter", "tetralobe_template")
+    if not (math.isfinite(scale) and 0.5 < scale <= 2.0):
+        raise out_of_range("clump scale", scale, "(0.5, 2] of the clump that fits the sieve diameter",
+                           "tetralobe_template")
+    corners = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]]) / math.sqrt(3.0)
+    return ClumpTemplate(lobe_shape(4, lobe_spacing, scale), scale * lobe_spacing * corners,
+                         np.full(4, scale * (0.5 - lobe_spacing)))
+
+
 def trilobe_aperture(lobe_spacing: float) -> float:
     """Side of the smallest square sieve aperture the trilobe of unit scale passes, in units of its
     sieve diameter d: ``1 - (2 - 3 / (2 sqrt 2)) lobe_spacing`` (0.859 at 0.15, 0.758 at 0.2574). The
@@ -77,7 +98,10 @@ def trilobe_aperture(lobe_spacing: float) -> float:
 
 
 _TRILOBE_PREFIX = "trilobe_s"
+_TETRALOBE_PREFIX = "tetralobe_s"
 _SCALE_TAG = "_k"
+#: Lobe count -> (shape key prefix, template builder) of the lobed clump families.
+_LOBED = {3: (_TRILOBE_PREFIX, trilobe_template), 4: (_TETRALOBE_PREFIX, tetralobe_template)}
 
 
 def trilobe_shape(lobe_spacing: float, scale: float = 1.0) -> str:
@@ -86,6 +110,28 @@ def trilobe_shape(lobe_spacing: float, scale: float = 1.0) -> str:
     is the recipe)."""
     key = f"{_TRILOBE_PREFIX}{lobe_spacing:.4f}"
     return key if scale == 1.0 else f"{key}{_SCALE_TAG}{scale:.4f}"
+
+
+def lobe_shape(lobes: int, lobe_spacing: float, scale: float = 1.0) -> str:
+    """Shape key of a lobed clump: :func:`trilobe_shape` for 3 lobes, ``"tetralobe_s0.2574[_k...]"``
+    for 4 (:func:`tetralobe_template`)."""
+    if lobes not in _LOBED:
+        raise out_of_range("lobe count", lobes, f"one of {sorted(_LOBED)}", "lobe_shape")
+    key = f"{_LOBED[lobes][0]}{lobe_spacing:.4f}"
+    return key if scale == 1.0 else f"{key}{_SCALE_TAG}{scale:.4f}"
+
+
+def lobed_parameters(shape: str) -> tuple[int, float, float] | None:
+    """``(lobes, lobe spacing, scale)`` of a lobed clump's shape key (3 for a trilobe, 4 for a
+    tetralobe); None for any other shape."""
+    if shape.startswith(_TETRALOBE_PREFIX):
+        spacing, _, scale = shape[len(_TETRALOBE_PREFIX):].partition(_SCALE_TAG)
+        try:
+            return 4, float(spacing), float(scale) if scale else 1.0
+        except ValueError:
+            return None
+    tri = trilobe_parameters(shape)
+    return None if tri is None else (3, *tri)
 
 
 def trilobe_parameters(shape: str) -> tuple[float, float] | None:
@@ -103,16 +149,17 @@ def trilobe_parameters(shape: str) -> tuple[float, float] | None:
 
 
 class _TemplateTable(dict):
-    """Named templates plus the parametric trilobe family (keys ``trilobe_s<spacing>[_k<scale>]``)."""
+    """Named templates plus the parametric lobed families (keys ``trilobe_s<spacing>[_k<scale>]``,
+    ``tetralobe_s<spacing>[_k<scale>]``)."""
 
     def _parametric(self, key) -> ClumpTemplate | None:
-        if isinstance(key, str) and key.startswith(_TRILOBE_PREFIX):
-            parsed = trilobe_parameters(key)
+        if isinstance(key, str) and key.startswith((_TRILOBE_PREFIX, _TETRALOBE_PREFIX)):
+            parsed = lobed_parameters(key)
             if parsed is None:
                 return None
-            spacing, scale = parsed
-            if 0 < spacing <= 0.3 and 0.5 < scale <= 2.0 and trilobe_shape(spacing, scale) == key:
-                return trilobe_template(spacing, scale)
+            lobes, spacing, scale = parsed
+            if 0 < spacing <= 0.3 and 0.5 < scale <= 2.0 and lobe_shape(lobes, spacing, scale) == key:
+                return _LOBED[lobes][1](spacing, scale)
         return None
 
     def __contains__(self, key) -> bool:

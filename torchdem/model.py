@@ -14,8 +14,9 @@ Contract:
   section 3.6 of the paper, and density as a calibration parameter, which the paper
   recommends); ``lobe_spacing_<material>`` makes that material a trilobe clump of that lobe
   spacing (:func:`torchdem.mixture.trilobe_template`) and ``clump_scale_<material>`` scales that
-  material's trilobes (1: the clump fits the sphere of its sieve size). Such parameter sets run in
-  one ensemble with per-member mixtures.
+  material's trilobes (1: the clump fits the sphere of its sieve size); ``lobe_count_<material>``
+  3 or 4 makes its clumps trilobes or tetralobes (:func:`torchdem.mixture.tetralobe_template`) of
+  the same spacing and scale. Such parameter sets run in one ensemble with per-member mixtures.
 - A parameter ``geometry_<field>`` (m) replaces that length of the boxes
   (:data:`GEOMETRY_PARAMETERS`, fields of :class:`~torchdem.geometry.DrawDownGeometry`): the
   outlet width, which the paper's text does not give, as a discovery candidate
@@ -39,14 +40,17 @@ from torchdem.drawdown import DrawDownTest, RunSettings
 from torchdem.errors import ConfigError, out_of_range
 from torchdem.geometry import DrawDownGeometry
 from torchdem.measured import MeasuredData
-from torchdem.mixture import Mixture, ParticleMaterial, trilobe_parameters, trilobe_shape
+from torchdem.mixture import Mixture, ParticleMaterial, lobe_shape, lobed_parameters
 
 #: Prefix of task parameters that set a material's solid density (kg/m^3), not a contact law.
 DENSITY_PREFIX = "density_"
 #: Per-material task parameters: prefix -> (exclusive low, inclusive high, allowed range text).
 MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3"),
                      "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size"),
-                     "clump_scale_": (0.5, 2.0, "a trilobe's size in (0.5, 2] of the one that fits the sieve size")}
+                     "clump_scale_": (0.5, 2.0, "a trilobe's size in (0.5, 2] of the one that fits the sieve size"),
+                     "lobe_count_": (2.0, 4.0, "3 (a flat trilobe) or 4 (a tetralobe) lobes")}
+#: The lobe counts ``lobe_count_<material>`` may take (torchdem.mixture.lobe_shape).
+LOBE_COUNTS = (3, 4)
 #: Prefix of task parameters that set a length of the boxes, m (``geometry_outlet_width``), or how
 #: the gate opens (``geometry_gate_opening``, s).
 GEOMETRY_PREFIX = "geometry_"
@@ -196,8 +200,8 @@ def split_material_parameters(params: Mapping[str, float], mixture: Mixture, sou
     """``(contact parameters, {material: {property: value}})`` of a parameter set: the per-material
     parameters ``density_<material>`` (solid density, kg/m^3), ``lobe_spacing_<material>``
     (trilobe clump shape, :func:`torchdem.mixture.trilobe_template`, in (0, 0.3] of the sieve size)
-    and ``clump_scale_<material>`` (the trilobe's size, (0.5, 2] of the clump that fits the sieve
-    size) are taken out; everything else is a contact parameter."""
+    ``clump_scale_<material>`` (the trilobe's size, (0.5, 2] of the clump that fits the sieve
+    size) and ``lobe_count_<material>`` (3 or 4) are taken out; everything else is a contact parameter."""
     names = {m.name for m in mixture.materials}
     contact: dict[str, float] = {}
     material: dict[str, dict[str, float]] = {}
@@ -211,7 +215,7 @@ def split_material_parameters(params: Mapping[str, float], mixture: Mixture, sou
             raise ConfigError(f"{source}: parameter {key!r} names no material of mixture {mixture.name!r}; "
                               f"expected {prefix}<material> with a material of {sorted(names)}")
         low, high, allowed = MATERIAL_PREFIXES[prefix]
-        if not (math.isfinite(value) and low < value <= high):
+        if not (math.isfinite(value) and low < value <= high) or (prefix == "lobe_count_" and value not in LOBE_COUNTS):
             raise ConfigError(f"{source}: {key} = {value!r} is not allowed; expected {allowed}")
         material.setdefault(name, {})[prefix[:-1]] = float(value)
     return contact, material
@@ -238,13 +242,14 @@ def with_material_properties(mixture: Mixture, properties: Mapping[str, Mapping[
         changes = {}
         if "density" in props:
             changes["density"] = props["density"]
-        if "lobe_spacing" in props or "clump_scale" in props:
-            spacing, scale = trilobe_parameters(m.shape) or (None, 1.0)
+        if "lobe_spacing" in props or "clump_scale" in props or "lobe_count" in props:
+            lobes, spacing, scale = lobed_parameters(m.shape) or (3, None, 1.0)
             if "lobe_spacing" not in props and spacing is None:
-                raise ConfigError(f"{source}: clump_scale_{m.name} = {props['clump_scale']!r} scales a trilobe clump, "
-                                  f"but material {m.name!r} is a {m.shape!r}; give lobe_spacing_{m.name} too, or "
-                                  "leave the scale out")
-            changes["shape"] = trilobe_shape(props.get("lobe_spacing", spacing), props.get("clump_scale", scale))
+                given = next(f"{k}_{m.name} = {props[k]!r}" for k in ("clump_scale", "lobe_count") if k in props)
+                raise ConfigError(f"{source}: {given} changes a lobed clump, but material {m.name!r} is a "
+                                  f"{m.shape!r}; give lobe_spacing_{m.name} too, or leave it out")
+            changes["shape"] = lobe_shape(int(props.get("lobe_count", lobes)), props.get("lobe_spacing", spacing),
+                                          props.get("clump_scale", scale))
         materials.append(dataclasses.replace(m, **changes) if changes else m)
     return dataclasses.replace(mixture, materials=tuple(materials))
 
