@@ -6,6 +6,7 @@ the lab's combination? The stores are only read, so it may be run beside a campa
     python scripts/gap_check.py campaigns/table2/*.sqlite
     python scripts/gap_check.py STORE --kpis mass_flow_rate_full_kg_s mass_lower_box_full_kg --data my_lab.json
     python scripts/gap_check.py campaigns/table2/discover_lab.sqlite --by-stage   # G per candidate
+    python scripts/gap_check.py campaigns/table2/probe_tetralobe.sqlite --by-set   # G per probe set
 """
 from __future__ import annotations
 
@@ -22,8 +23,10 @@ def main() -> None:
                         help="the gap A - B (default: shear_angle_deg angle_of_repose_deg)")
     parser.add_argument("--data", default=None, help="measured-data JSON (default: the paper's Table 2)")
     parser.add_argument("--by-stage", action="store_true", help="also G per store and stage")
+    parser.add_argument("--by-set", action="store_true", help="also G per store, stage and batch (a probe's sets)")
     args = parser.parse_args()
-    print(format_gap(gap_check(args.stores, load_measured(args.data), *args.kpis), by_stage=args.by_stage), end="")
+    print(format_gap(gap_check(args.stores, load_measured(args.data), *args.kpis), by_stage=args.by_stage,
+                     by_batch=args.by_set), end="")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bo.campaign.progress import finished_runs
+from bo.campaign.progress import done_records, finished_runs
 from bo.discovery.gap import GapCheck, GapRun, format_gap, gap_check, lab_gap
 from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
@@ -57,6 +57,17 @@ def test_a_run_two_stores_hold_counts_once():
     box = gap_check([BOX], load_measured(None))
     adopted = 12
     assert len(both.runs) == len(box.runs) + len(alone.runs) - adopted
+
+
+def test_a_probe_store_s_sets_are_apart_by_batch():
+    probe = ROOT / "campaigns" / "table2" / "probe_tetralobe.sqlite"
+    groups = gap_check([probe], load_measured(None)).by_stage(by_batch=True)
+    runs = {r.condition: r.kpis for r in done_records(probe, "probe") if r.batch_key == "tetralobe"
+            and r.condition == "25-75"}
+    expected = runs["25-75"]["shear_angle_deg"] - runs["25-75"]["angle_of_repose_deg"]
+    assert list(groups[("probe_tetralobe.sqlite", "probe/tetralobe", "25-75")]) == pytest.approx([expected])
+    assert len(groups[("probe_tetralobe.sqlite", "probe/base", "25-75")]) == 3
+    assert ("probe_tetralobe.sqlite", "probe/tetralobe", "75-25") not in groups    # its fill overflowed: no run
 
 
 def test_a_kpi_no_run_has_is_refused_by_name():

@@ -23,7 +23,8 @@ Contract:
 * ``GapCheck.to_dict()`` the same as plain data (the discovery report's ``gap``);
   ``GapCheck.out_of_reach()`` the lab's conditions where no run has both KPIs inside the lab's CIs.
 * :func:`format_gap` turns it into markdown (``scripts/gap_check.py``); with ``by_stage`` also G
-  per stage and condition, so a discovery store shows which candidate's runs moved it.
+  per stage and condition, so a discovery store shows which candidate's runs moved it; with
+  ``by_batch`` per stage and batch, so a probe store shows each of its sets.
 
 Stores are opened read-only, so a running campaign is not disturbed.
 """
@@ -36,7 +37,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from bo.campaign.progress import finished_runs
+from bo.campaign.progress import done_records
 from kpi.loadcell import discharge_jammed
 from torchdem.errors import ConfigError
 from torchdem.measured import MeasuredData
@@ -47,13 +48,15 @@ FACE_ABOVE_HEAP = ("shear_angle_deg", "angle_of_repose_deg")
 
 @dataclass(frozen=True)
 class GapRun:
-    """One finished run: its store, stage, condition, the two KPIs and G = a - b."""
+    """One finished run: its store, stage, condition, the two KPIs, G = a - b and its batch (a probe
+    store's set name)."""
 
     store: str
     stage: str
     condition: str
     a: float
     b: float
+    batch: str = ""
 
     @property
     def gap(self) -> float:
@@ -112,11 +115,13 @@ class GapCheck:
         """The lab's conditions with runs where none has both KPIs inside the lab's CIs."""
         return [c for c in self.lab if len(self.model(c)) and not self.both_inside(c)]
 
-    def by_stage(self) -> dict[tuple[str, str, str], np.ndarray]:
-        """``(store, stage, condition) -> [n]`` G, in the order the stores list them."""
+    def by_stage(self, by_batch: bool = False) -> dict[tuple[str, str, str], np.ndarray]:
+        """``(store, stage, condition) -> [n]`` G, in the order the stores list them; ``by_batch``: the
+        stage's batch after it (``probe/combined``: a probe store's sets apart)."""
         out: dict[tuple[str, str, str], list[float]] = {}
         for r in self.runs:
-            out.setdefault((r.store, r.stage, r.condition), []).append(r.gap)
+            stage = f"{r.stage}/{r.batch}" if by_batch else r.stage
+            out.setdefault((r.store, stage, r.condition), []).append(r.gap)
         return {k: np.array(v) for k, v in out.items()}
 
 
@@ -137,13 +142,14 @@ def gap_check(stores: Sequence[str | Path], measured: MeasuredData, kpi_a: str =
     """The lab's G and the model's over every run of ``stores`` that flowed (module docstring)."""
     runs, seen, held = [], set(), set()
     for s in stores:
-        for stage, condition, seed, _, k in finished_runs(Path(s), "gap_check"):
+        for r in done_records(Path(s), None, "gap_check"):
+            k = {n: math.nan if v is None else float(v) for n, v in (r.kpis or {}).items()}
             seen.update(k)
-            a, b = float(k.get(kpi_a, math.nan)), float(k.get(kpi_b, math.nan))
-            if discharge_jammed(k) or not (math.isfinite(a) and math.isfinite(b)) or (condition, seed, a, b) in held:
+            a, b = k.get(kpi_a, math.nan), k.get(kpi_b, math.nan)
+            if discharge_jammed(k) or not (math.isfinite(a) and math.isfinite(b)) or (r.condition, r.seed, a, b) in held:
                 continue                # jammed, without the pair, or a copy of a run another store holds
-            held.add((condition, seed, a, b))
-            runs.append(GapRun(Path(s).name, stage, condition, a, b))
+            held.add((r.condition, r.seed, a, b))
+            runs.append(GapRun(Path(s).name, r.stage, r.condition, a, b, r.batch_key))
     for name in (kpi_a, kpi_b):
         if seen and name not in seen:
             raise ConfigError(f"gap_check: KPI {name!r} is in no run of {', '.join(map(str, stores))}; "
@@ -158,9 +164,10 @@ def gap_check(stores: Sequence[str | Path], measured: MeasuredData, kpi_a: str =
                     tuple(runs))
 
 
-def format_gap(check: GapCheck, by_stage: bool = False, heading: bool = True) -> str:
+def format_gap(check: GapCheck, by_stage: bool = False, heading: bool = True, by_batch: bool = False) -> str:
     """Markdown: per condition the lab's G and the model's over its runs, how many reach the lab's band
-    and how many have both KPIs inside the lab's CIs; ``by_stage``: G per store and stage too;
+    and how many have both KPIs inside the lab's CIs; ``by_stage``: G per store and stage too
+    (``by_batch``: per stage and batch, a probe store's sets apart);
     ``heading``: the section's own title first (a report that titles it itself leaves it out)."""
     a, b = check.kpis
     lines = ([f"## The gap {a} - {b}, the lab's against every run", ""] if heading else []) + [
@@ -174,8 +181,8 @@ def format_gap(check: GapCheck, by_stage: bool = False, heading: bool = True) ->
         g = check.model(c)
         model = (f"{len(g)} | {np.median(g):.2f} | {g.min():.2f} to {g.max():.2f}" if len(g) else "0 | - | -")
         lines.append(f"| {c} | {lab} | {model} | {check.reaching(c)} | {check.both_inside(c)} |")
-    if by_stage:
-        groups = check.by_stage()
+    if by_stage or by_batch:
+        groups = check.by_stage(by_batch)
         lines += ["", "G per store and stage: median (max, runs)", "",
                   "| store | stage | condition | G |", "| --- | --- | --- | ---: |"]
         for (store, stage, c), g in groups.items():
