@@ -41,10 +41,10 @@ def test_every_run_that_flowed_counts_once_with_its_own_two_kpis():
 
 def test_reaching_counts_the_runs_at_the_near_end_of_the_band_and_both_inside_needs_both_cis():
     runs = tuple(GapRun("s", "x", "c", a, b) for a, b in [(40.0, 30.0), (43.0, 30.0), (45.0, 29.0), (44.0, 33.0)])
-    check = GapCheck(("s",), ("a", "b"), lab={"c": (15.0, 2.0)}, means={"c": (44.0, 29.5)}, ci={"c": (1.5, 1.0)},
-                     runs=runs)
+    check = GapCheck(("s",), ("a", "b"), means={"c": (44.0, 29.5)}, ci={"c": (1.5, 1.0)}, runs=runs)
+    assert check.lab == {"c": (14.5, 2.5)}
     assert list(check.model("c")) == [10.0, 13.0, 16.0, 11.0]
-    assert check.reaching("c") == 2                         # 13 and 16 are at or above 15 - 2 (the mean lies below)
+    assert check.reaching("c") == 2                         # 13 and 16 are at or above 14.5 - 2.5 (the mean lies below)
     # (43, 30) and (45, 29) have both inside; (40, 30) has b inside but a 4.0 off, (44, 33) a inside but b 3.5 off
     assert check.both_inside("c") == 2
     assert check.reaching("other") == 0 and check.both_inside("other") == 0

@@ -46,6 +46,14 @@ SINTER_TRILOBE = ClumpTemplate(
 )
 
 
+def _check_lobed(lobe_spacing: float, scale: float, source: str) -> None:
+    """A lobed clump's lobe spacing in (0, 0.3] and scale in (0.5, 2], or a ConfigError naming ``source``."""
+    if not 0 < lobe_spacing <= 0.3:
+        raise out_of_range("lobe_spacing", lobe_spacing, "(0, 0.3] of the sieve diameter", source)
+    if not (math.isfinite(scale) and 0.5 < scale <= 2.0):
+        raise out_of_range("clump scale", scale, "(0.5, 2] of the clump that fits the sieve diameter", source)
+
+
 def trilobe_template(lobe_spacing: float, scale: float = 1.0) -> ClumpTemplate:
     """The trilobe family of :data:`SINTER_TRILOBE`: three equal spheres on an equilateral
     triangle of circumradius ``lobe_spacing`` (units of the sieve diameter d), each of radius
@@ -57,10 +65,7 @@ def trilobe_template(lobe_spacing: float, scale: float = 1.0) -> ClumpTemplate:
     ``scale`` multiplies every length of the clump (allowed (0.5, 2]): 1 fits the sphere of the sieve
     diameter, which passes a square aperture of only :func:`trilobe_aperture` d; ``1 /
     trilobe_aperture(s)`` passes the aperture d itself, as a grain sieved into a class of size d does."""
-    if not 0 < lobe_spacing <= 0.3:
-        raise out_of_range("lobe_spacing", lobe_spacing, "(0, 0.3] of the sieve diameter", "trilobe_template")
-    if not (math.isfinite(scale) and 0.5 < scale <= 2.0):
-        raise out_of_range("clump scale", scale, "(0.5, 2] of the clump that fits the sieve diameter", "trilobe_template")
+    _check_lobed(lobe_spacing, scale, "trilobe_template")
     a = (0.0, 2 * math.pi / 3, 4 * math.pi / 3)
     return ClumpTemplate(trilobe_shape(lobe_spacing, scale),
                          scale * np.array([[lobe_spacing * math.cos(t), lobe_spacing * math.sin(t), 0.0] for t in a]),
@@ -75,11 +80,7 @@ def tetralobe_template(lobe_spacing: float, scale: float = 1.0) -> ClumpTemplate
     one another plane to plane. The tetralobe stands out of every plane it rests on. The lobes
     (centres ``sqrt(8/3) lobe_spacing`` apart) touch at ``1 / (2 + sqrt(8/3))`` = 0.2753 and part
     beyond it."""
-    if not 0 < lobe_spacing <= 0.3:
-        raise out_of_range("lobe_spacing", lobe_spacing, "(0, 0.3] of the sieve diameter", "tetralobe_template")
-    if not (math.isfinite(scale) and 0.5 < scale <= 2.0):
-        raise out_of_range("clump scale", scale, "(0.5, 2] of the clump that fits the sieve diameter",
-                           "tetralobe_template")
+    _check_lobed(lobe_spacing, scale, "tetralobe_template")
     corners = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]]) / math.sqrt(3.0)
     return ClumpTemplate(lobe_shape(4, lobe_spacing, scale), scale * lobe_spacing * corners,
                          np.full(4, scale * (0.5 - lobe_spacing)))
@@ -108,12 +109,11 @@ def trilobe_shape(lobe_spacing: float, scale: float = 1.0) -> str:
     """Shape key of a trilobe of this lobe spacing and scale (``"trilobe_s0.2000"``,
     ``"trilobe_s0.2000_k1.1500"``); :data:`TEMPLATES` builds it on first use, in any process (the key
     is the recipe)."""
-    key = f"{_TRILOBE_PREFIX}{lobe_spacing:.4f}"
-    return key if scale == 1.0 else f"{key}{_SCALE_TAG}{scale:.4f}"
+    return lobe_shape(3, lobe_spacing, scale)
 
 
 def lobe_shape(lobes: int, lobe_spacing: float, scale: float = 1.0) -> str:
-    """Shape key of a lobed clump: :func:`trilobe_shape` for 3 lobes, ``"tetralobe_s0.2574[_k...]"``
+    """Shape key of a lobed clump: ``"trilobe_s0.2574[_k...]"`` for 3 lobes, ``"tetralobe_s0.2574[_k...]"``
     for 4 (:func:`tetralobe_template`)."""
     if lobes not in _LOBED:
         raise out_of_range("lobe count", lobes, f"one of {sorted(_LOBED)}", "lobe_shape")
@@ -124,28 +124,23 @@ def lobe_shape(lobes: int, lobe_spacing: float, scale: float = 1.0) -> str:
 def lobed_parameters(shape: str) -> tuple[int, float, float] | None:
     """``(lobes, lobe spacing, scale)`` of a lobed clump's shape key (3 for a trilobe, 4 for a
     tetralobe); None for any other shape."""
-    if shape.startswith(_TETRALOBE_PREFIX):
-        spacing, _, scale = shape[len(_TETRALOBE_PREFIX):].partition(_SCALE_TAG)
-        try:
-            return 4, float(spacing), float(scale) if scale else 1.0
-        except ValueError:
-            return None
-    tri = trilobe_parameters(shape)
-    return None if tri is None else (3, *tri)
+    if shape == "sinter_trilobe":
+        return 3, _R, 1.0
+    for lobes, (prefix, _) in _LOBED.items():
+        if shape.startswith(prefix):
+            spacing, _, scale = shape[len(prefix):].partition(_SCALE_TAG)
+            try:
+                return lobes, float(spacing), float(scale) if scale else 1.0
+            except ValueError:
+                return None
+    return None
 
 
 def trilobe_parameters(shape: str) -> tuple[float, float] | None:
     """``(lobe spacing, scale)`` of a trilobe shape key (``"sinter_trilobe"`` is ``(0.15, 1.0)``);
     None for a shape that is no trilobe."""
-    if shape == "sinter_trilobe":
-        return _R, 1.0
-    if not shape.startswith(_TRILOBE_PREFIX):
-        return None
-    spacing, _, scale = shape[len(_TRILOBE_PREFIX):].partition(_SCALE_TAG)
-    try:
-        return float(spacing), float(scale) if scale else 1.0
-    except ValueError:
-        return None
+    parsed = lobed_parameters(shape)
+    return parsed[1:] if parsed is not None and parsed[0] == 3 else None
 
 
 class _TemplateTable(dict):
@@ -153,7 +148,7 @@ class _TemplateTable(dict):
     ``tetralobe_s<spacing>[_k<scale>]``)."""
 
     def _parametric(self, key) -> ClumpTemplate | None:
-        if isinstance(key, str) and key.startswith((_TRILOBE_PREFIX, _TETRALOBE_PREFIX)):
+        if isinstance(key, str) and key != "sinter_trilobe":
             parsed = lobed_parameters(key)
             if parsed is None:
                 return None

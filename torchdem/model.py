@@ -44,13 +44,13 @@ from torchdem.mixture import Mixture, ParticleMaterial, lobe_shape, lobed_parame
 
 #: Prefix of task parameters that set a material's solid density (kg/m^3), not a contact law.
 DENSITY_PREFIX = "density_"
-#: Per-material task parameters: prefix -> (exclusive low, inclusive high, allowed range text).
-MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3"),
-                     "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size"),
-                     "clump_scale_": (0.5, 2.0, "a trilobe's size in (0.5, 2] of the one that fits the sieve size"),
-                     "lobe_count_": (2.0, 4.0, "3 (a flat trilobe) or 4 (a tetralobe) lobes")}
-#: The lobe counts ``lobe_count_<material>`` may take (torchdem.mixture.lobe_shape).
-LOBE_COUNTS = (3, 4)
+#: Per-material task parameters: prefix -> (exclusive low, inclusive high, allowed text, the only values
+#: allowed inside the range or None for any).
+MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3", None),
+                     "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size", None),
+                     "clump_scale_": (0.5, 2.0, "a trilobe's size in (0.5, 2] of the one that fits the sieve size",
+                                      None),
+                     "lobe_count_": (2.0, 4.0, "3 (a flat trilobe) or 4 (a tetralobe) lobes", (3.0, 4.0))}
 #: Prefix of task parameters that set a length of the boxes, m (``geometry_outlet_width``), or how
 #: the gate opens (``geometry_gate_opening``, s).
 GEOMETRY_PREFIX = "geometry_"
@@ -214,8 +214,8 @@ def split_material_parameters(params: Mapping[str, float], mixture: Mixture, sou
         if name not in names:
             raise ConfigError(f"{source}: parameter {key!r} names no material of mixture {mixture.name!r}; "
                               f"expected {prefix}<material> with a material of {sorted(names)}")
-        low, high, allowed = MATERIAL_PREFIXES[prefix]
-        if not (math.isfinite(value) and low < value <= high) or (prefix == "lobe_count_" and value not in LOBE_COUNTS):
+        low, high, allowed, values = MATERIAL_PREFIXES[prefix]
+        if not (math.isfinite(value) and low < value <= high) or (values is not None and value not in values):
             raise ConfigError(f"{source}: {key} = {value!r} is not allowed; expected {allowed}")
         material.setdefault(name, {})[prefix[:-1]] = float(value)
     return contact, material

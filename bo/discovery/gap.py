@@ -17,8 +17,8 @@ Contract:
   covariance), conditions with both KPIs only.
 * :func:`gap_check` ``(store paths, measured data, kpi_a, kpi_b) -> GapCheck``: per condition, G of
   every finished run in the stores that did not jam and has both KPIs (a run two stores hold, as a
-  probe's or a discovery's copy of its base, counted once: same condition, seed and values), and the runs with *both* KPIs
-  inside the lab's own 95 % CIs (a criterion that needs no covariance). A KPI name that no run of
+  probe's or a discovery's copy of its base, counted once: same condition, seed and values), and the
+  runs with *both* KPIs inside the lab's own 95 % CIs (a criterion that needs no covariance). A KPI name that no run of
   the stores has raises :class:`~torchdem.errors.ConfigError` naming it and the KPIs they have.
 * ``GapCheck.to_dict()`` the same as plain data (the discovery report's ``gap``);
   ``GapCheck.out_of_reach()`` the lab's conditions where no run has both KPIs inside the lab's CIs.
@@ -65,15 +65,19 @@ class GapRun:
 
 @dataclass(frozen=True)
 class GapCheck:
-    """``lab``: condition -> (G, half-width); ``ci``: condition -> (CI of a, CI of b), the lab's 95 %
-    half-widths; ``means``: condition -> (lab mean of a, of b); ``runs``: the model's."""
+    """``means``: condition -> (lab mean of a, of b); ``ci``: condition -> (CI of a, CI of b), the lab's
+    95 % half-widths; ``runs``: the model's. ``lab`` (derived): condition -> (G, half-width)."""
 
     stores: tuple[str, ...]
     kpis: tuple[str, str]
-    lab: Mapping[str, tuple[float, float]]
     means: Mapping[str, tuple[float, float]]
     ci: Mapping[str, tuple[float, float]]
     runs: tuple[GapRun, ...]
+
+    @property
+    def lab(self) -> dict[str, tuple[float, float]]:
+        """Condition -> (mean of a - mean of b, CI of a + CI of b)."""
+        return _gaps(self.means, self.ci)
 
     def conditions(self) -> list[str]:
         """The lab's conditions, then any other the runs have, in order."""
@@ -85,9 +89,10 @@ class GapCheck:
 
     def reaching(self, condition: str) -> int:
         """Runs whose G is at or beyond the near end of the lab's band (NaN-free count; 0 without a lab value)."""
-        if condition not in self.lab:
+        lab = self.lab
+        if condition not in lab:
             return 0
-        g, half = self.lab[condition]
+        g, half = lab[condition]
         model = self.model(condition)
         below = model.mean() < g if len(model) else True
         return int(np.sum(model >= g - half) if below else np.sum(model <= g + half))
@@ -125,16 +130,26 @@ class GapCheck:
         return {k: np.array(v) for k, v in out.items()}
 
 
-def lab_gap(measured: MeasuredData, kpi_a: str = FACE_ABOVE_HEAP[0],
-            kpi_b: str = FACE_ABOVE_HEAP[1]) -> dict[str, tuple[float, float]]:
-    """Condition -> (mean of a - mean of b, CI of a + CI of b) (module docstring)."""
-    out = {}
+def _lab_pair(measured: MeasuredData, kpi_a: str, kpi_b: str) -> tuple[dict, dict]:
+    """``(means, ci)``: condition -> (a, b) of the lab's means and 95 % half-widths, conditions with both."""
+    means, ci = {}, {}
     for name in measured.names:
         k = measured.condition(name).kpis
         a, b = k.get(kpi_a), k.get(kpi_b)
         if a is not None and b is not None:
-            out[name] = (a.mean - b.mean, (a.ci95 or 0.0) + (b.ci95 or 0.0))
-    return out
+            means[name], ci[name] = (a.mean, b.mean), (a.ci95 or 0.0, b.ci95 or 0.0)
+    return means, ci
+
+
+def _gaps(means: Mapping[str, tuple[float, float]], ci: Mapping[str, tuple[float, float]]
+          ) -> dict[str, tuple[float, float]]:
+    return {c: (ma - mb, ci[c][0] + ci[c][1]) for c, (ma, mb) in means.items()}
+
+
+def lab_gap(measured: MeasuredData, kpi_a: str = FACE_ABOVE_HEAP[0],
+            kpi_b: str = FACE_ABOVE_HEAP[1]) -> dict[str, tuple[float, float]]:
+    """Condition -> (mean of a - mean of b, CI of a + CI of b) (module docstring)."""
+    return _gaps(*_lab_pair(measured, kpi_a, kpi_b))
 
 
 def gap_check(stores: Sequence[str | Path], measured: MeasuredData, kpi_a: str = FACE_ABOVE_HEAP[0],
@@ -146,22 +161,16 @@ def gap_check(stores: Sequence[str | Path], measured: MeasuredData, kpi_a: str =
             k = {n: math.nan if v is None else float(v) for n, v in (r.kpis or {}).items()}
             seen.update(k)
             a, b = k.get(kpi_a, math.nan), k.get(kpi_b, math.nan)
-            if discharge_jammed(k) or not (math.isfinite(a) and math.isfinite(b)) or (r.condition, r.seed, a, b) in held:
+            key = (r.condition, r.seed, a, b)
+            if discharge_jammed(k) or not (math.isfinite(a) and math.isfinite(b)) or key in held:
                 continue                # jammed, without the pair, or a copy of a run another store holds
-            held.add((r.condition, r.seed, a, b))
+            held.add(key)
             runs.append(GapRun(Path(s).name, r.stage, r.condition, a, b, r.batch_key))
     for name in (kpi_a, kpi_b):
         if seen and name not in seen:
             raise ConfigError(f"gap_check: KPI {name!r} is in no run of {', '.join(map(str, stores))}; "
                               f"their KPIs: {', '.join(sorted(seen))}")
-    means, ci = {}, {}
-    for name in measured.names:
-        k = measured.condition(name).kpis
-        if kpi_a in k and kpi_b in k:
-            means[name] = (k[kpi_a].mean, k[kpi_b].mean)
-            ci[name] = (k[kpi_a].ci95 or 0.0, k[kpi_b].ci95 or 0.0)
-    return GapCheck(tuple(str(s) for s in stores), (kpi_a, kpi_b), lab_gap(measured, kpi_a, kpi_b), means, ci,
-                    tuple(runs))
+    return GapCheck(tuple(str(s) for s in stores), (kpi_a, kpi_b), *_lab_pair(measured, kpi_a, kpi_b), tuple(runs))
 
 
 def format_gap(check: GapCheck, by_stage: bool = False, heading: bool = True, by_batch: bool = False) -> str:
