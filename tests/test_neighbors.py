@@ -10,7 +10,8 @@ import dataclasses
 import pytest
 import torch
 
-from torchdem.neighbors import carry_history, cell_grid, find_pairs, needs_rebuild
+from torchdem import _ext
+from torchdem.neighbors import carry_history, cell_grid, find_pairs, needs_rebuild, pair_order
 
 F64 = torch.float64
 
@@ -177,6 +178,25 @@ def test_history_kernel_equals_the_torch_path_on_sorted_unsorted_and_empty_lists
         assert all(torch.equal(a, b) and a.dtype == dtype for a, b in zip(fast, slow))
     empty = carry_history(old_key[:0], [v[:0] for v in values], sorted_new)
     assert all(e.shape == (sorted_new.shape[0], 3) and not e.any() for e in empty)
+
+
+def test_pair_order_kernel_sorts_as_argsort_of_the_keys():
+    """The counting sort of reorder's renumbered lists gives the order of torch.argsort(lo n + hi)
+    for unique pairs in any order, with empty groups, a single pair and none; an index outside
+    [0, n) is refused, naming it."""
+    g = torch.Generator().manual_seed(5)
+    n = 5_000
+    key = torch.unique(torch.randint(0, n * n, (40_000,), generator=g))
+    key = key[torch.randperm(key.shape[0], generator=g)]
+    lo, hi = key // n, key % n
+    for a, b in ((lo, hi), (lo[:1], hi[:1]), (lo[:0], hi[:0])):
+        fast = pair_order(a, b, n)
+        assert fast.dtype == torch.int64
+        assert torch.equal(fast, pair_order(a, b, n, use_extension=False))
+        assert torch.equal(fast, torch.argsort(a * n + b))
+    if _ext.cpu_kernels() is not None:
+        with pytest.raises(RuntimeError, match=r"pair \(3, 5000\) is outside \[0, 5000\)"):
+            pair_order(torch.tensor([3]), torch.tensor([n]), n)
 
 
 def test_simulation_never_misses_a_touching_pair():

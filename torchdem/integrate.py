@@ -91,14 +91,23 @@ def rebuild(system: System, state: State, xs: Tensor, time: float, values: bool 
                                      moved=moved, keep=keep)
     wkey = s * max(W, 1) + w
     wt, wr = neighbors.carry_history(state.walls.key, [state.walls.tangential, state.walls.rolling], wkey)
-    wall_contacts = WallContacts(
-        sphere=s, body=body[s], wall=w, key=wkey, tangential=wt, rolling=wr, radius=radius[s], mass_eff=mass[s],
-        rolling_inertia=inertia_r[s], **t.gather(pair_row[s] + system.walls.material[w]),
-    )
-    state = state.set(pairs=pairs, walls=wall_contacts, reference=xs.clone() if moved is None else found_at,
+    state = state.set(pairs=pairs, walls=wall_contacts(system, s, w, wkey, wt, wr), reference=xs.clone() if moved is None else found_at,
                       wall_shift=shift,
                       wall_active=wall_active, rebuilds=state.rebuilds + 1)
     return state, xs
+
+
+def wall_contacts(system: System, sphere: Tensor, wall: Tensor, key: Tensor, tangential: Tensor, rolling: Tensor
+                  ) -> WallContacts:
+    """The sphere-wall list of the pairs ``sphere, wall`` ``[Q]`` (sorted by ``key`` ``[Q]`` =
+    sphere x max(W, 1) + wall) with their history ``tangential``, ``rolling`` ``[Q, 3]``: the
+    per-contact constants gathered from the system's per-sphere arrays and material tables."""
+    return WallContacts(
+        sphere=sphere, body=system.sphere_body_flat[sphere], wall=wall, key=key, tangential=tangential,
+        rolling=rolling, radius=system.sphere_radius.reshape(-1)[sphere], mass_eff=system.sphere_mass[sphere],
+        rolling_inertia=system.sphere_rolling_inertia[sphere],
+        **system.tables.gather(system.sphere_pair_row[sphere] + system.walls.material[wall]),
+    )
 
 
 PAIR_VALUES = ("radius_i", "radius_j", "radius_eff", "mass_eff", "rolling_inertia")

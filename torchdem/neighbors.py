@@ -301,6 +301,16 @@ def carry_history(old_key: Tensor, old_values: list[Tensor], new_key: Tensor,
     return out
 
 
+def pair_order(lo: Tensor, hi: Tensor, n: int, use_extension: bool = True) -> Tensor:
+    """``[P]`` int64: the order that sorts the unique pairs ``lo, hi`` ``[P]`` (indices in ``[0, n)``)
+    by ``lo``, then ``hi``, as ``torch.argsort(lo * n + hi)`` does. On CPU a counting sort in the C++
+    kernel of :mod:`torchdem._ext` (same order) unless ``use_extension`` is False or it cannot be built."""
+    ext = _ext.kernels_for(lo.device, use_extension)
+    if ext is not None:
+        return ext.pair_order(lo, hi, int(n))
+    return torch.argsort(lo * n + hi)
+
+
 def displacement_box(position: Tensor, reference: Tensor, members: int = 1) -> Tensor:
     """``[members, 7]``: per ensemble member, the lowest x, y, z and the highest x, y, z of its
     sphere displacements ``position - reference`` (``[members * Ns, 3]`` each), then the largest

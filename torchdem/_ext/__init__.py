@@ -54,7 +54,7 @@ _state: dict[str, object] = {}
 
 def cpu_kernels() -> SimpleNamespace | None:
     """The compiled CPU kernels (``pair_forces``, ``wall_forces``, ``cell_pairs``, ``wall_pairs``,
-    ``carry_history``, ``pair_constants``, ``drift``, ``kick``, ``forces_kick``), or None if
+    ``carry_history``, ``pair_constants``, ``pair_order``, ``drift``, ``kick``, ``forces_kick``), or None if
     they cannot be built (warns once)."""
     if "module" in _state:
         return _state["module"]  # type: ignore[return-value]
@@ -109,7 +109,7 @@ def _build() -> SimpleNamespace | None:
         ops = torch.ops.torchdem
         return SimpleNamespace(pair_forces=ops.pair_forces, wall_forces=ops.wall_forces, cell_pairs=ops.cell_pairs,
                                wall_pairs=ops.wall_pairs, carry_history=ops.carry_history, drift=ops.drift,
-                               kick=ops.kick, pair_constants=ops.pair_constants,
+                               kick=ops.kick, pair_constants=ops.pair_constants, pair_order=ops.pair_order,
                                forces_kick=ops.forces_kick)
     except Exception as err:  # no compiler, no ninja, compile error: fall back to the torch kernels
         message = f"{type(err).__name__}: {err}".strip()

@@ -249,17 +249,21 @@ Buckets bucket(const scalar_t* x, const scalar_t* r, const int64_t* bd, const st
   TORCH_CHECK(H < (int64_t(1) << 40), "cell_pairs: ", H, " member-cells is too many for the start table");
   std::vector<int64_t> hash(S, H);
   out.start.assign(H + 1, 0);
-  for (int64_t i = 0; i < S; ++i) {
-    if (!take[i]) continue;
-    const scalar_t* xi = x + 3 * i;
-    int64_t c[3];
-    for (int a = 0; a < 3; ++a) {
-      const scalar_t f = std::floor((xi[a] - static_cast<scalar_t>(lower[a])) / static_cast<scalar_t>(size[a]));
-      c[a] = f < 0 ? 0 : (f > static_cast<scalar_t>(g.dims[a] - 1) ? g.dims[a] - 1 : static_cast<int64_t>(f));
+  // the cells in parallel, the counts (a pass of increments) in order
+  at::parallel_for(0, S, 2048, [&](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) {
+      if (!take[i]) continue;
+      const scalar_t* xi = x + 3 * i;
+      int64_t c[3];
+      for (int a = 0; a < 3; ++a) {
+        const scalar_t f = std::floor((xi[a] - static_cast<scalar_t>(lower[a])) / static_cast<scalar_t>(size[a]));
+        c[a] = f < 0 ? 0 : (f > static_cast<scalar_t>(g.dims[a] - 1) ? g.dims[a] - 1 : static_cast<int64_t>(f));
+      }
+      hash[i] = ((i / n_per_member) * out.n_columns + c[axes[0]] * g.dims[axes[1]] + c[axes[1]]) * out.n_sort + c[axes[2]];
     }
-    hash[i] = ((i / n_per_member) * out.n_columns + c[axes[0]] * g.dims[axes[1]] + c[axes[1]]) * out.n_sort + c[axes[2]];
-    ++out.start[hash[i] + 1];
-  }
+  });
+  for (int64_t i = 0; i < S; ++i)
+    if (hash[i] < H) ++out.start[hash[i] + 1];
   for (int64_t h = 0; h < H; ++h) out.start[h + 1] += out.start[h];
   const int64_t n = out.start[H];
   out.order.resize(n);
@@ -279,15 +283,17 @@ Buckets bucket(const scalar_t* x, const scalar_t* r, const int64_t* bd, const st
                   [&](int64_t a, int64_t b) { return x[3 * a + s_ax] < x[3 * b + s_ax]; });
   });
   out.x.resize(n), out.y.resize(n), out.z.resize(n), out.r.resize(n), out.body.resize(n), out.cell.resize(n);
-  for (int64_t p = 0; p < n; ++p) {
-    const int64_t j = order[p];
-    out.x[p] = static_cast<double>(x[3 * j]);
-    out.y[p] = static_cast<double>(x[3 * j + 1]);
-    out.z[p] = static_cast<double>(x[3 * j + 2]);
-    out.r[p] = static_cast<double>(r[j]);
-    out.body[p] = bd[j];
-    out.cell[p] = hash[j] % out.n_sort;
-  }
+  at::parallel_for(0, n, 2048, [&](int64_t p0, int64_t p1) {
+    for (int64_t p = p0; p < p1; ++p) {
+      const int64_t j = order[p];
+      out.x[p] = static_cast<double>(x[3 * j]);
+      out.y[p] = static_cast<double>(x[3 * j + 1]);
+      out.z[p] = static_cast<double>(x[3 * j + 2]);
+      out.r[p] = static_cast<double>(r[j]);
+      out.body[p] = bd[j];
+      out.cell[p] = hash[j] % out.n_sort;
+    }
+  });
   out.r_max = n ? *std::max_element(out.r.begin(), out.r.end()) : 0.0;
   return out;
 }
@@ -474,16 +480,25 @@ std::tuple<at::Tensor, at::Tensor> cell_pairs(const at::Tensor& position, const 
     auto ki = keep_i->contiguous().to(at::kLong), kj = keep_j->contiguous().to(at::kLong);
     TORCH_CHECK(ki.numel() == kj.numel(), "cell_pairs: keep_i has ", ki.numel(), " entries and keep_j ", kj.numel());
     const int64_t *pi = ki.data_ptr<int64_t>(), *pj = kj.data_ptr<int64_t>();
-    auto& kept = found.emplace_back();
-    kept.reserve(2 * ki.numel());
-    for (int64_t e = 0; e < ki.numel(); ++e) {
-      const int64_t a = pi[e], b = pj[e];
-      TORCH_CHECK(a >= 0 && a < b && b < S, "cell_pairs: kept pair (", a, ", ", b, ") is not i < j in [0, ", S, ")");
-      if (!mv[a] && !mv[b] && (small[a] | large[a]) && (small[b] | large[b])) {
-        kept.push_back(a);
-        kept.push_back(b);
+    // in chunks, one found vector each (the grouping below does not depend on their order)
+    constexpr int64_t kChunk = 8192;
+    const int64_t K = ki.numel(), n_chunks = (K + kChunk - 1) / kChunk;
+    const size_t base = found.size();
+    found.resize(base + n_chunks);
+    at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
+      for (int64_t c = c0; c < c1; ++c) {
+        auto& kept = found[base + c];
+        kept.reserve(2 * kChunk);
+        for (int64_t e = c * kChunk; e < std::min(K, (c + 1) * kChunk); ++e) {
+          const int64_t a = pi[e], b = pj[e];
+          TORCH_CHECK(a >= 0 && a < b && b < S, "cell_pairs: kept pair (", a, ", ", b, ") is not i < j in [0, ", S, ")");
+          if (!mv[a] && !mv[b] && (small[a] | large[a]) && (small[b] | large[b])) {
+            kept.push_back(a);
+            kept.push_back(b);
+          }
+        }
       }
-    }
+    });
   }
   // Group by i: count, prefix sum, scatter, then sort each sphere's partners.
   std::vector<int64_t> offset(S + 1, 0);
@@ -764,7 +779,40 @@ std::vector<at::Tensor> pair_constants(const at::Tensor& i, const at::Tensor& j,
   return {index, value};
 }
 
+// The order that sorts a list of pairs (lo, hi) [P] of indices in [0, n) by lo, then hi: what
+// torch.argsort(lo * n + hi) gives for unique pairs (reorder's renumbered lists), by a counting
+// sort on lo and a sort of each lo's few partners, about 5x faster on one thread than the
+// comparison sort of the keys.
+at::Tensor pair_order(const at::Tensor& lo, const at::Tensor& hi, int64_t n) {
+  TORCH_CHECK(lo.device().is_cpu() && hi.device().is_cpu(), "pair_order: CPU tensors only");
+  TORCH_CHECK(lo.dim() == 1 && hi.dim() == 1 && lo.numel() == hi.numel(), "pair_order: lo and hi must be 1-D of ",
+              "one length, got ", lo.sizes(), " and ", hi.sizes());
+  auto lc = lo.contiguous().to(at::kLong), hc = hi.contiguous().to(at::kLong);
+  const int64_t P = lc.numel();
+  const int64_t *pl = lc.data_ptr<int64_t>(), *ph = hc.data_ptr<int64_t>();
+  std::vector<int64_t> offset(n + 1, 0);
+  for (int64_t e = 0; e < P; ++e) {
+    TORCH_CHECK(pl[e] >= 0 && pl[e] < n && ph[e] >= 0 && ph[e] < n, "pair_order: pair (", pl[e], ", ", ph[e],
+                ") is outside [0, ", n, ")");
+    ++offset[pl[e] + 1];
+  }
+  for (int64_t i = 0; i < n; ++i) offset[i + 1] += offset[i];
+  at::Tensor order = at::empty({P}, lc.options());
+  int64_t* po = order.data_ptr<int64_t>();
+  {
+    std::vector<int64_t> fill(offset.begin(), offset.end() - 1);
+    for (int64_t e = 0; e < P; ++e) po[fill[pl[e]]++] = e;
+  }
+  at::parallel_for(0, n, 2048, [&](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i)
+      std::sort(po + offset[i], po + offset[i + 1], [&](int64_t a, int64_t b) { return ph[a] < ph[b] || (ph[a] == ph[b] && a < b); });
+  });
+  return order;
+}
+
 TORCH_LIBRARY_FRAGMENT(torchdem, m) {
+  m.def("pair_order(Tensor lo, Tensor hi, int n) -> Tensor");
+  m.impl("pair_order", c10::DispatchKey::CPU, TORCH_FN(pair_order));
   m.def("cell_pairs(Tensor position, Tensor radius, Tensor body, Tensor active, float[] lower, float[] cell_size, "
         "int[] dims, float[] period, int n_per_member, float skin, float split=0., float[] fine_cell_size=[], "
         "int[] fine_dims=[], Tensor? moved=None, Tensor? keep_i=None, Tensor? keep_j=None) -> (Tensor, Tensor)");
