@@ -130,6 +130,36 @@ def test_reorder_keeps_every_contact_and_its_history_bit_for_bit():
     assert torch.equal(_in_build_order(new.body_id, new_system.mass), system.mass)
 
 
+def test_reorder_lists_are_a_rebuild_without_moved_spheres_even_after_a_body_went_inactive():
+    """The reorder carries the lists without a search: they must be what a partial rebuild in which no
+    sphere moved gives in the new numbering, every field bit for bit (per-pair constants included),
+    also when a body went inactive since the last build (its pairs dropped, as a rebuild drops them)."""
+    import dataclasses
+
+    from torchdem.integrate import rebuild
+
+    system, state = _system()
+    sim = Simulation(system, state)
+    sim.advance(300)
+    rebuilds = sim.state.rebuilds
+    while sim.state.rebuilds == rebuilds:
+        sim.advance(1)
+    st = sim.state
+    touching = int(st.pairs.body_i[0]) % system.n_bodies  # a body with listed pairs, member 0
+    active = st.bodies.active.clone()
+    active[0, touching] = False
+    for before in (st, st.set(bodies=st.bodies.set(active=active))):
+        new_system, new = reorder(sim.system, before)
+        S = system.batch * system.n_spheres
+        expected, _ = rebuild(new_system, new, new.reference, system.time_of(before.step),
+                              values=before.pairs.radius_i is not None, moved=torch.zeros(S, dtype=torch.bool))
+        for lists in ("pairs", "walls"):
+            for f in dataclasses.fields(getattr(new, lists)):
+                a, b = getattr(getattr(new, lists), f.name), getattr(getattr(expected, lists), f.name)
+                assert (a is None and b is None) or torch.equal(a, b), f"{lists}.{f.name} differs from a rebuild's"
+    assert new.pairs.i.numel() < st.pairs.i.numel()  # the inactive body's pairs went
+
+
 def test_checkpoint_of_a_reordered_run_resumes_bit_for_bit(tmp_path):
     system, state = _system()
     sim = Simulation(system, state, reorder_every=1)
