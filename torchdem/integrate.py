@@ -61,24 +61,20 @@ def rebuild(system: System, state: State, xs: Tensor, time: float, values: bool 
     in from their references, whenever each was last searched) holds as after a whole rebuild.
     The walls must be as at the last build (shift and presence).
     """
-    B, Ns = system.batch, system.n_spheres
+    Ns = system.n_spheres
     if moved is None and system.grid.is_periodic:
         x = state.bodies.position
         xw = neighbors.wrap(x, system.grid.lower, system.grid.period)
         xs = xs + (xw - x).reshape(-1, 3)[system.sphere_body_flat]
         state = state.set(bodies=state.bodies.set(position=xw))
-    S = B * Ns
     active = sphere_active(system, state.bodies)
     radius = system.sphere_radius.reshape(-1)
-    body = system.sphere_body_flat
-    mat = system.sphere_material.reshape(-1)
-    mass, inertia_r, pair_row = system.sphere_mass, system.sphere_rolling_inertia, system.sphere_pair_row
-    t = system.tables
 
     found_at = xs if moved is None else torch.where(moved[:, None], xs, state.reference)
     keep = None if moved is None else (state.pairs.i, state.pairs.j)
-    i, j = neighbors.find_pairs(found_at, radius, body, active, Ns, system.grid, system.skin, moved=moved, keep=keep)
-    constants = pair_constants(i, j, radius, mass, inertia_r, body, pair_row, mat, t, values=values)
+    i, j = neighbors.find_pairs(found_at, radius, system.sphere_body_flat, active, Ns, system.grid, system.skin,
+                                moved=moved, keep=keep)
+    constants = system_pair_constants(system, i, j, values=values)
     tang, roll = neighbors.carry_history(state.pairs.key, [state.pairs.tangential, state.pairs.rolling],
                                          constants["key"])
     pairs = PairContacts(i=i, j=j, tangential=tang, rolling=roll, **constants)
@@ -91,8 +87,8 @@ def rebuild(system: System, state: State, xs: Tensor, time: float, values: bool 
                                      moved=moved, keep=keep)
     wkey = s * max(W, 1) + w
     wt, wr = neighbors.carry_history(state.walls.key, [state.walls.tangential, state.walls.rolling], wkey)
-    state = state.set(pairs=pairs, walls=wall_contacts(system, s, w, wkey, wt, wr), reference=xs.clone() if moved is None else found_at,
-                      wall_shift=shift,
+    state = state.set(pairs=pairs, walls=wall_contacts(system, s, w, wkey, wt, wr),
+                      reference=xs.clone() if moved is None else found_at, wall_shift=shift,
                       wall_active=wall_active, rebuilds=state.rebuilds + 1)
     return state, xs
 
@@ -143,14 +139,19 @@ def pair_constants(i: Tensor, j: Tensor, radius: Tensor, mass: Tensor, rolling_i
                 rolling_inertia=ir_i * ir_j / (ir_i + ir_j), **tables.gather(pair_row[i] + material[j]))
 
 
+def system_pair_constants(system: System, i: Tensor, j: Tensor, values: bool = True) -> dict[str, Tensor | None]:
+    """:func:`pair_constants` of the list ``i, j`` ``[P]`` from the system's per-sphere arrays and tables."""
+    return pair_constants(i, j, system.sphere_radius.reshape(-1), system.sphere_mass, system.sphere_rolling_inertia,
+                          system.sphere_body_flat, system.sphere_pair_row, system.sphere_material.reshape(-1),
+                          system.tables, values=values)
+
+
 def with_pair_values(system: System, pairs: PairContacts) -> PairContacts:
     """``pairs`` with its per-pair constants, computed from the system's per-sphere arrays where a
     rebuild for the C++ kernels left them None (:func:`rebuild`'s ``values``); else ``pairs``."""
     if pairs.radius_i is not None:
         return pairs
-    constants = pair_constants(pairs.i, pairs.j, system.sphere_radius.reshape(-1), system.sphere_mass,
-                               system.sphere_rolling_inertia, system.sphere_body_flat, system.sphere_pair_row,
-                               system.sphere_material.reshape(-1), system.tables)
+    constants = system_pair_constants(system, pairs.i, pairs.j)
     return pairs.set(**{k: constants[k] for k in PAIR_VALUES + system.tables.CONTACT_FIELDS})
 
 

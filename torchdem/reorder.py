@@ -120,7 +120,7 @@ def reorder(system: System, state: State, body_perm: Tensor | None = None) -> tu
     """Renumber bodies and spheres (default order: :func:`spatial_permutation`) and carry the
     neighbour lists into the new numbering with their history (see the module docstring). The
     rebuild counter is left as it was."""
-    from torchdem.integrate import pair_constants, sphere_active, wall_contacts
+    from torchdem.integrate import sphere_active, system_pair_constants, wall_contacts
 
     if body_perm is None:
         body_perm = spatial_permutation(system, state)
@@ -156,10 +156,8 @@ def reorder(system: System, state: State, body_perm: Tensor | None = None) -> tu
     kept = take(live, 0, lo) & take(live, 0, hi)
     if not bool(kept.all()):
         lo, hi, tangential, rolling = lo[kept], hi[kept], tangential[kept], rolling[kept]
-    constants = pair_constants(lo, hi, new_system.sphere_radius.reshape(-1), new_system.sphere_mass,
-                               new_system.sphere_rolling_inertia, new_system.sphere_body_flat,
-                               new_system.sphere_pair_row, new_system.sphere_material.reshape(-1), new_system.tables,
-                               values=p.radius_i is not None)  # per-pair constants as the state had them
+    constants = system_pair_constants(new_system, lo, hi,
+                                      values=p.radius_i is not None)  # per-pair constants as the state had them
     pairs = p.set(i=lo, j=hi, tangential=tangential, rolling=rolling, **constants)
 
     # sphere-wall pairs, sorted by key
