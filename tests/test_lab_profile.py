@@ -369,3 +369,42 @@ def test_the_box_profile_holds_the_lab_calibration_and_varies_the_box():
     assert screening_runs + earlier + a.budget + len(s.verification_seeds) + 3 * len(s.validation_seeds) <= 74
     bounds = np.array([s.surrogate.bounds[n] for n in four]).T
     np.testing.assert_allclose(ga_bounds(bounds, GASettings(), four)[1], [0.35, 1.0, 0.9, 0.9])
+
+
+def test_the_fines_profile_holds_the_box_set_keeps_the_fines_and_varies_slot_restitution_and_sliding():
+    """profile=lab_fines: every run has the box calibration's set (calibration_lab_box.json's four, at
+    full precision, on the lab calibration's contacts) with the sinter's whole sieve analysis (the
+    5.6-8 and 8-10 mm classes the other lab profiles scalp); the slot's width, the pellets' restitution
+    and the sinter's sliding reach a run's walls and contact sets; the campaign makes at most 50 runs."""
+    import json
+    from pathlib import Path
+
+    from torchdem.drawdown import FILL_FRICTION_PARAMETER
+
+    plain = _plain(profile="lab_fines")
+    s = calibration_settings_from(plain)
+    model, _ = calibration_model_from(plain, load_measured())
+    box = json.loads((Path(__file__).resolve().parents[1] / "campaigns" / "table2"
+                      / "calibration_lab_box.json").read_text())
+    assert model.geometry.upper_width == box["calibrated_parameters"]["geometry_upper_width"]
+    assert model.geometry.mirror and model.settings.fines_cut is None
+    for name in ("fill_friction", "mu_s_pg", "mu_s_sg"):
+        assert model.fixed[name] == box["calibrated_parameters"][name], name
+    for name, value in box["held_parameters"].items():
+        assert model.fixed[name] == value, name
+    three = ("geometry_outlet_width", "e_pp", "mu_s_ss")
+    assert s.screening.table.names == three and s.surrogate.parameters == three
+    test = model.test_for("50-50", [{"geometry_outlet_width": 0.061, "e_pp": 0.7, "mu_s_ss": 0.55}])
+    assert test.geometry.outlet_width == 0.061 and test.geometry.upper_width == model.geometry.upper_width
+    sets = test.parameter_sets[0]
+    assert (sets["e_pp"], sets["mu_s_ss"], sets["mu_s_pg"]) == (0.7, 0.55, box["calibrated_parameters"]["mu_s_pg"])
+    assert sets[FILL_FRICTION_PARAMETER] == box["calibrated_parameters"]["fill_friction"]
+    sinter = {m.name: m for m in test.mixture.materials}["sinter"]
+    assert min(c.d_min for c in sinter.sieve) == pytest.approx(0.0056)  # Table 1's smallest class, kept
+    box_model, _ = calibration_model_from(_plain(profile="lab_box"), load_measured())
+    scalped = {m.name: m for m in box_model.test_for("50-50", [{}]).mixture.materials}["sinter"]
+    assert min(c.d_min for c in scalped.sieve) == pytest.approx(0.010)  # what profile=lab_box runs
+    a = s.surrogate.adaptive
+    screening_runs = (2 * (s.screening.table.k + s.screening.n_fake) + 1) * len(s.screening.seeds)
+    assert screening_runs == 18
+    assert screening_runs + a.budget + len(s.verification_seeds) + 3 * len(s.validation_seeds) <= 50
