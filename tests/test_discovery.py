@@ -63,7 +63,9 @@ def test_registry_has_the_required_mechanisms_and_each_builds_a_dem_ensemble():
     mechanisms = registry()
     assert set(mechanisms) >= {"density_per_material", "free_interaction", "cohesion", "front_back_walls",
                                "rolling_ai2011", "clump_shape"}
-    plain = _plain(["data=mini_box_twin.json"])
+    # the mini box's sinter with a finer class that the runs scalp, so that fines_kept has fines to keep
+    plain = _plain(["data=mini_box_twin.json", "mixture.materials.sinter.sieve=[{d_min_mm:10.0,d_max_mm:14.0,"
+                    "mass_fraction:0.3},{d_min_mm:14.0,d_max_mm:18.0,mass_fraction:0.7}]", "sim.fines_cut_mm=12"])
     model, _ = calibration_model_from({**plain, "measured": "mini_box_twin.json"}, load_measured("mini_box_twin.json"))
     context = model_context(model, model.fixed)
     for name, m in mechanisms.items():
@@ -78,6 +80,8 @@ def test_registry_has_the_required_mechanisms_and_each_builds_a_dem_ensemble():
             assert system.has_cohesion
         if name == "rolling_ai2011":
             assert system.rolling_stiffness == "ai2011"
+        if name == "fines_kept":  # half the 10-14 mm class kept: grains under 12 mm in the fill
+            assert system.sphere_radius.min() < model.test_for("50-50", [{}]).build([0], [0])[0].sphere_radius.min()
     with pytest.raises(ConfigError, match=r"mechanism 'gravity_waves' is not in the registry"):
         apply_extension(model, "gravity_waves", {}, context)
     with pytest.raises(ConfigError, match=r"unknown \['density_coke'\], missing \['density_pellet', 'density_sinter'\]"):

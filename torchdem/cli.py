@@ -123,11 +123,12 @@ def simulate_main(cfg: DictConfig) -> None:
     replicates = int(cfg.replicates)
     if replicates < 1:
         raise out_of_range("replicates", replicates, "an integer >= 1", "config")
-    test = DrawDownTest(config.mixture_from(plain["mixture"]), config.geometry_from(plain["geometry"]),
+    mixture = config.mixture_from(plain["mixture"])
+    test = DrawDownTest(mixture, config.geometry_from(plain["geometry"]),
                         config.contact_from(plain["contact"]), config.run_settings_from(plain["sim"], plain["run"]))
     name, values = config.extension_from(plain.get("extension"))
-    if name is not None or values:
-        model = with_extension(DrawDownModel({"run": test.mixture}, test.geometry, test.settings,
+    if name is not None or values:  # the model holds the mixture as measured: a mechanism may act on its fines
+        model = with_extension(DrawDownModel({"run": mixture}, test.geometry, test.settings,
                                              fixed=test.parameter_sets[0], device=str(device)), name, values)
         test = model.test_for("run", [{}], isolate=False)
     seeds = [int(cfg.seed) + k for k in range(replicates)]

@@ -132,8 +132,8 @@ def parameter_range(name: str) -> tuple[float, float, bool, str]:
         return CONTACT_RANGES[contact]
     material = next((p for p in MATERIAL_PREFIXES if name.startswith(p)), None)
     if material is not None:
-        low, high, allowed, _ = MATERIAL_PREFIXES[material]
-        return low, high, True, allowed
+        low, high, open_low, allowed, _ = MATERIAL_PREFIXES[material]
+        return low, high, open_low, allowed
     if name.startswith(GEOMETRY_PREFIX):
         low, open_low, allowed = geometry_parameter_range(name)
         return low, math.inf, open_low, allowed

@@ -28,6 +28,7 @@ out of the plane, a grain that stands out of every plane it rests on.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
@@ -188,6 +189,9 @@ class ParticleMaterial:
         name: unique name. shape: key of :data:`TEMPLATES` (unit sieve diameter).
         sieve: the size distribution. density: solid density, kg/m^3.
         shear_modulus: Pa. poisson_ratio. label: render/segmentation label.
+        fines_kept: share of the mass of every sieve class below a run's fines cut
+            (``RunSettings.fines_cut``) kept in its class; the rest is scalped into the class at the
+            cut (:func:`scalp_sieve`). 0, the default: all scalped; 1: the sieve as measured.
     """
 
     name: str
@@ -197,6 +201,7 @@ class ParticleMaterial:
     shear_modulus: float = 1e8
     poisson_ratio: float = 0.25
     label: str = ""
+    fines_kept: float = 0.0
 
     def validate(self, source: str) -> "ParticleMaterial":
         src = f"{source}[{self.name}]"
@@ -214,6 +219,8 @@ class ParticleMaterial:
                 raise out_of_range(f"sieve[{k}].mass_fraction", c.mass_fraction, "[0, 1]", src)
         if not self.density > 0:
             raise out_of_range("density", self.density, "> 0 kg/m^3", src)
+        if not 0 <= self.fines_kept <= 1:
+            raise out_of_range("fines_kept", self.fines_kept, "[0, 1]", src)
         return self
 
     @property
@@ -335,26 +342,34 @@ def sample_layers(mixture: Mixture, scale: float, seed: int) -> SampledLayers:
     return SampledLayers(np.concatenate(mats), np.concatenate(diams), np.concatenate(layers), np.concatenate(masses))
 
 
-def scalp_sieve(sieve: Sequence[SieveClass], d_cut: float, source: str = "sieve") -> tuple[SieveClass, ...]:
+def scalp_sieve(sieve: Sequence[SieveClass], d_cut: float, source: str = "sieve",
+                fines_kept: float = 0.0) -> tuple[SieveClass, ...]:
     """Merge the sieve classes below ``d_cut`` (m) into the first class at or above it, keeping mass.
 
     This is the "scalping" of fines that industrial DEM uses to afford a run: the mass of the
     fines is kept but carried by coarser particles, so the particle count and the smallest
     sphere (which sets the time step) shrink. It changes what fines do (percolation, packing),
     so a study that asks about fines must not use it; ``d_cut`` must be a sieve boundary.
+    ``fines_kept`` in [0, 1]: that share of each fine class's mass stays in its class and only the
+    rest is merged (1 returns the sieve as it is); a fine class left with no mass is dropped.
     """
     bounds = sorted({c.d_min for c in sieve})
     if not any(abs(d_cut - b) < 1e-9 for b in bounds):
         raise out_of_range("fines_cut", d_cut, f"one of the sieve boundaries {[round(b, 6) for b in bounds]} m", source)
+    if not 0 <= fines_kept <= 1:
+        raise out_of_range("fines_kept", fines_kept, "[0, 1]", source)
     kept = [c for c in sieve if c.d_min >= d_cut - 1e-9]
-    lost = sum(c.mass_fraction for c in sieve if c.d_min < d_cut - 1e-9)
+    fines = [c for c in sieve if c.d_min < d_cut - 1e-9]
+    lost = (1.0 - fines_kept) * sum(c.mass_fraction for c in fines)
     first = kept[0]
-    return (SieveClass(first.d_min, first.d_max, first.mass_fraction + lost),) + tuple(kept[1:])
+    stay = tuple(SieveClass(c.d_min, c.d_max, fines_kept * c.mass_fraction) for c in fines) if fines_kept > 0 else ()
+    return stay + (SieveClass(first.d_min, first.d_max, first.mass_fraction + lost),) + tuple(kept[1:])
 
 
 def scalp_mixture(mixture: Mixture, d_cut: float | None, source: str = "fines_cut") -> Mixture:
-    """The mixture with every material's fines below ``d_cut`` scalped (see :func:`scalp_sieve`);
-    materials whose smallest sieve size is at or above ``d_cut`` are unchanged."""
+    """The mixture with every material's fines below ``d_cut`` scalped (see :func:`scalp_sieve`),
+    but for the share ``ParticleMaterial.fines_kept`` of each; materials whose smallest sieve size is
+    at or above ``d_cut`` are unchanged."""
     if d_cut is None:
         return mixture
     if not d_cut > 0:
@@ -367,8 +382,7 @@ def scalp_mixture(mixture: Mixture, d_cut: float | None, source: str = "fines_cu
                 raise out_of_range("fines_cut", d_cut, f"<= {max(boundaries)} m (the last sieve class of "
                                    f"{m.name!r} starts there)", source)
             snapped = min(b for b in boundaries if b >= d_cut - 1e-9)
-            m = ParticleMaterial(m.name, m.shape, scalp_sieve(m.sieve, snapped, f"{source}[{m.name}]"), m.density,
-                                 m.shear_modulus, m.poisson_ratio, m.label)
+            m = dataclasses.replace(m, sieve=scalp_sieve(m.sieve, snapped, f"{source}[{m.name}]", m.fines_kept))
         mats.append(m)
     return Mixture(mixture.name, tuple(mats), mixture.mass_fractions, mixture.layering, mixture.total_mass)
 

@@ -44,13 +44,15 @@ from torchdem.mixture import Mixture, ParticleMaterial, lobe_shape, lobed_parame
 
 #: Prefix of task parameters that set a material's solid density (kg/m^3), not a contact law.
 DENSITY_PREFIX = "density_"
-#: Per-material task parameters: prefix -> (exclusive low, inclusive high, allowed text, the only values
+#: Per-material task parameters: prefix -> (low, inclusive high, low open, allowed text, the only values
 #: allowed inside the range or None for any).
-MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, "a solid density > 0 kg/m^3", None),
-                     "lobe_spacing_": (0.0, 0.3, "a trilobe lobe spacing in (0, 0.3] of the sieve size", None),
-                     "clump_scale_": (0.5, 2.0, "a trilobe's size in (0.5, 2] of the one that fits the sieve size",
-                                      None),
-                     "lobe_count_": (2.0, 4.0, "3 (a flat trilobe) or 4 (a tetralobe) lobes", (3.0, 4.0))}
+MATERIAL_PREFIXES = {DENSITY_PREFIX: (0.0, math.inf, True, "a solid density > 0 kg/m^3", None),
+                     "lobe_spacing_": (0.0, 0.3, True, "a trilobe lobe spacing in (0, 0.3] of the sieve size", None),
+                     "clump_scale_": (0.5, 2.0, True, "a trilobe's size in (0.5, 2] of the one that fits the sieve "
+                                      "size", None),
+                     "lobe_count_": (2.0, 4.0, True, "3 (a flat trilobe) or 4 (a tetralobe) lobes", (3.0, 4.0)),
+                     "fines_kept_": (0.0, 1.0, False, "a share in [0, 1] of the fines below sim.fines_cut_mm kept "
+                                     "as sieved (0: all scalped)", None)}
 #: Prefix of task parameters that set a length of the boxes, m (``geometry_outlet_width``), or how
 #: the gate opens (``geometry_gate_opening``, s).
 GEOMETRY_PREFIX = "geometry_"
@@ -201,7 +203,8 @@ def split_material_parameters(params: Mapping[str, float], mixture: Mixture, sou
     parameters ``density_<material>`` (solid density, kg/m^3), ``lobe_spacing_<material>``
     (trilobe clump shape, :func:`torchdem.mixture.trilobe_template`, in (0, 0.3] of the sieve size)
     ``clump_scale_<material>`` (the trilobe's size, (0.5, 2] of the clump that fits the sieve
-    size) and ``lobe_count_<material>`` (3 or 4) are taken out; everything else is a contact parameter."""
+    size), ``lobe_count_<material>`` (3 or 4) and ``fines_kept_<material>`` (the share of the fines below
+    ``sim.fines_cut_mm`` kept as sieved, [0, 1]) are taken out; everything else is a contact parameter."""
     names = {m.name for m in mixture.materials}
     contact: dict[str, float] = {}
     material: dict[str, dict[str, float]] = {}
@@ -214,8 +217,9 @@ def split_material_parameters(params: Mapping[str, float], mixture: Mixture, sou
         if name not in names:
             raise ConfigError(f"{source}: parameter {key!r} names no material of mixture {mixture.name!r}; "
                               f"expected {prefix}<material> with a material of {sorted(names)}")
-        low, high, allowed, values = MATERIAL_PREFIXES[prefix]
-        if not (math.isfinite(value) and low < value <= high) or (values is not None and value not in values):
+        low, high, open_low, allowed, values = MATERIAL_PREFIXES[prefix]
+        above = low < value if open_low else low <= value
+        if not (math.isfinite(value) and above and value <= high) or (values is not None and value not in values):
             raise ConfigError(f"{source}: {key} = {value!r} is not allowed; expected {allowed}")
         material.setdefault(name, {})[prefix[:-1]] = float(value)
     return contact, material
@@ -233,15 +237,16 @@ def split_density(params: Mapping[str, float], mixture: Mixture, source: str
 
 def with_material_properties(mixture: Mixture, properties: Mapping[str, Mapping[str, float]],
                              source: str = "with_material_properties") -> Mixture:
-    """The mixture with the given materials' densities, trilobe lobe spacings and clump scales replaced
-    (a scale alone keeps the material's lobe spacing, a spacing alone its scale). A scale for a material
-    that is no trilobe and gets no lobe spacing is a ConfigError naming ``source``."""
+    """The mixture with the given materials' densities, trilobe lobe spacings, clump scales and kept
+    fines replaced (a scale alone keeps the material's lobe spacing, a spacing alone its scale). A scale
+    for a material that is no trilobe and gets no lobe spacing is a ConfigError naming ``source``."""
     materials = []
     for m in mixture.materials:
         props = properties.get(m.name, {})
         changes = {}
-        if "density" in props:
-            changes["density"] = props["density"]
+        for field_name in ("density", "fines_kept"):
+            if field_name in props:
+                changes[field_name] = props[field_name]
         if "lobe_spacing" in props or "clump_scale" in props or "lobe_count" in props:
             lobes, spacing, scale = lobed_parameters(m.shape) or (3, None, 1.0)
             if "lobe_spacing" not in props and spacing is None:

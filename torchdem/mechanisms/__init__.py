@@ -51,6 +51,9 @@ class ModelContext:
         largest_size: largest sieve size per material, m.
         geometry: the boxes' lengths a task may set (``torchdem.model.GEOMETRY_PARAMETERS``:
             ``outlet_width`` ...), m.
+        smallest_size: smallest sieve size per material, as measured (before any scalping), m.
+        fines_cut: the sieve size below which the runs scalp the fines (``sim.fines_cut_mm``), m;
+            None: the sieve as measured.
     """
 
     materials: tuple[str, ...]
@@ -63,6 +66,8 @@ class ModelContext:
     period: float | None = None
     largest_size: Mapping[str, float] = field(default_factory=dict)
     geometry: Mapping[str, float] = field(default_factory=dict)
+    smallest_size: Mapping[str, float] = field(default_factory=dict)
+    fines_cut: float | None = None
 
 
 @dataclass(frozen=True)
@@ -149,7 +154,9 @@ def model_context(model: "DrawDownModel", calibrated: Mapping[str, float]) -> Mo
                         shapes={m.name: m.shape for m in mixture.materials}, calibrated=dict(calibrated),
                         young_eff=e_eff, periodic_slice=periodic, period=model.geometry.slice_depth if periodic else None,
                         largest_size={m.name: max(c.d_max for c in m.sieve) for m in mixture.materials},
-                        geometry={n: float(getattr(model.geometry, n)) for n in GEOMETRY_PARAMETERS})
+                        geometry={n: float(getattr(model.geometry, n)) for n in GEOMETRY_PARAMETERS},
+                        smallest_size={m.name: min(c.d_min for c in m.sieve) for m in mixture.materials},
+                        fines_cut=model.settings.fines_cut)
 
 
 def _letters_of(names: Sequence[str]) -> dict[str, str]:
