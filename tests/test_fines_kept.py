@@ -7,7 +7,8 @@ torchdem/mechanisms/fines_kept.py):
 - ``fines_kept_sinter`` reaches a run: the member's sinter has Table 1's 5.6-8 and 8-10 mm classes at
   that share, the particles drawn for it include grains under 10 mm (none at share 0), and the layers
   weigh what they weighed.
-- Bad values name the parameter and its range; 0 is allowed (the candidate's null).
+- Bad values name the parameter and its range; 0 is allowed (the candidate's null); a share where the
+  runs scalp nothing is refused.
 - The candidate's prior, null and availability: on the scalped lab model, not where nothing is scalped.
 """
 from pathlib import Path
@@ -78,6 +79,9 @@ def test_bad_shares_name_the_parameter_and_its_range():
             model.test_for("50-50", [{"fines_kept_sinter": bad}])
     with pytest.raises(ConfigError, match="fines_kept_glass.*names no material"):
         model.test_for("50-50", [{"fines_kept_glass": 0.5}])
+    kept = _lab_model(profile="lab_fines")  # nothing scalped: a share of the scalped fines means nothing
+    with pytest.raises(ConfigError, match=r"fines_kept_sinter set a share .*sim.fines_cut_mm is null"):
+        kept.test_for("50-50", [{"fines_kept_sinter": 0.5}])
 
 
 def test_the_candidate_applies_where_fines_are_scalped_and_not_where_none_are():

@@ -191,6 +191,10 @@ class DrawDownModel:
             contact, props = split_material_parameters(full, mixture, source)
             sets.append(contact)
             properties.append(props)
+        kept = sorted({f"fines_kept_{name}" for props in properties for name, p in props.items() if "fines_kept" in p})
+        if kept and settings.fines_cut is None:
+            raise ConfigError(f"{source}: {', '.join(kept)} set a share of the scalped fines, but the runs scalp none "
+                              "(sim.fines_cut_mm is null: every sieve class is kept already)")
         mixtures = None
         if any(properties):
             mixtures = [with_material_properties(mixture, props, source) for props in properties]
