@@ -13,7 +13,7 @@ each in turn (two git worktrees, ``PYTHONPATH`` set to each), several times, alt
 Usage::
 
     python scripts/bench_member.py [--lobe-spacing 0.3] [--start 1.3] [--steps 1000] [--moved-share 0.25] [--json]
-                                   [--device cuda [--compile]]
+                                   [--device cuda [--compile]] [--fines-kept]
 
 ``--moved-share 0`` makes every neighbour rebuild search every sphere (``System.moved_share``).
 ``--time-step-factor 1.5`` times the member at 1.5x its step from ``--start`` on (what
@@ -30,17 +30,19 @@ from pathlib import Path
 
 import torch
 
-from bench_search import CACHE, settled_member
+from bench_search import CACHE, member_system, settled_member
 from torchdem.simulation import Simulation
 
 
 def flowing_member(lobe_spacing: float, seed: int, start: float, device: str = "cpu",
-                   compile: bool = False) -> Simulation:
-    """The member run to ``start`` s, cached on disk; reordered every 10 rebuilds."""
-    settled = settled_member(lobe_spacing, seed, 0.8, device)
-    path = CACHE / f"member_lab_s{lobe_spacing:g}_seed{seed}_t{start:g}.pt"
+                   compile: bool = False, fines_kept: bool = False) -> Simulation:
+    """The member run to ``start`` s, cached on disk (only that file is read once it is there);
+    reordered every 10 rebuilds."""
+    path = CACHE / f"member_lab_s{lobe_spacing:g}_seed{seed}_t{start:g}{'_fines' if fines_kept else ''}.pt"
     if path.exists():
-        return Simulation.load(path, settled.system, reorder_every=10, compile=compile)
+        system, _ = member_system(lobe_spacing, seed, device, fines_kept)
+        return Simulation.load(path, system, reorder_every=10, compile=compile)
+    settled = settled_member(lobe_spacing, seed, 0.8, device, fines_kept)
     sim = Simulation(settled.system, settled.state, reorder_every=10)
     started = time.perf_counter()
     sim.run_until(start)
@@ -63,9 +65,11 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="print the figures as JSON too")
     parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda); a GPU is timed by the wall clock")
     parser.add_argument("--compile", action="store_true", help="Simulation(compile=True), compiled in the warm-up")
+    parser.add_argument("--fines-kept", action="store_true",
+                        help="the sinter's whole sieve (sim.fines_cut_mm=null, as profile=lab_fines runs it)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    sim = flowing_member(args.lobe_spacing, args.seed, args.start, args.device, args.compile)
+    sim = flowing_member(args.lobe_spacing, args.seed, args.start, args.device, args.compile, args.fines_kept)
     gpu = sim.system.mass.device.type == "cuda"
     clock = time.perf_counter if gpu else time.thread_time
     sync = torch.cuda.synchronize if gpu else (lambda: None)
@@ -83,12 +87,12 @@ def main() -> None:
     sync()
     elapsed = clock() - started
     out = {"lobe_spacing": args.lobe_spacing, "moved_share": sim.system.moved_share, "device": args.device,
-           "compile": args.compile,
+           "compile": args.compile, "fines_kept": args.fines_kept,
            "spheres": sim.system.n_spheres, "steps": args.steps,
            "ms_per_step": 1e3 * elapsed / args.steps, "steps_per_rebuild": args.steps / max(sim.state.rebuilds - rebuilds, 1),
            "dt_s": sim.system.dt, "cpu_s_per_simulated_s": elapsed / (args.steps * sim.system.dt)}
     timed_by = f"wall clock on {args.device}" if gpu else "CPU time, one thread"
-    print(f"lab member, lobe spacing {args.lobe_spacing:g}, {out['spheres']} spheres, from t = {args.start:g} s: "
+    print(f"lab member{' (fines kept)' if args.fines_kept else ''}, lobe spacing {args.lobe_spacing:g}, {out['spheres']} spheres, from t = {args.start:g} s: "
           f"{out['ms_per_step']:.2f} ms a step ({timed_by}), {out['steps_per_rebuild']:.1f} steps a rebuild, "
           f"moved share {out['moved_share']:g}; step {out['dt_s']:.4g} s: {out['cpu_s_per_simulated_s']:.1f} s per "
           "simulated second")

@@ -31,14 +31,22 @@ from torchdem.simulation import Simulation
 CACHE = Path(__file__).resolve().parents[1] / ".bench_cache"
 
 
-def settled_member(lobe_spacing: float, seed: int, settle: float, device: str = "cpu"):
-    """The system and state of one lab member after ``settle`` s, cached on disk (a state cached on
-    one device loads onto ``device``)."""
+def member_system(lobe_spacing: float, seed: int, device: str = "cpu", fines_kept: bool = False):
+    """System and rained state of one lab member (profile=lab, 50-50); ``fines_kept``: the sinter's whole
+    sieve (``sim.fines_cut_mm=null``, as profile=lab_fines runs it) instead of the fines scalped below 10 mm."""
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        plain = plain_config(compose("calibrate", overrides=["profile=lab"]))
+        plain = plain_config(compose("calibrate", overrides=["profile=lab", *(["sim.fines_cut_mm=null"] if fines_kept
+                                                                              else [])]))
     test = model_from(plain).test_for("50-50", [{"lobe_spacing_sinter": lobe_spacing}])
     system, state, _ = test.build([seed], [0], device=device)
-    path = CACHE / f"search_lab_s{lobe_spacing:g}_seed{seed}_t{settle:g}.pt"
+    return system, state
+
+
+def settled_member(lobe_spacing: float, seed: int, settle: float, device: str = "cpu", fines_kept: bool = False):
+    """The system and state of one lab member (:func:`member_system`) after ``settle`` s, cached on disk
+    (a state cached on one device loads onto ``device``)."""
+    system, state = member_system(lobe_spacing, seed, device, fines_kept)
+    path = CACHE / f"search_lab_s{lobe_spacing:g}_seed{seed}_t{settle:g}{'_fines' if fines_kept else ''}.pt"
     if path.exists():
         return Simulation.load(path, system)
     sim = Simulation(system, state)
