@@ -29,6 +29,9 @@ SAME_ROUTE = {"clump_shape": "clump_size", "free_interaction": "cohesion", "geom
 #: mini box's sieves have one class each, so its sinter gets a finer class and the cut above it.
 NEEDS = {"fines_kept": ["mixture.materials.sinter.sieve=[{d_min_mm:10.0,d_max_mm:14.0,mass_fraction:0.3},"
                         "{d_min_mm:14.0,d_max_mm:18.0,mass_fraction:0.7}]", "sim.fines_cut_mm=12"]}
+#: What each command writes when it has run end to end.
+WRITTEN = {"simulate": "kpis.json", "screen": "screening.json", "study": "timestep.json",
+           "calibrate": "calibration.json", "discover": "discovery.json"}
 MODULES = {"demo": "torchdem.cli", "simulate": "torchdem.cli_simulate", "screen": "bo.cli.screen",
            "study": "bo.cli.study", "calibrate": "bo.cli.calibrate", "discover": "bo.cli.discover"}
 
@@ -176,8 +179,7 @@ def test_every_command_runs_with_every_extension(tmp_path, command):
     proc = run_command(command, *TINY_RUN, *TINY[command], f"extension={','.join(extensions)}", out=out,
                        timeout=1800, multirun=True)
     assert proc.returncode == 0, f"torchdem-{command} -m extension=...:\n{proc.stdout[-1500:]}\n{proc.stderr[-3000:]}"
-    written = {"simulate": "kpis.json", "screen": "screening.json", "study": "timestep.json",
-               "calibrate": "calibration.json", "discover": "discovery.json"}[command]
+    written = WRITTEN[command]
     for job, extension in enumerate(extensions):
         assert json.loads((out / str(job) / written).read_text()), (command, extension)
         saved = (out / str(job) / ".hydra" / "config.yaml").read_text()
@@ -189,11 +191,9 @@ def test_every_command_runs_with_every_extension(tmp_path, command):
 def test_an_extension_with_needs_runs_with_every_command(tmp_path, extension):
     """The extensions left out of the matrix (they need a mini box with something to act on, NEEDS) run
     end to end with every command, with those needs."""
-    for command in ("simulate", "screen", "study", "calibrate", "discover"):
+    for command in WRITTEN:
         out = tmp_path / command
         proc = run_command(command, *TINY_RUN, *TINY[command], *NEEDS[extension], f"extension={extension}", out=out,
                            timeout=900)
         assert proc.returncode == 0, f"torchdem-{command} extension={extension}:\n{proc.stderr[-3000:]}"
-        written = {"simulate": "kpis.json", "screen": "screening.json", "study": "timestep.json",
-                   "calibrate": "calibration.json", "discover": "discovery.json"}[command]
-        assert json.loads((out / written).read_text()), (command, extension)
+        assert json.loads((out / WRITTEN[command]).read_text()), (command, extension)

@@ -47,6 +47,7 @@ from torchdem.measured import Condition, KPIValue, MeasuredData, load_measured
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _calibration_model as km  # noqa: E402
+from test_commands import NEEDS  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 KPIS = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
@@ -64,8 +65,7 @@ def test_registry_has_the_required_mechanisms_and_each_builds_a_dem_ensemble():
     assert set(mechanisms) >= {"density_per_material", "free_interaction", "cohesion", "front_back_walls",
                                "rolling_ai2011", "clump_shape"}
     # the mini box's sinter with a finer class that the runs scalp, so that fines_kept has fines to keep
-    plain = _plain(["data=mini_box_twin.json", "mixture.materials.sinter.sieve=[{d_min_mm:10.0,d_max_mm:14.0,"
-                    "mass_fraction:0.3},{d_min_mm:14.0,d_max_mm:18.0,mass_fraction:0.7}]", "sim.fines_cut_mm=12"])
+    plain = _plain(["data=mini_box_twin.json", *NEEDS["fines_kept"]])
     model, _ = calibration_model_from({**plain, "measured": "mini_box_twin.json"}, load_measured("mini_box_twin.json"))
     context = model_context(model, model.fixed)
     for name, m in mechanisms.items():
