@@ -300,6 +300,31 @@ def test_renew_and_release_touch_only_own_claims(tmp_path):
     assert {t.task_id for t in mine} == {r.task_id for r in store.records(status="pending")}
 
 
+def test_a_lease_to_another_machine_holds_until_its_end_and_comes_back_by_record_or_release(tmp_path):
+    store = new_store(tmp_path, lease_seconds=60.0)
+    fill(store)  # tasks 1-6
+    leased = store.lease([2, 5], "gpu-host:offload", time.time() + 0.6)
+    assert [(t.task_id, t.seed) for t in leased] == [(2, 1), (5, 0)]
+    assert {t.task_id for t in store.claim(100)} == {1, 3, 4, 6}  # the lease outlives the 60 s timeout
+    time.sleep(0.7)
+    assert [t.task_id for t in store.claim(100)] == [2, 5]  # stale at its end, like any lease
+    store.release([2, 5])
+    store.lease([2, 5], "gpu-host:offload", time.time() + 3600)
+    assert finish(store, leased[:1]) == 1  # an outcome that came back is recorded whoever leased it
+    assert store.release([5]) == 0  # not this process's
+    assert store.release([5], owner="gpu-host:offload") == 1  # the one that did not come back
+    assert store.records(status="pending")[0].task_id == 5
+    with pytest.raises(ConfigError, match="task id.*pending task of this store.*it is done"):
+        store.lease([2], "gpu-host:offload", time.time() + 60)
+    with pytest.raises(ConfigError, match="task id.*it is absent"):
+        store.lease([99], "gpu-host:offload", time.time() + 60)
+    with pytest.raises(ConfigError, match="owner.*'host:name'"):
+        store.lease([5], "gpu-host", time.time() + 60)
+    with pytest.raises(ConfigError, match="until.*in the future"):
+        store.lease([5], "gpu-host:offload", time.time() - 1)
+    assert store.records(status="pending")[0].task_id == 5  # a refused lease takes nothing
+
+
 def test_run_pending_renews_leases_while_a_batch_runs(tmp_path):
     store = new_store(tmp_path, lease_seconds=0.3)  # renewed every 0.1 s
     fill(store, points=POINTS[:1], seeds=(0,))

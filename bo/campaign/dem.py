@@ -69,12 +69,13 @@ def checkpoint_path(checkpoint_dir: str | Path, model: DrawDownModel, tasks: Seq
 
 
 def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: str | None = None,
-                   core_share: CoreShare | None = None) -> list[EvalOutcome]:
+                   core_share: CoreShare | None = None, progress=None) -> list[EvalOutcome]:
     """Run the tasks (one condition) as one ensemble (one per set of box lengths, ``geometry_*``
     parameters, when they differ); one outcome per task, in order.
     ``checkpoint_dir``: where the batch checkpoints and resumes. A run that blows up is retried
     at ``model.settings.retry_time_steps`` (module docstring). ``core_share``: the batch takes the
-    threads the share allows, as they change."""
+    threads the share allows, as they change. ``progress``: called as ``progress(simulated_s, wall_s)``
+    while an ensemble runs (:meth:`torchdem.drawdown.DrawDownTest.run`)."""
     threads = None if core_share is None else ThreadFollower(core_share)
     boxes: dict[tuple, list[int]] = {}  # an ensemble has one set of walls: tasks of other box lengths run apart
     for r, t in enumerate(tasks):
@@ -82,10 +83,11 @@ def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: 
     if len(boxes) > 1:
         out: list[EvalOutcome | None] = [None] * len(tasks)
         for rows in boxes.values():
-            for r, o in zip(rows, evaluate_batch(model, [tasks[r] for r in rows], checkpoint_dir, core_share)):
+            for r, o in zip(rows, evaluate_batch(model, [tasks[r] for r in rows], checkpoint_dir, core_share,
+                                                   progress)):
                 out[r] = o
         return out
-    out = _evaluate(model, tasks, checkpoint_dir, 1.0, threads)
+    out = _evaluate(model, tasks, checkpoint_dir, 1.0, threads, progress)
     attempts: dict[int, list[str]] = {}  # task -> the errors of its attempts, in order
     for scale in model.settings.retry_time_steps:
         blown = [r for r, o in enumerate(out) if not o.ok and o.error.startswith("BlowUpError")]
@@ -93,7 +95,7 @@ def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: 
             break
         for r in blown:
             attempts.setdefault(r, [out[r].error])
-        again = _evaluate(model, [tasks[r] for r in blown], checkpoint_dir, scale, threads)
+        again = _evaluate(model, [tasks[r] for r in blown], checkpoint_dir, scale, threads, progress)
         for r, o in zip(blown, again):
             wall = out[r].wall_time + o.wall_time
             if o.ok:
@@ -107,7 +109,7 @@ def evaluate_batch(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: 
 
 
 def _evaluate(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: str | None,
-              time_step_scale: float, threads=None) -> list[EvalOutcome]:
+              time_step_scale: float, threads=None, progress=None) -> list[EvalOutcome]:
     """One attempt of :func:`evaluate_batch` at ``time_step_scale`` of the time step (a run at a
     scale other than 1 reports its step as ``time_step_s``)."""
     started = time.perf_counter()
@@ -131,12 +133,13 @@ def _evaluate(model: DrawDownModel, tasks: list[EvalTask], checkpoint_dir: str |
         if checkpoint_dir is not None:
             Path(checkpoint_dir).mkdir(parents=True, exist_ok=True)
             checkpoint = checkpoint_path(checkpoint_dir, model, tasks, time_step_scale)
-        result = test.run_members(members, device=model.device, checkpoint=checkpoint, threads=threads)
+        result = test.run_members(members, device=model.device, progress=progress, checkpoint=checkpoint,
+                                  threads=threads)
     except (BlowUpError, ConfigError) as exc:
         own = _members_that_fail_alone(model, tasks) if isinstance(exc, ConfigError) and len(sets) > 1 else {}
         if own:  # each failed member keeps its own error; the others run without them
             rest = iter(_evaluate(model, [t for r, t in enumerate(tasks) if r not in own], checkpoint_dir,
-                                  time_step_scale, threads))
+                                  time_step_scale, threads, progress))
             wall = time.perf_counter() - started
             return [EvalOutcome.failure(own[r], wall) if r in own else next(rest) for r in range(len(tasks))]
         wall = time.perf_counter() - started

@@ -716,6 +716,35 @@ class CampaignStore:
         return [EvalTask(json.loads(params), seed, condition, task_id)
                 for task_id, params, seed, condition in rows]
 
+    def lease(self, task_ids: Iterable[int], owner: str, until: float) -> list[EvalTask]:
+        """Mark the pending tasks ``task_ids`` running under ``owner`` ("host:name") until the Unix
+        time ``until``: for runs taken to a machine that cannot open this file (a GPU host without a
+        shared disk, ``scripts/offload_runs.py``). No claim of this store takes them before
+        ``until``; after it they are stale like any lease. Their outcomes come back through
+        :meth:`record`. Returns the leased tasks; a task that is not pending is an error naming it."""
+        ids = [int(i) for i in task_ids]
+        if not ids:
+            raise out_of_range("task_ids", ids, "at least one task id", "CampaignStore.lease")
+        host, _, name = str(owner).rpartition(":")
+        if not host or not name:
+            raise out_of_range("owner", owner, "'host:name'", "CampaignStore.lease")
+        if isinstance(until, bool) or not isinstance(until, Real) or not math.isfinite(until) \
+                or until <= time.time():
+            raise out_of_range("until", until, "a Unix time in the future", "CampaignStore.lease")
+        with self._write() as conn:
+            rows = {r[0]: r for r in conn.execute(
+                f"SELECT task_id, params, seed, condition, status FROM evaluations WHERE task_id IN "
+                f"({', '.join('?' * len(ids))})", ids)}
+            for i in ids:
+                if i not in rows or rows[i][4] != "pending":
+                    raise out_of_range("task id", i, "a pending task of this store "
+                                       f"(it is {rows[i][4] if i in rows else 'absent'})", "CampaignStore.lease")
+            # claimed at until - lease_seconds: stale for claim() exactly at until
+            conn.executemany("UPDATE evaluations SET status = 'running', claimed_by = ?, claimed_at = ?, "
+                             "attempts = attempts + 1 WHERE task_id = ?",
+                             [(str(owner), float(until) - self.lease_seconds, i) for i in ids])
+        return [EvalTask(json.loads(rows[i][1]), rows[i][2], rows[i][3], i) for i in ids]
+
     def record(self, finished: Iterable[tuple[EvalTask, EvalOutcome]]) -> int:
         """Write outcomes in one transaction; returns how many rows were written.
 
@@ -756,14 +785,15 @@ class CampaignStore:
                          row[4], row[0], row[1], row[2], self.config_hash, task.task_id))
         return written
 
-    def _update_own_running(self, sql: str, task_ids: Iterable[int], first: tuple = ()) -> int:
+    def _update_own_running(self, sql: str, task_ids: Iterable[int], first: tuple = (),
+                            owner: str | None = None) -> int:
         ids = [int(i) for i in task_ids]
         if not ids:
             return 0
         with self._write() as conn:
             cur = conn.executemany(
                 sql + " WHERE task_id = ? AND status = 'running' AND claimed_by = ?",
-                [(*first, i, _owner()) for i in ids])
+                [(*first, i, _owner() if owner is None else str(owner)) for i in ids])
             return cur.rowcount
 
     def renew(self, task_ids: Iterable[int]) -> int:
@@ -771,11 +801,12 @@ class CampaignStore:
         return self._update_own_running("UPDATE evaluations SET claimed_at = ?", task_ids,
                                         (time.time(),))
 
-    def release(self, task_ids: Iterable[int]) -> int:
-        """Give this process's unfinished claims on ``task_ids`` back (status ``pending``)."""
+    def release(self, task_ids: Iterable[int], owner: str | None = None) -> int:
+        """Give this process's unfinished claims on ``task_ids`` back (status ``pending``); with
+        ``owner``, that owner's (a :meth:`lease` whose runs did not come back)."""
         return self._update_own_running(
             "UPDATE evaluations SET status = 'pending', claimed_by = NULL, claimed_at = NULL",
-            task_ids)
+            task_ids, owner=owner)
 
     def withdraw_batch(self, stage: str, key: str) -> int:
         """Withdraw the unfinished tasks of batch ``(stage, key)``: a design the campaign no longer
