@@ -42,19 +42,20 @@ from bo.cli.common import MODEL_KEYS, config_hash, model_from, plain_config
 from torchdem.errors import ConfigError
 
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
-#: The config blocks each command's store is keyed by (``bo.cli.calibrate``, ``bo.cli.screen``,
-#: ``bo.cli.study``); a discovery's store also hashes its calibration and is not offered.
-HASHED = {"calibrate": MODEL_KEYS + ("measured",), "screen": MODEL_KEYS, "study": MODEL_KEYS}
+#: The config blocks a store is keyed by, per command whose model ``model_from`` builds: the stores of
+#: ``torchdem-calibrate`` and of ``scripts/probe_sets.py`` (``bo.cli.calibrate``). A discovery's store
+#: also hashes its calibration, and a study's runs build other models: neither is offered.
+HASHED = {"calibrate": MODEL_KEYS + ("measured",)}
 
 
-def compose_plain(overrides: list[str]) -> dict:
-    """The resolved ``calibrate`` config with ``overrides``."""
+def compose_plain(overrides: list[str], command: str = "calibrate") -> dict:
+    """The resolved config of ``command`` (its ``conf/<command>.yaml``) with ``overrides``."""
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return plain_config(compose("calibrate", overrides=list(overrides)))
+        return plain_config(compose(command, overrides=list(overrides)))
 
 
 def lease(args) -> None:
-    plain = compose_plain(args.overrides)
+    plain = compose_plain(args.overrides, args.command_of_store)
     digest = config_hash(plain, HASHED[args.command_of_store])
     store = CampaignStore(args.store, digest)
     tasks = store.lease(args.tasks, args.owner, time.time() + 3600.0 * args.hours)
@@ -70,7 +71,7 @@ def lease(args) -> None:
 
 def run(args) -> None:
     spec = json.loads(Path(args.tasks_file).read_text())
-    plain = compose_plain([*spec["overrides"], *args.overrides])
+    plain = compose_plain([*spec["overrides"], *args.overrides], spec["command"])
     digest = config_hash(plain, HASHED[spec["command"]])
     if digest != spec["config_hash"]:
         raise ConfigError(f"{args.tasks_file}: the overrides {args.overrides} change the model (config hash "
@@ -94,14 +95,14 @@ def run(args) -> None:
         "wall_s": wall, "outcomes": [{"task": {"task_id": t.task_id, "params": t.params, "seed": t.seed,
                                                "condition": t.condition},
                                       "kpis": o.kpis, "error": o.error, "wall_time": o.wall_time}
-                                     for t, o in zip(tasks, outcomes)]}, indent=1, default=_no_nan))
+                                     for t, o in zip(tasks, outcomes)]}, indent=1, default=_not_json))
     for t, o in zip(tasks, outcomes):
         print(f"task {t.task_id}: " + (o.error if not o.ok else ", ".join(
             f"{k} {o.kpis[k]:.4g}" for k in ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s",
                                               "mass_lower_box_full_kg"))) + f" ({o.wall_time:.0f} s)")
 
 
-def _no_nan(value):
+def _not_json(value):
     raise TypeError(f"not JSON: {value!r}")
 
 
