@@ -25,6 +25,7 @@ where to look, and a DEM run there says whether it holds
 from __future__ import annotations
 
 import argparse
+import math
 
 import numpy as np
 from scipy import optimize
@@ -92,13 +93,20 @@ def main() -> None:
     print("| parameter | range | " + " | ".join(SHORT) + " | power | smallest detectable fraction |")
     print("| --- | --- |" + " ---: |" * (len(SHORT) + 2))
     power = {}
+    scatter_known = bool(np.all(np.isfinite(sigma)) and np.all(sigma > 0))  # no replicate yet: no DEM scatter
     for k, name in enumerate(fit.parameter_names):
         shift = fit.effect[k]
+        cells = " | ".join(f"{d:+.2f} ({s:.2f})" for d, s in zip(shift, fit.effect_se[k]))
+        if not scatter_known:
+            power[name] = math.nan
+            print(f"| {name} | {fit.low[k]:.4g}-{fit.high[k]:.4g} | {cells} | - | - |")
+            continue
         power[name] = detection_power(shift, sigma)
         t = smallest_detectable(lambda f: f * shift, sigma)
-        cells = " | ".join(f"{d:+.2f} ({s:.2f})" for d, s in zip(shift, fit.effect_se[k]))
         print(f"| {name} | {fit.low[k]:.4g}-{fit.high[k]:.4g} | {cells} | {power[name]:.3f} | "
               f"{'not within 1' if t is None else f'{t:.2f}'} |")
+    if not scatter_known:
+        print("\nPower: - until a design point has two finished replicates (the DEM scatter comes from them).")
 
     seen = [n for n in fit.parameter_names if power[n] >= 0.8]
     if len(seen) >= 2:

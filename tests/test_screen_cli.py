@@ -90,6 +90,30 @@ def test_run_screening_puts_every_value_in_its_cell_and_resumes(tmp_path):
     assert (("screening", screening_batch_key(table, 1, 8)) in store.batch_keys("screening"))
 
 
+def test_a_run_whose_discharge_jammed_measured_nothing(tmp_path):
+    """A jammed run's KPIs (an undrained fill's) are NaN in the stage's results and in the store read
+    alone; the other runs keep their values."""
+    from bo.screening.pipeline import stored_screening
+
+    high_mu_s_ss = _table().high[1]
+
+    def jam_at_high_mu_s_ss(tasks):  # the runs of seed 3 at mu_s_ss's high level arch over the slot
+        return [EvalOutcome.success({**linear_kpis(t.params, t.seed),
+                                     "discharge_jammed": float(t.params["mu_s_ss"] == high_mu_s_ss and t.seed == 3)},
+                                    1.0) for t in tasks]
+
+    store = CampaignStore(tmp_path / "s.sqlite", "h")
+    results = run_screening(store, InProcessExecutor(jam_at_high_mu_s_ss, 100), _table(), n_fake=1, seeds=[3, 5],
+                            condition="50-50", kpis=KPIS)
+    high = results.physical[:, 1] == high_mu_s_ss
+    assert high.sum() == 3  # a DSD of 3 + 1 factors puts 3 of its 9 runs at a factor's high level
+    assert np.isnan(results.kpi_values[high, 0]).all() and np.isfinite(results.kpi_values[~high, 0]).all()
+    assert np.isfinite(results.kpi_values[:, 1]).all()  # the other replicate flowed
+    read = stored_screening(tmp_path / "s.sqlite", KPIS)
+    assert read.kpi_names == tuple(KPIS)
+    np.testing.assert_array_equal(np.isnan(read.kpi_values), np.isnan(results.kpi_values))
+
+
 def test_run_screening_rejects_bad_inputs_before_storing(tmp_path):
     store = CampaignStore(tmp_path / "s.sqlite", "h")
     executor = InProcessExecutor(functools.partial(linear_batch, calls=[]), 10)

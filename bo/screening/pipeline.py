@@ -20,7 +20,9 @@ pending tasks of other designs stored under the same stage, e.g. of an interrupt
 screening) and assembles
 ``bo.screening.stepwise.ScreeningResults`` with ``kpi_values[run, replicate, kpi]``: KPI columns in the
 order of ``kpis`` (names as the executor's outcomes carry them, e.g. the DEM's
-``mass_flow_rate_full_kg_s``); a failed evaluation or an unmeasured KPI is NaN. Bad inputs
+``mass_flow_rate_full_kg_s``); a failed evaluation, an unmeasured KPI and every KPI of a run whose
+discharge jammed (``kpi.loadcell.discharge_jammed``: its grains arched over the slot, so it measured
+an undrained fill, not the lab's test; the surrogate leaves such runs out too) are NaN. Bad inputs
 (``n_fake < 0``, a design order without a conference matrix, no seeds, repeated KPIs) raise
 ``ConfigError`` before anything is stored or run. A KPI that no finished evaluation carries is
 an error naming the KPIs they do carry.
@@ -66,6 +68,7 @@ from bo.campaign.progress import open_read_only
 from bo.campaign.store import CampaignStore
 from bo.screening.variance import VarianceDecomposition, decompose_variance
 from torchdem.errors import ConfigError, out_of_range
+from kpi.loadcell import discharge_jammed
 
 __all__ = [
     "SLICE_ONLY_KPIS",
@@ -186,7 +189,8 @@ def run_screening(store: CampaignStore, executor: Executor, table: ParameterTabl
             if rec.status != "done" or rec.kpis is None:
                 continue
             carried.update(rec.kpis)
-            values[rec.point_index, r] = [rec.kpis.get(k, math.nan) for k in kpis]
+            if not discharge_jammed(rec.kpis):
+                values[rec.point_index, r] = [rec.kpis.get(k, math.nan) for k in kpis]
     if carried:
         missing = [k for k in kpis if k not in carried]
         if missing:
@@ -210,7 +214,8 @@ def stored_screening(path, kpis: Sequence[str], *, stage: str = "screening",
     or did not measure a KPI; parameters in the order the store keeps them (by name). The coded
     levels come back from the points: per parameter its
     lowest, middle and highest value are -1, 0 and +1. The stage must hold one design (one point
-    set) at one ``condition`` (or the one given)."""
+    set) at one ``condition`` (or the one given). A run whose discharge jammed is NaN, as in
+    :func:`run_screening`."""
     source = f"{path} stage {stage!r}"
     kpis = _check_kpis(kpis, source)
     if not Path(path).is_file():
@@ -259,6 +264,8 @@ def stored_screening(path, kpis: Sequence[str], *, stage: str = "screening",
     for key, index, cond, status, kpi_json in rows:
         if cond == condition and status == "done" and kpi_json:
             measured = json.loads(kpi_json)
+            if discharge_jammed(measured):
+                continue
             values[index, column[key]] = [math.nan if measured.get(k) is None else float(measured[k]) for k in kpis]
     values[~np.isfinite(values)] = np.nan
     return ScreeningResults(parameter_names=names, coded=coded, physical=physical, seeds=tuple(seeds),
