@@ -26,6 +26,7 @@ Probe file::
       base: {}
       pellets_less_elastic: {e_pp: 0.6}
     sets_seeds: {base: [0, 1, 2]}     # optional: set -> its own seeds
+    sets_conditions: {base: [75-25]}  # optional: set -> its own conditions
     adopt: {set: base, store: campaigns/table2/lab_box.sqlite, stage: validation}   # optional
 
 ``adopt`` takes a set's runs from another store of the same model (a campaign's validation runs of the
@@ -33,6 +34,10 @@ base, say) instead of running them: the runs of that stage (or of a list of stag
 validation]`` for a calibrated set on every condition) whose parameters equal the set's on every
 parameter they name (the others must be the model's own values: the file vouches for that), on the
 set's seeds and conditions; of several runs of one seed and condition, the first stage's.
+
+Sets of equal values share their runs (``CampaignStore``'s shared runs): a set ``verification`` with
+the values of a set already run, on seeds 0-4 at one condition (``sets_seeds``, ``sets_conditions``),
+runs only the seeds that set did not.
 """
 from __future__ import annotations
 
@@ -52,8 +57,10 @@ STAGE = "probe"
 
 
 def load_probe(path: str | Path) -> dict[str, Any]:
-    """The probe file, checked: ``{"overrides", "store", "conditions", "seeds", "sets"}`` with
-    ``sets`` name -> (full parameter set, its seeds), every set the base with its changes."""
+    """The probe file, checked: ``{"overrides", "store", "conditions", "seeds", "sets", "set_conditions",
+    "adopt"}`` with ``sets`` name -> (full parameter set, its seeds), every set the base with its changes,
+    and ``set_conditions`` name -> its conditions (the file's ``conditions`` unless ``sets_conditions``
+    names the set)."""
     path = Path(path)
     try:
         raw = yaml.safe_load(path.read_text())
@@ -103,6 +110,13 @@ def load_probe(path: str | Path) -> dict[str, Any]:
                            source)
     sets = {name: ({**base, **c}, seed_list(per_set[name], f"sets_seeds.{name}") if name in per_set else seeds)
             for name, c in changes.items()}
+    own_conditions = raw.get("sets_conditions") or {}
+    if not isinstance(own_conditions, Mapping) or set(own_conditions) - set(changes) or not all(
+            isinstance(v, list) and v and len(set(v)) == len(v) and all(isinstance(c, str) for c in v)
+            for v in own_conditions.values()):
+        raise out_of_range("sets_conditions", own_conditions, f"a mapping of some of the sets {sorted(changes)} to "
+                           "non-empty lists of distinct condition names", source)
+    set_conditions = {name: list(own_conditions.get(name, conditions)) for name in changes}
     adopt = raw.get("adopt")
     if adopt is not None and (not isinstance(adopt, Mapping) or set(adopt) != {"set", "store", "stage"}
                               or adopt["set"] not in sets):
@@ -115,7 +129,12 @@ def load_probe(path: str | Path) -> dict[str, Any]:
                                "names, e.g. [verification, validation]", source)
         adopt = {**adopt, "stage": list(stages)}
     return {"overrides": list(overrides), "store": str(raw["store"]), "conditions": list(conditions),
-            "seeds": seeds, "sets": sets, "adopt": dict(adopt) if adopt else None}
+            "seeds": seeds, "sets": sets, "set_conditions": set_conditions, "adopt": dict(adopt) if adopt else None}
+
+
+def conditions_of(probe: Mapping[str, Any], name: str) -> list[str]:
+    """The conditions set ``name`` runs on (``sets_conditions``, else the probe's ``conditions``)."""
+    return list(probe.get("set_conditions", {}).get(name, probe["conditions"]))
 
 
 def _parameters(value, key: str, source: str) -> dict[str, float]:
@@ -137,17 +156,18 @@ def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> "CampaignSt
     from bo.cli.common import MODEL_KEYS, ExecutorSettings, checkpoint_dir_for, config_hash, executor_from
 
     plain, model, _ = calibration_model_for(probe["overrides"])
-    unknown = [c for c in probe["conditions"] if c not in model.conditions]
+    named = dict.fromkeys(c for name in probe["sets"] for c in conditions_of(probe, name))
+    unknown = [c for c in named if c not in model.conditions]
     if unknown:
         raise out_of_range("conditions", unknown, f"conditions of the model {sorted(model.conditions)}", "probe file")
     path = Path(probe["store"])
     store = CampaignStore(path, config_hash(plain, MODEL_KEYS + ("measured",)), extra_stages=(STAGE,))
     for name, (params, seeds) in probe["sets"].items():
-        store.batch(STAGE, name, lambda p=params: [p], seeds=seeds, conditions=probe["conditions"])
+        store.batch(STAGE, name, lambda p=params: [p], seeds=seeds, conditions=conditions_of(probe, name))
     if probe.get("adopt"):
         echo(adopt_runs(store, probe))
     counts = store.counts(STAGE)
-    echo(f"probe: store {path}, {len(probe['sets'])} sets on {probe['conditions']}; "
+    echo(f"probe: store {path}, {len(probe['sets'])} sets on {list(named)}; "
          + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
     settings = ExecutorSettings(kind="dask" if workers > 1 else "inprocess", batch_size=1, n_workers=workers)
     with executor_from(settings, model, checkpoints=checkpoint_dir_for(path)) as executor:
@@ -169,7 +189,7 @@ def adopt_runs(store, probe: Mapping[str, Any]) -> str:
         raise ConfigError(f"probe file: adopt: {source} has config hash {stored_hash}, the probe's model "
                           f"{store.config_hash}: its runs are of another model")
     runs = [r for stage in spec["stage"] for r in done_records(source, stage, "probe file: adopt")]
-    runs = [r for r in runs if r.seed in seeds and r.condition in probe["conditions"] and r.params
+    runs = [r for r in runs if r.seed in seeds and r.condition in conditions_of(probe, spec["set"]) and r.params
             and all(n in params and math.isclose(v, params[n], rel_tol=1e-12, abs_tol=0.0)
                     for n, v in r.params.items())]
     taken = {}
@@ -188,7 +208,7 @@ def summary_table(store, probe: Mapping[str, Any], kpis) -> str:
              "| --- | --- | ---: |" + " ---: |" * len(kpis)]
     for name in probe["sets"]:
         done = store.records(STAGE, batch_key=name, status="done")
-        for condition in probe["conditions"]:
+        for condition in conditions_of(probe, name):
             recs = [r for r in done if r.condition == condition and r.kpis]
             flowed = [r.kpis for r in recs if not discharge_jammed(r.kpis)]
             cells = []
@@ -215,7 +235,7 @@ def error_table(store, probe: Mapping[str, Any], kpis, measured, calibration_con
     for name in probe["sets"]:
         done = store.records(STAGE, batch_key=name, status="done")
         rows, worst, jams = [], None, []
-        for condition in probe["conditions"]:
+        for condition in conditions_of(probe, name):
             runs = np.array([[r.kpis.get(k, math.nan) for k in columns] for r in done
                              if r.condition == condition and r.kpis], dtype=float).reshape(-1, len(columns))
             lab = measured.condition(condition).kpis if condition in measured.names else {}

@@ -102,6 +102,26 @@ def test_sets_run_once_reach_the_dem_and_can_be_adopted(tmp_path):
     assert set_labels(sets) == ["mu_s_pp=0.9, mu_s_ss=0.9", "mu_s_pp=0.1, mu_s_ss=0.1"]
 
 
+@pytest.mark.xdist_group("probe_sets")
+def test_a_set_of_equal_values_on_its_own_seeds_and_conditions_runs_only_what_is_new(tmp_path):
+    """A verification of a probed set (its values on more seeds, at one condition) reuses the probe's run of
+    the seed they share (the store's shared runs) and runs the others only."""
+    store = tmp_path / "probe.sqlite"
+    values = {"mu_s_pp": 0.5, "mu_s_ss": 0.6}
+    probe = _write(tmp_path, "probe.yaml", overrides=["profile=smoke"], store=str(store), conditions=["50-50"],
+                   seeds=[0], base=values, sets={"found": {}, "verification": {}},
+                   sets_seeds={"verification": [0, 1]}, sets_conditions={"verification": ["50-50"]})
+    out = _run(probe)
+    assert out.returncode == 0, out.stderr
+    assert "n_done=2" in out.stdout  # found's seed 0 and verification's seed 1; verification's seed 0 is found's
+    rows = _rows(store)
+    assert [(r[0], r[3]) for r in rows] == [("found", 0), ("verification", 0), ("verification", 1)]
+    assert rows[1][6] == "reused:1" and rows[1][5] == rows[0][5]
+    assert "| verification | 50-50 | 2 (0) |" in out.stdout
+    loaded = probe_sets.load_probe(probe)
+    assert probe_sets.conditions_of(loaded, "verification") == ["50-50"] == probe_sets.conditions_of(loaded, "found")
+
+
 def test_labels_name_where_a_set_leaves_the_common_values():
     from bo.discovery.contrast import ContrastSet, set_labels
     base = {"a": 1.0, "b": 2.0, "c": 3.0}
@@ -123,6 +143,10 @@ def test_labels_name_where_a_set_leaves_the_common_values():
     ({"store": "s", "conditions": ["50-50"], "seeds": [0], "base": {"e_pp": 0.5}, "sets": {"x": {}},
       "adopt": {"set": "x", "store": "t", "stage": ["validation", "validation"]}},
      r"adopt.stage = \['validation', 'validation'\] is not allowed; expected a stage name or a non-empty list"),
+    ({"store": "s", "conditions": ["50-50"], "seeds": [0], "base": {"e_pp": 0.5}, "sets": {"x": {}},
+      "sets_conditions": {"x": []}}, r"sets_conditions = .* non-empty lists of distinct condition names"),
+    ({"store": "s", "conditions": ["50-50"], "seeds": [0], "base": {"e_pp": 0.5}, "sets": {"x": {}},
+      "sets_conditions": {"y": ["50-50"]}}, r"sets_conditions = .* some of the sets \['x'\]"),
 ])
 def test_a_bad_probe_file_names_the_key_and_what_is_allowed(tmp_path, doc, message):
     path = _write(tmp_path, "bad.yaml", **doc)
