@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import socket
 import sys
 import time
@@ -37,6 +36,7 @@ from hydra import compose, initialize_config_dir
 
 from bo.campaign.dem import evaluate_batch
 from bo.campaign.executor import EvalOutcome, EvalTask
+from bo.campaign.progress import config_hash_of
 from bo.campaign.store import CampaignStore
 from bo.cli.common import MODEL_KEYS, config_hash, model_from, plain_config
 from torchdem.errors import ConfigError
@@ -106,23 +106,19 @@ def _not_json(value):
     raise TypeError(f"not JSON: {value!r}")
 
 
-def _kpis(kpis):
-    return None if kpis is None else {k: (math.nan if v is None else float(v)) for k, v in kpis.items()}
-
-
 def record(args) -> None:
     for path in args.outcomes:
         done = json.loads(Path(path).read_text())
         store = CampaignStore(args.store, done["config_hash"])
         finished = [(EvalTask(o["task"]["params"], o["task"]["seed"], o["task"]["condition"], o["task"]["task_id"]),
-                     EvalOutcome(_kpis(o["kpis"]), o["error"], float(o["wall_time"]))) for o in done["outcomes"]]
+                     EvalOutcome(o["kpis"], o["error"], float(o["wall_time"]))) for o in done["outcomes"]]
         written = store.record(finished)
         print(f"{path}: {written} of {len(finished)} outcomes recorded in {args.store} "
               f"(run on {done['host']}, {done['device']})")
 
 
 def release(args) -> None:
-    store = CampaignStore(args.store, "release", allow_config_mismatch=True)  # writes no config hash
+    store = CampaignStore(args.store, config_hash_of(args.store, "offload_runs.py release"))
     given = store.release(args.tasks, owner=args.owner)
     print(f"{given} of {len(args.tasks)} tasks leased to {args.owner} are pending again in {args.store}")
 

@@ -133,12 +133,12 @@ def main() -> None:
         names = list(fit.parameter_names)
         box = [bounds[n] for n in names]
 
-        def eq7(x):
+        def objective(x):  # Eq. 7, or the largest miss in CI half-widths
             miss = np.abs(fit.predict(dict(zip(names, x))) - lab)
             return float(np.max(miss / ci) if args.objective == "ci" else np.mean(miss / np.abs(lab)))
 
         rng = np.random.default_rng(0)
-        best = min((optimize.minimize(eq7, [rng.uniform(lo, hi) for lo, hi in box], bounds=box, method="Powell")
+        best = min((optimize.minimize(objective, [rng.uniform(lo, hi) for lo, hi in box], bounds=box, method="Powell")
                     for _ in range(20)), key=lambda r: r.fun)
         at = dict(zip(names, best.x))
         what = "Eq. 7" if args.objective == "eq7" else "The largest |model - lab| / CI half-width"
