@@ -615,6 +615,25 @@ def test_a_baseline_store_of_another_model_is_refused(tmp_path):
         baseline_runs(missing, None, {}, ["50-50"])
 
 
+def test_a_probe_stores_runs_of_the_set_are_a_baseline(tmp_path):
+    """A probe of a parameter set (scripts/probe_sets.py: stage ``probe``, one batch per set) in a store
+    of the same model is a baseline store: its runs at the set's values are taken, whichever set or stage
+    asked for them; its runs at other values are not."""
+    from bo.campaign.executor import run_pending
+    from bo.cli.common import MODEL_KEYS, config_hash
+    from bo.cli.discover import baseline_runs
+    plain = _plain([f"discovery.baseline_store={tmp_path / 'p.sqlite'}"])
+    probe = CampaignStore(tmp_path / "p.sqlite", config_hash({**plain, "measured": None}, MODEL_KEYS + ("measured",)),
+                          extra_stages=("probe",))
+    probe.batch("probe", "optimum", lambda: [dict(km.TRUE)], seeds=[0], conditions=["50-50", "75-25"])
+    probe.batch("probe", "verification", lambda: [dict(km.TRUE)], seeds=[0, 1, 2], conditions=["50-50"])
+    probe.batch("probe", "other", lambda: [{**km.TRUE, "mu_s_pp": 0.3}], seeds=[3], conditions=["50-50"])
+    run_pending(probe, InProcessExecutor(functools.partial(km.known_batch), batch_size=12))
+    path, given = baseline_runs(plain, None, {**_known_model().fixed, **km.TRUE}, ["50-50", "75-25", "25-75"])
+    assert path == str(tmp_path / "p.sqlite")
+    assert {c: sorted(r.seed for r in v) for c, v in given.items()} == {"50-50": [0, 1, 2], "75-25": [0], "25-75": []}
+
+
 def test_failed_runs_are_reported_as_failures_not_as_missing_kpis(tmp_path):
     """Every discrepancy run raising (a wrong build, a blow-up) names the runs and their error."""
     def broken(*args, **kwargs):

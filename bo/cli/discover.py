@@ -140,10 +140,11 @@ def calibrated_from(plain: Mapping[str, Any], fixed: Mapping[str, float]) -> tup
 
 
 def baseline_runs(plain: Mapping[str, Any], data, calibrated: Mapping[str, float], conditions: list[str]):
-    """``discovery.baseline_store``: the store of the torchdem-calibrate campaign that found the
-    calibrated set. Its verification and validation runs of that set (same model: the store's config
-    hash is this config's model and data) are the discrepancy's runs (``run_discovery``'s
-    ``baseline``). Returns (path, condition -> runs), or None without it."""
+    """``discovery.baseline_store``: a store of the same model (its config hash is this config's model
+    and data) that holds runs of the calibrated set: the torchdem-calibrate campaign that found it
+    (its verification and validation), or a probe of the set (``scripts/probe_sets.py``, stage
+    ``probe``). Its runs of that set, whatever stage made them, are the discrepancy's runs
+    (``run_discovery``'s ``baseline``). Returns (path, condition -> runs), or None without it."""
     from bo.campaign.store import CampaignStore
     from bo.discovery.pipeline import runs_of_set
 
@@ -156,8 +157,8 @@ def baseline_runs(plain: Mapping[str, Any], data, calibrated: Mapping[str, float
                            where)
     # the calibrate app's hash of this model and data (bo/cli/calibrate.py): a store of another model is refused
     other = CampaignStore(path, config_hash({**plain, "measured": data}, MODEL_KEYS + ("measured",)))
-    records = [r for stage in ("verification", "validation") for r in other.records(stage, status="done")]
-    return str(path), runs_of_set(records, calibrated, conditions)
+    # every stage: a run at the set's values is a run of the set, whichever stage asked for it
+    return str(path), runs_of_set(other.records(status="done"), calibrated, conditions)
 
 
 def residue_from(plain: Mapping[str, Any], store_path, measured):
