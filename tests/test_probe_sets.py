@@ -172,3 +172,20 @@ def test_the_error_table_leaves_jammed_runs_out_and_names_where_a_set_jammed():
     lines = probe_sets.error_table(store, probe, kpis, load_measured()).splitlines()
     assert lines[2] == "| s | 75-25 | 1 | +2.0 | -5.0* | |"
     assert lines[3] == "| s | 25-75 | 0 | - | - | -5.0 % (75-25 mass_flow_rate_full_kg_s) jammed: 25-75 1 of 1 |"
+
+
+def test_the_largest_error_carries_its_standard_error_over_the_runs():
+    """Two 75-25 runs at 5 % and 3 % under Table 2's flow (10.29 kg/s): the mean error is -4.0 % and its
+    standard error sd / sqrt(2) = 1.0 % of the lab's mean, so a miss past a threshold reads against the
+    runs' scatter."""
+    from types import SimpleNamespace
+    from torchdem.measured import load_measured
+
+    kpis = ("angle_of_repose_deg", "mass_flow_rate_full_kg_s")
+    runs = [SimpleNamespace(condition="75-25", kpis={"angle_of_repose_deg": 28.55 * 1.02,
+                                                     "mass_flow_rate_full_kg_s": 10.29 * f, "discharge_jammed": 0.0})
+            for f in (0.95, 0.97)]
+    store = SimpleNamespace(records=lambda stage, batch_key, status: runs)
+    probe = {"sets": {"s": ({}, [0, 1])}, "conditions": ["75-25"]}
+    (line,) = probe_sets.error_table(store, probe, kpis, load_measured()).splitlines()[2:]
+    assert line == "| s | 75-25 | 2 | +2.0 | -4.0* | -4.0 +- 1.0 % (75-25 mass_flow_rate_full_kg_s) |"
