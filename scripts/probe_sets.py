@@ -234,7 +234,7 @@ def error_table(store, probe: Mapping[str, Any], kpis, measured, calibration_con
     :func:`bo.calibration.pipeline.agreement`), and per set the largest |error| over its conditions but
     ``calibration_condition``: how far a set is from validating, as the paper's Table A.6 reports it, and
     the conditions where its discharge jammed (the runs column counts those that flowed). The largest
-    error carries its standard error over the runs (``+8.7 +- 2.0 %``) where a condition has two or more."""
+    error carries its standard error over the runs (``+7.9 +- 1.5 %``) where a condition has two or more."""
     from bo.calibration.pipeline import JAMMED, agreement
 
     columns = list(kpis) + [JAMMED]
