@@ -179,15 +179,12 @@ def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> "CampaignSt
 def adopt_runs(store, probe: Mapping[str, Any]) -> str:
     """Complete the ``adopt`` set's tasks with the matching done runs of the other store (module
     docstring); returns a line saying how many."""
-    from bo.campaign.progress import config_hash_of, done_records
+    from bo.campaign.progress import check_same_model, done_records
 
     spec = probe["adopt"]
     params, seeds = probe["sets"][spec["set"]]
     source = Path(spec["store"])
-    stored_hash = config_hash_of(source, "probe file: adopt")  # read only: a shipped store is not written
-    if stored_hash != store.config_hash:
-        raise ConfigError(f"probe file: adopt: {source} has config hash {stored_hash}, the probe's model "
-                          f"{store.config_hash}: its runs are of another model")
+    check_same_model(source, store.config_hash, "probe file: adopt")  # read only: a shipped store is not written
     runs = [r for stage in spec["stage"] for r in done_records(source, stage, "probe file: adopt")]
     runs = [r for r in runs if r.seed in seeds and r.condition in conditions_of(probe, spec["set"]) and r.params
             and all(n in params and math.isclose(v, params[n], rel_tol=1e-12, abs_tol=0.0)

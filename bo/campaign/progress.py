@@ -181,6 +181,15 @@ def config_hash_of(path: Path, source: str = "store_progress") -> str | None:
     return None if row is None else row[0]
 
 
+def check_same_model(path: Path, config_hash: str, source: str = "store_progress") -> None:
+    """Refuse a store whose runs are of another model than ``config_hash`` (the hash of the config that
+    would read them as its own), naming both hashes; read only."""
+    stored = config_hash_of(path, source)
+    if stored != config_hash:
+        raise ConfigError(f"{source}: {path} has config hash {stored!r}, this model's {config_hash!r}: its runs are "
+                          "of another model")
+
+
 def store_progress(path: str | Path) -> StoreProgress:
     """Tasks per status, worker time spent and the estimated worker time left in a store."""
     path = Path(path)

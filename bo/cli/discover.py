@@ -145,7 +145,7 @@ def baseline_runs(plain: Mapping[str, Any], data, calibrated: Mapping[str, float
     (its verification and validation), or a probe of the set (``scripts/probe_sets.py``, stage
     ``probe``). Its runs of that set, whatever stage made them, are the discrepancy's runs
     (``run_discovery``'s ``baseline``). Returns (path, condition -> runs), or None without it."""
-    from bo.campaign.progress import config_hash_of, done_records
+    from bo.campaign.progress import check_same_model, done_records
     from bo.discovery.pipeline import runs_of_set
 
     path = (plain.get("discovery") or {}).get("baseline_store")
@@ -157,13 +157,10 @@ def baseline_runs(plain: Mapping[str, Any], data, calibrated: Mapping[str, float
                            where)
     # read only (a shipped store, or one a campaign is writing, is not touched); the calibrate app's hash of
     # this model and data (bo/cli/calibrate.py): a store of another model is refused
-    stored = config_hash_of(Path(path), f"{where}: baseline_store")
-    digest = config_hash({**plain, "measured": data}, MODEL_KEYS + ("measured",))
-    if stored != digest:
-        raise ConfigError(f"discovery.baseline_store = {path!r} ({where}): its runs are of another model (config "
-                          f"hash {stored!r}, this config's {digest!r})")
+    source = f"discovery.baseline_store ({where})"
+    check_same_model(Path(path), config_hash({**plain, "measured": data}, MODEL_KEYS + ("measured",)), source)
     # every stage: a run at the set's values is a run of the set, whichever stage asked for it
-    return str(path), runs_of_set(done_records(Path(path), None, f"{where}: baseline_store"), calibrated, conditions)
+    return str(path), runs_of_set(done_records(Path(path), None, source), calibrated, conditions)
 
 
 def residue_from(plain: Mapping[str, Any], store_path, measured):
