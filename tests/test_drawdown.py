@@ -52,6 +52,12 @@ def test_small_drawdown_conserves_mass_and_gives_plausible_kpis():
         assert np.isclose(k["mass_lower_box_full_kg"], 5 * k["mass_lower_box_kg"])
         assert 0 <= k["segregation_rsd_vertical"] < 2 and 0 <= k["segregation_rsd_horizontal"] < 2
         assert 0 < k["max_heap_height_m"] < geometry.upper_bottom_z
+        # the model's breakdown of the flow: the two materials' shares add up to the whole (the
+        # slope fit is linear in the mass), and each material flows
+        parts = k["mass_flow_rate_pellet_full_kg_s"] + k["mass_flow_rate_sinter_full_kg_s"]
+        assert parts == pytest.approx(k["mass_flow_rate_full_kg_s"], rel=1e-9)
+        assert k["mass_flow_rate_pellet_full_kg_s"] > 0 and k["mass_flow_rate_sinter_full_kg_s"] > 0
+        assert k["mass_flow_rate_early_full_kg_s"] > 0 and k["mass_flow_rate_late_full_kg_s"] > 0
     # replicates differ (different seeds) but are the same experiment
     a, b = res.kpis
     assert a["fill_mass_kg"] != b["fill_mass_kg"]

@@ -79,7 +79,15 @@ KPI_UNITS = {
     "segregation_rsd_vertical": "1", "segregation_rsd_horizontal": "1", "max_heap_height_m": "m",
     "fill_mass_kg": "kg", "fill_mass_full_kg": "kg", "discharge_duration_s": "s", "discharge_ended": "1",
     "discharge_jammed": "1", "fill_bulk_density_kg_m3": "kg/m^3",
+    "mass_flow_rate_pellet_full_kg_s": "kg/s", "mass_flow_rate_sinter_full_kg_s": "kg/s",
+    "mass_flow_rate_early_full_kg_s": "kg/s", "mass_flow_rate_late_full_kg_s": "kg/s",
 }
+#: The model's own view of the flow, which one load cell cannot give the lab: each material's share of
+#: ``mass_flow_rate_full_kg_s`` over the same fit window (pellet + sinter = the whole, the slope fit
+#: being linear in the mass), and the whole flow over the window's first and second halves (how the
+#: rate changes as the layers reach the slot).
+FLOW_BREAKDOWN_KPIS: tuple[str, ...] = ("mass_flow_rate_pellet_full_kg_s", "mass_flow_rate_sinter_full_kg_s",
+                                        "mass_flow_rate_early_full_kg_s", "mass_flow_rate_late_full_kg_s")
 #: The DEM names of the four KPIs the paper calibrates on (``torchdem.measured.CALIBRATION_KPIS``), the
 #: masses those of the whole box (a slice or half box scales its own up).
 CALIBRATION_KPIS_DEM: tuple[str, ...] = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s",
@@ -528,6 +536,7 @@ class DrawDownTest:
         k_open = int(math.ceil(round(t_open / dt_fill, 6)))  # the step run_until(t_open) stops at
         times: list[float] = []
         masses: list[np.ndarray] = []
+        pellet_masses: list[np.ndarray] = []  # the pellets' share of ``masses``
         ckpt = Path(checkpoint) if checkpoint is not None else None
         gate_speed = [math.nan] * len(members)
         fill_density = [math.nan] * len(members)
@@ -541,6 +550,8 @@ class DrawDownTest:
             sim = Simulation.load(ckpt, system, s.guards, s.compile, reorder_every=s.reorder_every)
             times = [float(t) for t in saved["times"]]
             masses = [m.numpy() for m in saved["masses"]]
+            pellet_masses = ([m.numpy() for m in saved["pellet_masses"]] if "pellet_masses" in saved
+                             else [np.full_like(m, np.nan) for m in masses])  # a checkpoint from before it
             wall_before = float(saved["wall_s"])
             gate_speed[:] = saved["gate_speed"].tolist()
             fill_density[:] = saved.get("fill_density", torch.full((len(members),), math.nan)).tolist()
@@ -569,6 +580,7 @@ class DrawDownTest:
             torch.save({"state": to_dict(simulation.state), "failed": simulation.failed, "members": members,
                         "times": torch.tensor(times, dtype=torch.float64),
                         "masses": [torch.as_tensor(m) for m in masses],
+                        "pellet_masses": [torch.as_tensor(m) for m in pellet_masses],
                         "gate_speed": torch.tensor(gate_speed, dtype=torch.float64),
                         "fill_density": torch.tensor(fill_density, dtype=torch.float64),
                         "wall_s": wall_before + time.perf_counter() - started}, tmp)
@@ -585,6 +597,7 @@ class DrawDownTest:
             if k >= k_open and (k - k_open) % every == 0:  # 50 Hz from the gate opening on
                 times.append(simulation.time - t_open)
                 masses.append(self._upper_mass(simulation).cpu().numpy())
+                pellet_masses.append(self._upper_mass(simulation, "pellet").cpu().numpy())
             tick = (k - k_open) % every == 0 if k >= k_open else k % every_fill == 0
             if tick and progress is not None:
                 progress(simulation.time, wall_before + time.perf_counter() - started)
@@ -601,7 +614,8 @@ class DrawDownTest:
         sim.run_until(t_end, callback=on_step, callback_every=1)
         early = []
         if kpis_at_discharge_time and s.max_discharge_time is not None and before < t_end - 0.5 * dt_discharge:
-            early = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), 0.0).kpis
+            early = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), 0.0,
+                                  np.stack(pellet_masses, 1)).kpis
         if s.max_discharge_time is not None:  # on until every member's discharge has ended
             tolerance = 0.5 * DISCHARGE_END_TOLERANCE * _fill_masses(system, sim.state, counts).cpu().numpy()
             tail = max(2, int(round(s.final_window * s.loadcell_rate)) + 1)
@@ -610,7 +624,8 @@ class DrawDownTest:
                     _discharges_ended(np.stack(masses[-tail:], 1), tail, tolerance, sim.failed).all()):
                 sim.run_until(min(sim.time + 5.0 / s.loadcell_rate, t_last), callback=on_step, callback_every=1)
         wall = wall_before + time.perf_counter() - started
-        result = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), wall)
+        result = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), wall,
+                               np.stack(pellet_masses, 1))
         for kpis in (result.kpis, early):  # the fill as the gate opened, for both measurements
             for k, v in zip(kpis, fill_density):
                 k["fill_bulk_density_kg_m3"] = v
@@ -642,12 +657,19 @@ class DrawDownTest:
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(fill_height > 0, mass / (g.upper_width * g.simulated_depth * fill_height), np.nan)
 
-    def _upper_mass(self, sim: Simulation) -> torch.Tensor:
+    def _upper_mass(self, sim: Simulation, label: str | None = None) -> torch.Tensor:
+        """``[B]`` mass in each member's upper box, kg: of every body, or of the materials labelled
+        ``label`` (``"pellet"`` / ``"sinter"``) only."""
         b = sim.state.bodies
         inside = self.geometry.in_upper_box(b.position[..., 0], b.position[..., 2]) & b.active
+        if label is not None:
+            labelled = [m.label == label for m in self.mixture.materials]
+            n_other = int(sim.system.body_material.max()) + 1 - len(labelled)
+            of_label = torch.tensor(labelled + [False] * max(0, n_other), device=b.position.device)
+            inside = inside & of_label[sim.system.body_material]
         return (sim.system.mass * inside).sum(-1)
 
-    def _measure(self, sim, members, counts, times, masses, wall) -> DrawDownResult:
+    def _measure(self, sim, members, counts, times, masses, wall, pellet_masses=None) -> DrawDownResult:
         g, s = self.geometry, self.settings
         system, state = sim.system, sim.state
         scale = 1.0 / g.depth_scale
@@ -702,6 +724,9 @@ class DrawDownTest:
             if rate is not None:
                 k["mass_flow_rate_kg_s"] = rate
                 k["mass_flow_rate_full_kg_s"] = rate * scale
+                if pellet_masses is not None:
+                    k.update(flow_breakdown(times, masses[m], pellet_masses[m], discharge, scale,
+                                            f"member {m} load cell"))
             k["mass_lower_box_kg"] = fill_mass - float(masses[m][-1])
             k["mass_lower_box_full_kg"] = k["mass_lower_box_kg"] * scale
             jammed = k["mass_lower_box_kg"] < JAM_FRACTION * fill_mass
@@ -753,6 +778,31 @@ class DrawDownTest:
                                  "fill_kg": fill_mass})
         return DrawDownResult(kpis, loadcells, images, members, wall, state.step, counts, conservation, errors,
                               photo_scenes=scenes)
+
+
+def flow_breakdown(times: np.ndarray, mass: np.ndarray, pellet_mass: np.ndarray, discharge: DischargeConfig,
+                   scale: float = 1.0, source: str = "load cell") -> dict[str, float]:
+    """The model's breakdown of a run's flow (:data:`FLOW_BREAKDOWN_KPIS`), kg/s of the whole box.
+
+    Args:
+        times: ``[T]`` s since the gate opened. mass: ``[T]`` upper-box mass, kg. pellet_mass: ``[T]``
+            its pellets' share, kg (NaN where it was not recorded: a run resumed from a checkpoint
+            written before it was; then nothing is returned). discharge: the fit window and filter of
+            ``mass_flow_rate_full_kg_s``. scale: simulated domain to whole box.
+    """
+    if not np.isfinite(pellet_mass).all():
+        return {}
+    lo, hi = discharge.fit_window_s
+    mid = 0.5 * (lo + hi)
+
+    def rate(m: np.ndarray, window: tuple[float, float]) -> float:
+        fit = dataclasses.replace(discharge, fit_window_s=window)
+        return fit_mass_flow_rate(LoadCellSignal(times, m, source=source), fit)[0] * scale
+
+    return {"mass_flow_rate_pellet_full_kg_s": rate(pellet_mass, (lo, hi)),
+            "mass_flow_rate_sinter_full_kg_s": rate(mass - pellet_mass, (lo, hi)),
+            "mass_flow_rate_early_full_kg_s": rate(mass, (lo, mid)),
+            "mass_flow_rate_late_full_kg_s": rate(mass, (mid, hi))}
 
 
 def _fill_masses(system, state, counts) -> torch.Tensor:
