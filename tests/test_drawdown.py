@@ -58,6 +58,9 @@ def test_small_drawdown_conserves_mass_and_gives_plausible_kpis():
         assert parts == pytest.approx(k["mass_flow_rate_full_kg_s"], rel=1e-9)
         assert k["mass_flow_rate_pellet_full_kg_s"] > 0 and k["mass_flow_rate_sinter_full_kg_s"] > 0
         assert k["mass_flow_rate_early_full_kg_s"] > 0 and k["mass_flow_rate_late_full_kg_s"] > 0
+        # the fill as the gate opens: pellets (layers 1 and 3) mostly in the first and third quarters
+        q1, q2, q3, q4 = (k[f"fill_pellet_share_q{i}"] for i in range(1, 5))
+        assert all(0 <= q <= 1 for q in (q1, q2, q3, q4)) and q1 > q2 and q3 > q4
     # replicates differ (different seeds) but are the same experiment
     a, b = res.kpis
     assert a["fill_mass_kg"] != b["fill_mass_kg"]

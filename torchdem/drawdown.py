@@ -9,7 +9,8 @@ simulates ``len(parameter sets) x replicates`` draw down tests as one batched en
 2. settle with the gate closed for ``settings.fill_time`` seconds (with a share of the frictions
    when a parameter set gives :data:`FILL_FRICTION_PARAMETER`); as the gate opens, the fill's bulk
    density (``fill_bulk_density_kg_m3``: upper-box mass over the box's width, simulated depth and
-   mean fill height) is taken;
+   mean fill height) and its pellets' share in each quarter of its mass from the floor up
+   (``fill_pellet_share_q1`` .. ``q4``: how far the rained layers have mixed) are taken;
 3. the gate (a wall) vanishes at ``t_open = fill_time``; the run continues for
    ``settings.discharge_time`` seconds while the load cell records the upper-box mass at
    ``loadcell_rate`` Hz (the mass of the bodies whose centres are inside the upper box);
@@ -81,7 +82,14 @@ KPI_UNITS = {
     "discharge_jammed": "1", "fill_bulk_density_kg_m3": "kg/m^3",
     "mass_flow_rate_pellet_full_kg_s": "kg/s", "mass_flow_rate_sinter_full_kg_s": "kg/s",
     "mass_flow_rate_early_full_kg_s": "kg/s", "mass_flow_rate_late_full_kg_s": "kg/s",
+    "fill_pellet_share_q1": "1", "fill_pellet_share_q2": "1", "fill_pellet_share_q3": "1", "fill_pellet_share_q4": "1",
 }
+#: The fill's layering as the gate opens: the pellets' mass share in each quarter of the upper box's mass,
+#: counted from the floor up in columns across the box's width (``q1`` the bottom quarter, over the slot
+#: and beside it). Four unmixed layers read 1, 0, 1, 0 (pellets at the bottom) or 0, 1, 0, 1 (reverse);
+#: pellets that sank into the sinter below them move the shares towards the fill's own.
+FILL_LAYERING_KPIS: tuple[str, ...] = ("fill_pellet_share_q1", "fill_pellet_share_q2", "fill_pellet_share_q3",
+                                       "fill_pellet_share_q4")
 #: The model's own view of the flow, which one load cell cannot give the lab: each material's share of
 #: ``mass_flow_rate_full_kg_s`` over the same fit window (pellet + sinter = the whole, the slope fit
 #: being linear in the mass), and the whole flow over the window's first and second halves (how the
@@ -540,6 +548,7 @@ class DrawDownTest:
         ckpt = Path(checkpoint) if checkpoint is not None else None
         gate_speed = [math.nan] * len(members)
         fill_density = [math.nan] * len(members)
+        fill_layering = np.full((len(members), len(FILL_LAYERING_KPIS)), np.nan)
         wall_before = 0.0
         sim = None
         if ckpt is not None and ckpt.exists():
@@ -555,6 +564,8 @@ class DrawDownTest:
             wall_before = float(saved["wall_s"])
             gate_speed[:] = saved["gate_speed"].tolist()
             fill_density[:] = saved.get("fill_density", torch.full((len(members),), math.nan)).tolist()
+            if "fill_layering" in saved:
+                fill_layering[:] = saved["fill_layering"].numpy()
         else:
             sim = Simulation(system, state, s.guards, compile=s.compile, reorder_every=s.reorder_every)
         ckpt_steps = max(every, int(round(checkpoint_every / dt_fill)))
@@ -583,6 +594,7 @@ class DrawDownTest:
                         "pellet_masses": [torch.as_tensor(m) for m in pellet_masses],
                         "gate_speed": torch.tensor(gate_speed, dtype=torch.float64),
                         "fill_density": torch.tensor(fill_density, dtype=torch.float64),
+                        "fill_layering": torch.as_tensor(fill_layering),
                         "wall_s": wall_before + time.perf_counter() - started}, tmp)
             os.replace(tmp, ckpt)
 
@@ -594,6 +606,7 @@ class DrawDownTest:
                 b = simulation.state.bodies
                 gate_speed[:] = (b.velocity.norm(dim=-1) * b.active).amax(-1).cpu().tolist()
                 fill_density[:] = self._fill_bulk_density(simulation).tolist()
+                fill_layering[:] = self._fill_layering(simulation)
             if k >= k_open and (k - k_open) % every == 0:  # 50 Hz from the gate opening on
                 times.append(simulation.time - t_open)
                 masses.append(self._upper_mass(simulation).cpu().numpy())
@@ -627,8 +640,9 @@ class DrawDownTest:
         result = self._measure(sim, members, counts, np.array(times), np.stack(masses, 1), wall,
                                np.stack(pellet_masses, 1))
         for kpis in (result.kpis, early):  # the fill as the gate opened, for both measurements
-            for k, v in zip(kpis, fill_density):
+            for k, v, shares in zip(kpis, fill_density, fill_layering):
                 k["fill_bulk_density_kg_m3"] = v
+                k.update(zip(FILL_LAYERING_KPIS, map(float, shares)))
         for c, v in zip(result.conservation, gate_speed):
             c["max_speed_at_gate_open_m_s"] = v
         result = dataclasses.replace(result, build_time_s=build_s, spheres=int(system.n_spheres), dt=float(dt_fill),
@@ -656,6 +670,35 @@ class DrawDownTest:
         mass = self._upper_mass(sim).cpu().numpy()
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(fill_height > 0, mass / (g.upper_width * g.simulated_depth * fill_height), np.nan)
+
+    def _fill_layering(self, sim: Simulation) -> np.ndarray:
+        """``[B, 4]`` the pellets' share of each quarter of each member's upper-box mass, from the floor
+        up (:data:`FILL_LAYERING_KPIS`), by body centres in columns as wide as in :meth:`_fill_bulk_density`."""
+        g, system, b = self.geometry, sim.system, sim.state.bodies
+        x, z = b.position[..., 0], b.position[..., 2]
+        inside = (self.geometry.in_upper_box(x, z) & b.active).cpu().numpy()
+        pellet = np.array([m.label == "pellet" for m in self.mixture.materials]
+                          + [False] * (int(system.body_material.max()) + 1 - len(self.mixture.materials)))
+        is_pellet = pellet[system.body_material.cpu().numpy()]
+        n_bins = max(4, int(g.upper_width / (8.0 * float(system.sphere_radius.max()))))
+        column = np.clip(((x.cpu().numpy() + g.upper_width / 2) / g.upper_width * n_bins).astype(int), 0, n_bins - 1)
+        z, mass = z.cpu().numpy(), system.mass.cpu().numpy()
+        out = np.full((system.batch, len(FILL_LAYERING_KPIS)), np.nan)
+        for m in range(system.batch):
+            quarter = np.zeros(inside.shape[1], dtype=int)
+            for c in range(n_bins):
+                i = np.flatnonzero(inside[m] & (column[m] == c))
+                i = i[np.argsort(z[m, i], kind="stable")]
+                w = mass[m, i]
+                if w.size:  # the mass share below each body's centre: its quarter of the column
+                    q = (np.cumsum(w) - 0.5 * w) / w.sum()
+                    quarter[i] = np.minimum((q * len(FILL_LAYERING_KPIS)).astype(int), len(FILL_LAYERING_KPIS) - 1)
+            w = np.where(inside[m], mass[m], 0.0)
+            total = np.bincount(quarter, w, len(FILL_LAYERING_KPIS))
+            pel = np.bincount(quarter, w * is_pellet[m], len(FILL_LAYERING_KPIS))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out[m] = np.where(total > 0, pel / total, np.nan)
+        return out
 
     def _upper_mass(self, sim: Simulation, label: str | None = None) -> torch.Tensor:
         """``[B]`` mass in each member's upper box, kg: of every body, or of the materials labelled
