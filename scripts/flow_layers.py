@@ -44,9 +44,10 @@ def runs_by_condition(records: Iterable) -> dict[str, np.ndarray]:
     rows: dict[str, list[list[float]]] = defaultdict(list)
     for r in records:
         k = r.kpis or {}
-        if discharge_jammed(k) or not all(np.isfinite(k.get(c, np.nan)) for c in COLUMNS):
+        values = [np.nan if k.get(c) is None else float(k[c]) for c in COLUMNS]  # a store keeps NaN as null
+        if discharge_jammed(k) or not np.isfinite(values).all():
             continue
-        rows[r.condition].append([float(k[c]) for c in COLUMNS])
+        rows[r.condition].append(values)
     return {c: np.array(v) for c, v in rows.items()}
 
 

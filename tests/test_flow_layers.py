@@ -28,7 +28,8 @@ def test_the_difference_from_the_reference_is_split_by_material_with_its_standar
     records = [run("50-50", 6.0, 4.0, 10.5, 9.5), run("50-50", 6.2, 4.0, 10.7, 9.7),
                run("50-50-reverse", 5.0, 6.0, 9.5, 12.5), run("50-50-reverse", 5.2, 6.0, 9.7, 12.7),
                run("50-50-reverse", 1.0, 1.0, 1.0, 1.0, discharge_jammed=1.0),  # arched: left out
-               SimpleNamespace(condition="75-25", kpis={"mass_flow_rate_full_kg_s": 9.0})]  # no breakdown
+               SimpleNamespace(condition="75-25", kpis={"mass_flow_rate_full_kg_s": 9.0}),  # no breakdown
+               run("25-75", 5.0, 5.0, 10.0, 10.0, mass_flow_rate_late_full_kg_s=None)]  # NaN, as stored
     runs = flow_layers.runs_by_condition(records)
     assert sorted(runs) == ["50-50", "50-50-reverse"] and len(runs["50-50-reverse"]) == 2
     table = flow_layers.format_flow(runs, "50-50")
