@@ -677,9 +677,7 @@ class DrawDownTest:
         g, system, b = self.geometry, sim.system, sim.state.bodies
         x, z = b.position[..., 0], b.position[..., 2]
         inside = (self.geometry.in_upper_box(x, z) & b.active).cpu().numpy()
-        pellet = np.array([m.label == "pellet" for m in self.mixture.materials]
-                          + [False] * (int(system.body_material.max()) + 1 - len(self.mixture.materials)))
-        is_pellet = pellet[system.body_material.cpu().numpy()]
+        is_pellet = _labelled(self.mixture, system.body_material, "pellet").cpu().numpy()
         n_bins = max(4, int(g.upper_width / (8.0 * float(system.sphere_radius.max()))))
         column = np.clip(((x.cpu().numpy() + g.upper_width / 2) / g.upper_width * n_bins).astype(int), 0, n_bins - 1)
         z, mass = z.cpu().numpy(), system.mass.cpu().numpy()
@@ -706,10 +704,7 @@ class DrawDownTest:
         b = sim.state.bodies
         inside = self.geometry.in_upper_box(b.position[..., 0], b.position[..., 2]) & b.active
         if label is not None:
-            labelled = [m.label == label for m in self.mixture.materials]
-            n_other = int(sim.system.body_material.max()) + 1 - len(labelled)
-            of_label = torch.tensor(labelled + [False] * max(0, n_other), device=b.position.device)
-            inside = inside & of_label[sim.system.body_material]
+            inside = inside & _labelled(self.mixture, sim.system.body_material, label)
         return (sim.system.mass * inside).sum(-1)
 
     def _measure(self, sim, members, counts, times, masses, wall, pellet_masses=None) -> DrawDownResult:
@@ -846,6 +841,14 @@ def flow_breakdown(times: np.ndarray, mass: np.ndarray, pellet_mass: np.ndarray,
             "mass_flow_rate_sinter_full_kg_s": rate(mass - pellet_mass, (lo, hi)),
             "mass_flow_rate_early_full_kg_s": rate(mass, (lo, mid)),
             "mass_flow_rate_late_full_kg_s": rate(mass, (mid, hi))}
+
+
+def _labelled(mixture: Mixture, body_material: torch.Tensor, label: str) -> torch.Tensor:
+    """``[B, Nb]`` bool: the bodies of the mixture's materials labelled ``label`` (the walls' materials,
+    numbered after the mixture's, are not)."""
+    of_label = torch.zeros(int(body_material.max()) + 1, dtype=torch.bool, device=body_material.device)
+    of_label[[k for k, m in enumerate(mixture.materials) if m.label == label]] = True
+    return of_label[body_material]
 
 
 def _fill_masses(system, state, counts) -> torch.Tensor:
