@@ -40,9 +40,15 @@ def fill_pellet_share(condition: str) -> float:
 
 def runs_by_condition(records: Iterable) -> dict[str, np.ndarray]:
     """Condition -> ``[runs, 5]`` (flow, pellets, sinter, early half, late half) kg/s of the runs that
-    kept the breakdown and did not jam."""
+    kept the breakdown and did not jam; a run stored under several sets (shared runs: equal parameters,
+    seed and condition) counts once."""
     rows: dict[str, list[list[float]]] = defaultdict(list)
+    seen = set()
     for r in records:
+        key = (r.condition, r.seed, tuple(sorted(r.params.items())))
+        if key in seen:
+            continue
+        seen.add(key)
         k = r.kpis or {}
         values = [np.nan if k.get(c) is None else float(k[c]) for c in COLUMNS]  # a store keeps NaN as null
         if discharge_jammed(k) or not np.isfinite(values).all():

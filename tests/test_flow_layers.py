@@ -17,21 +17,22 @@ flow_layers = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(flow_layers)
 
 
-def run(condition, pellets, sinter, early, late, **extra):
+def run(condition, pellets, sinter, early, late, seed=0, params=None, **extra):
     kpis = {"mass_flow_rate_full_kg_s": pellets + sinter, "mass_flow_rate_pellet_full_kg_s": pellets,
             "mass_flow_rate_sinter_full_kg_s": sinter, "mass_flow_rate_early_full_kg_s": early,
             "mass_flow_rate_late_full_kg_s": late, "mass_lower_box_full_kg": 32.0, "discharge_jammed": 0.0}
-    return SimpleNamespace(condition=condition, kpis={**kpis, **extra})
+    return SimpleNamespace(condition=condition, seed=seed, params=params or {"eta_r": 0.3}, kpis={**kpis, **extra})
 
 
 def test_the_difference_from_the_reference_is_split_by_material_with_its_standard_error():
-    records = [run("50-50", 6.0, 4.0, 10.5, 9.5), run("50-50", 6.2, 4.0, 10.7, 9.7),
-               run("50-50-reverse", 5.0, 6.0, 9.5, 12.5), run("50-50-reverse", 5.2, 6.0, 9.7, 12.7),
+    records = [run("50-50", 6.0, 4.0, 10.5, 9.5), run("50-50", 6.2, 4.0, 10.7, 9.7, seed=1),
+               run("50-50", 6.2, 4.0, 10.7, 9.7, seed=1),  # the same run under a second set: once
+               run("50-50-reverse", 5.0, 6.0, 9.5, 12.5), run("50-50-reverse", 5.2, 6.0, 9.7, 12.7, seed=1),
                run("50-50-reverse", 1.0, 1.0, 1.0, 1.0, discharge_jammed=1.0),  # arched: left out
-               SimpleNamespace(condition="75-25", kpis={"mass_flow_rate_full_kg_s": 9.0}),  # no breakdown
+               SimpleNamespace(condition="75-25", seed=0, params={}, kpis={"mass_flow_rate_full_kg_s": 9.0}),  # no breakdown
                run("25-75", 5.0, 5.0, 10.0, 10.0, mass_flow_rate_late_full_kg_s=None)]  # NaN, as stored
     runs = flow_layers.runs_by_condition(records)
-    assert sorted(runs) == ["50-50", "50-50-reverse"] and len(runs["50-50-reverse"]) == 2
+    assert sorted(runs) == ["50-50", "50-50-reverse"] and len(runs["50-50"]) == len(runs["50-50-reverse"]) == 2
     table = flow_layers.format_flow(runs, "50-50")
     assert "| 50-50-reverse | 2 | 11.10 | 5.10 | 6.00 | 0.46 | 0.50 | 9.60 | 12.60 |" in table
     # +1.00 kg/s: -1.00 of pellets and +2.00 of sinter; variance 0.02 in each condition's pellets (two runs
