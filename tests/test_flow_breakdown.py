@@ -40,3 +40,12 @@ def test_a_record_without_the_pellet_trace_gives_no_breakdown():
     total = emptying(40.0, 10.0, 0.0)
     pellets = np.full_like(T, np.nan)  # resumed from a checkpoint written before the trace was kept
     assert flow_breakdown(T, total, pellets, DischargeConfig()) == {}
+
+
+def test_a_half_window_with_too_few_samples_is_left_out_and_the_rest_is_kept():
+    coarse = np.arange(0.0, 1.0 + 1e-9, 0.1)  # 10 Hz, window 0.3-0.6 s: 4 samples, 2 in the early half
+    pellets, sinter = 20.0 - 4.0 * coarse, 20.0 - 6.0 * coarse
+    got = flow_breakdown(coarse, pellets + sinter, pellets, DischargeConfig(filter_sigma_s=0.0, fit_window_s=(0.3, 0.6)))
+    assert "mass_flow_rate_early_full_kg_s" not in got
+    assert got["mass_flow_rate_pellet_full_kg_s"] == pytest.approx(4.0)
+    assert got["mass_flow_rate_sinter_full_kg_s"] == pytest.approx(6.0)

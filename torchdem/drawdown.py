@@ -827,6 +827,9 @@ def flow_breakdown(times: np.ndarray, mass: np.ndarray, pellet_mass: np.ndarray,
             its pellets' share, kg (NaN where it was not recorded: a run resumed from a checkpoint
             written before it was; then nothing is returned). discharge: the fit window and filter of
             ``mass_flow_rate_full_kg_s``. scale: simulated domain to whole box.
+
+    A half window with fewer than 3 load-cell samples (a short window of a coarse record) is left out,
+    as the whole window's rate would be.
     """
     if not np.isfinite(pellet_mass).all():
         return {}
@@ -835,12 +838,16 @@ def flow_breakdown(times: np.ndarray, mass: np.ndarray, pellet_mass: np.ndarray,
 
     def rate(m: np.ndarray, window: tuple[float, float]) -> float:
         fit = dataclasses.replace(discharge, fit_window_s=window)
-        return fit_mass_flow_rate(LoadCellSignal(times, m, source=source), fit)[0] * scale
+        try:
+            return fit_mass_flow_rate(LoadCellSignal(times, m, source=source), fit)[0] * scale
+        except KPIInputError:  # a short window of a coarse record: fewer than 3 samples in a half
+            return math.nan
 
-    return {"mass_flow_rate_pellet_full_kg_s": rate(pellet_mass, (lo, hi)),
-            "mass_flow_rate_sinter_full_kg_s": rate(mass - pellet_mass, (lo, hi)),
-            "mass_flow_rate_early_full_kg_s": rate(mass, (lo, mid)),
-            "mass_flow_rate_late_full_kg_s": rate(mass, (mid, hi))}
+    out = {"mass_flow_rate_pellet_full_kg_s": rate(pellet_mass, (lo, hi)),
+           "mass_flow_rate_sinter_full_kg_s": rate(mass - pellet_mass, (lo, hi)),
+           "mass_flow_rate_early_full_kg_s": rate(mass, (lo, mid)),
+           "mass_flow_rate_late_full_kg_s": rate(mass, (mid, hi))}
+    return {k: v for k, v in out.items() if math.isfinite(v)}
 
 
 def _labelled(mixture: Mixture, body_material: torch.Tensor, label: str) -> torch.Tensor:
