@@ -609,8 +609,9 @@ class DrawDownTest:
                 fill_layering[:] = self._fill_layering(simulation)
             if k >= k_open and (k - k_open) % every == 0:  # 50 Hz from the gate opening on
                 times.append(simulation.time - t_open)
-                masses.append(self._upper_mass(simulation).cpu().numpy())
-                pellet_masses.append(self._upper_mass(simulation, "pellet").cpu().numpy())
+                total, pellets = self._upper_mass(simulation, with_pellets=True).cpu().numpy()
+                masses.append(total)
+                pellet_masses.append(pellets)
             tick = (k - k_open) % every == 0 if k >= k_open else k % every_fill == 0
             if tick and progress is not None:
                 progress(simulation.time, wall_before + time.perf_counter() - started)
@@ -662,8 +663,7 @@ class DrawDownTest:
         active = torch.gather(b.active, 1, system.sphere_body)
         top = xs[..., 2] + system.sphere_radius
         inside = active & g.in_upper_box(xs[..., 0], xs[..., 2])
-        n_bins = max(4, int(g.upper_width / (8.0 * float(system.sphere_radius.max()))))
-        x = ((xs[..., 0] + g.upper_width / 2) / g.upper_width * n_bins).floor().clamp(0, n_bins - 1).long()
+        x, n_bins = _fill_columns(g, system, xs[..., 0])
         height = torch.full((system.batch, n_bins), g.upper_bottom_z, dtype=top.dtype, device=top.device)
         height = height.scatter_reduce(1, x, torch.where(inside, top, torch.full_like(top, g.upper_bottom_z)), "amax")
         fill_height = (height.mean(-1) - g.upper_bottom_z).cpu().numpy()
@@ -678,8 +678,8 @@ class DrawDownTest:
         x, z = b.position[..., 0], b.position[..., 2]
         inside = (self.geometry.in_upper_box(x, z) & b.active).cpu().numpy()
         is_pellet = _labelled(self.mixture, system.body_material, "pellet").cpu().numpy()
-        n_bins = max(4, int(g.upper_width / (8.0 * float(system.sphere_radius.max()))))
-        column = np.clip(((x.cpu().numpy() + g.upper_width / 2) / g.upper_width * n_bins).astype(int), 0, n_bins - 1)
+        column, n_bins = _fill_columns(g, system, x)
+        column = column.cpu().numpy()
         z, mass = z.cpu().numpy(), system.mass.cpu().numpy()
         out = np.full((system.batch, len(FILL_LAYERING_KPIS)), np.nan)
         for m in range(system.batch):
@@ -698,14 +698,14 @@ class DrawDownTest:
                 out[m] = np.where(total > 0, pel / total, np.nan)
         return out
 
-    def _upper_mass(self, sim: Simulation, label: str | None = None) -> torch.Tensor:
-        """``[B]`` mass in each member's upper box, kg: of every body, or of the materials labelled
-        ``label`` (``"pellet"`` / ``"sinter"``) only."""
+    def _upper_mass(self, sim: Simulation, with_pellets: bool = False) -> torch.Tensor:
+        """``[B]`` mass in each member's upper box, kg; ``with_pellets``: ``[2, B]``, that and its pellets'
+        share (the load cell's two traces from one look at the box)."""
         b = sim.state.bodies
-        inside = self.geometry.in_upper_box(b.position[..., 0], b.position[..., 2]) & b.active
-        if label is not None:
-            inside = inside & _labelled(self.mixture, sim.system.body_material, label)
-        return (sim.system.mass * inside).sum(-1)
+        mass = sim.system.mass * (self.geometry.in_upper_box(b.position[..., 0], b.position[..., 2]) & b.active)
+        if not with_pellets:
+            return mass.sum(-1)
+        return torch.stack([mass.sum(-1), (mass * _labelled(self.mixture, sim.system.body_material, "pellet")).sum(-1)])
 
     def _measure(self, sim, members, counts, times, masses, wall, pellet_masses=None) -> DrawDownResult:
         g, s = self.geometry, self.settings
@@ -848,6 +848,13 @@ def flow_breakdown(times: np.ndarray, mass: np.ndarray, pellet_mass: np.ndarray,
            "mass_flow_rate_early_full_kg_s": rate(mass, (lo, mid)),
            "mass_flow_rate_late_full_kg_s": rate(mass, (mid, hi))}
     return {k: v for k, v in out.items() if math.isfinite(v)}
+
+
+def _fill_columns(geometry: DrawDownGeometry, system, x: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """The column across the upper box's width (int64, like ``x``) of each x, m, and the number of columns:
+    about four of the largest spheres wide, at least 4 (the fill's ruler and its layering)."""
+    n = max(4, int(geometry.upper_width / (8.0 * float(system.sphere_radius.max()))))
+    return ((x + geometry.upper_width / 2) / geometry.upper_width * n).floor().clamp(0, n - 1).long(), n
 
 
 def _labelled(mixture: Mixture, body_material: torch.Tensor, label: str) -> torch.Tensor:
