@@ -4,6 +4,7 @@ were added), and how a condition's flow differs from a reference condition's, ma
 
     python scripts/flow_layers.py campaigns/table2/probe_flow_layers.sqlite
     python scripts/flow_layers.py STORE... --reference 50-50 --stage probe
+    python scripts/flow_layers.py campaigns/table2/probe_paper_set_reverse.sqlite --by-set
 
 The lab weighs the whole upper box on one load cell, so it cannot split its flow; the model can. The
 question it answers: where the reverse layering (sinter at the bottom) flows faster than 50-50, is the
@@ -57,6 +58,20 @@ def runs_by_condition(records: Iterable) -> dict[str, np.ndarray]:
     return {c: np.array(v) for c, v in rows.items()}
 
 
+def runs_by_set(records: Iterable) -> dict[str, dict[str, np.ndarray]]:
+    """Set -> :func:`runs_by_condition` of its runs, a set being one set of parameter values, named by the
+    batch keys its runs were stored under (a probe's set names, ``table8 / table8_4_seeds`` where two sets
+    of equal values share their runs), in the order the store first ran them."""
+    groups: dict[tuple, list] = defaultdict(list)
+    names: dict[tuple, list[str]] = defaultdict(list)
+    for r in records:
+        key = tuple(sorted(r.params.items()))
+        groups[key].append(r)
+        if r.batch_key not in names[key]:
+            names[key].append(r.batch_key)
+    return {" / ".join(names[key]): runs_by_condition(group) for key, group in groups.items()}
+
+
 def _line(name: str, n: int, v: np.ndarray, share_of_fill: float) -> str:
     flow, pel, sin, early, late = v
     return (f"| {name} | {n} | {flow:.2f} | {pel:.2f} | {sin:.2f} | {pel / flow:.2f} | {share_of_fill:.2f} | "
@@ -94,9 +109,15 @@ def main() -> None:
     parser.add_argument("stores", nargs="+", help="campaign stores (SQLite)")
     parser.add_argument("--reference", default="50-50", help="the condition the others are set against")
     parser.add_argument("--stage", default=None, help="only this stage's runs (default: every stage)")
+    parser.add_argument("--by-set", action="store_true",
+                        help="one table per parameter set (a probe's sets), instead of pooling a condition's runs")
     args = parser.parse_args()
     records = [r for s in args.stores for r in done_records(Path(s), args.stage, "flow_layers: store")]
-    print(format_flow(runs_by_condition(records), args.reference), end="")
+    if not args.by_set:
+        print(format_flow(runs_by_condition(records), args.reference), end="")
+        return
+    for name, runs in runs_by_set(records).items():
+        print(f"### {name}\n\n{format_flow(runs, args.reference)}")
 
 
 if __name__ == "__main__":

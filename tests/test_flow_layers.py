@@ -17,11 +17,12 @@ flow_layers = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(flow_layers)
 
 
-def run(condition, pellets, sinter, early, late, seed=0, params=None, **extra):
+def run(condition, pellets, sinter, early, late, seed=0, params=None, batch_key="base", **extra):
     kpis = {"mass_flow_rate_full_kg_s": pellets + sinter, "mass_flow_rate_pellet_full_kg_s": pellets,
             "mass_flow_rate_sinter_full_kg_s": sinter, "mass_flow_rate_early_full_kg_s": early,
             "mass_flow_rate_late_full_kg_s": late, "mass_lower_box_full_kg": 32.0, "discharge_jammed": 0.0}
-    return SimpleNamespace(condition=condition, seed=seed, params=params or {"eta_r": 0.3}, kpis={**kpis, **extra})
+    return SimpleNamespace(condition=condition, seed=seed, params=params or {"eta_r": 0.3}, batch_key=batch_key,
+                           kpis={**kpis, **extra})
 
 
 def test_the_difference_from_the_reference_is_split_by_material_with_its_standard_error():
@@ -38,6 +39,23 @@ def test_the_difference_from_the_reference_is_split_by_material_with_its_standar
     # +1.00 kg/s: -1.00 of pellets and +2.00 of sinter; variance 0.02 in each condition's pellets (two runs
     # 0.2 apart): se = sqrt(0.02 / 2 + 0.02 / 2) = 0.14
     assert "| 50-50-reverse | +1.00 +- 0.14 | -1.00 +- 0.14 | +2.00 +- 0.00 | -1.00 +- 0.14 | +3.00 +- 0.14 |" in table
+
+
+def test_by_set_each_set_of_values_gets_its_own_difference_named_by_the_sets_that_share_it():
+    round_ = {"lobe_spacing_sinter": 0.15}
+    records = [run("50-50", 4.0, 6.0, 10.0, 10.0, batch_key="base"),
+               run("50-50-reverse", 7.0, 4.0, 11.0, 11.0, batch_key="base"),
+               run("50-50", 4.0, 6.5, 10.5, 10.5, params=round_, batch_key="round"),
+               run("50-50", 4.0, 6.5, 10.5, 10.5, params=round_, batch_key="round_4_seeds"),  # shared: once
+               run("50-50", 4.2, 6.5, 10.7, 10.7, seed=1, params=round_, batch_key="round_4_seeds"),
+               run("50-50-reverse", 7.0, 3.7, 10.7, 10.7, params=round_, batch_key="round")]
+    sets = flow_layers.runs_by_set(records)
+    assert list(sets) == ["base", "round / round_4_seeds"]
+    assert len(sets["round / round_4_seeds"]["50-50"]) == 2
+    # each set's reverse against its own 50-50: +1.00 at the base, 10.7 - 10.6 = +0.10 at the round set
+    assert "| 50-50-reverse | +1.00 | +3.00 | -2.00 | +1.00 | +1.00 |" in flow_layers.format_flow(sets["base"])
+    assert "| 50-50-reverse | +0.10 | +2.90 | -2.80 | +0.10 | +0.10 |" in flow_layers.format_flow(
+        sets["round / round_4_seeds"])
 
 
 @pytest.mark.parametrize("condition, share", [("75-25", 0.75), ("50-50-reverse", 0.5), ("pellets", np.nan)])
