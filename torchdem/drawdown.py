@@ -598,6 +598,8 @@ class DrawDownTest:
                         "wall_s": wall_before + time.perf_counter() - started}, tmp)
             os.replace(tmp, ckpt)
 
+        is_pellet = _labelled(self.mixture, sim.system.body_material, "pellet")  # the load cell's second trace
+
         def on_step(simulation: Simulation) -> None:
             k = simulation.state.step
             if writer is not None:
@@ -609,7 +611,7 @@ class DrawDownTest:
                 fill_layering[:] = self._fill_layering(simulation)
             if k >= k_open and (k - k_open) % every == 0:  # 50 Hz from the gate opening on
                 times.append(simulation.time - t_open)
-                total, pellets = self._upper_mass(simulation, with_pellets=True).cpu().numpy()
+                total, pellets = self._upper_mass(simulation, is_pellet).cpu().numpy()
                 masses.append(total)
                 pellet_masses.append(pellets)
             tick = (k - k_open) % every == 0 if k >= k_open else k % every_fill == 0
@@ -698,14 +700,14 @@ class DrawDownTest:
                 out[m] = np.where(total > 0, pel / total, np.nan)
         return out
 
-    def _upper_mass(self, sim: Simulation, with_pellets: bool = False) -> torch.Tensor:
-        """``[B]`` mass in each member's upper box, kg; ``with_pellets``: ``[2, B]``, that and its pellets'
-        share (the load cell's two traces from one look at the box)."""
+    def _upper_mass(self, sim: Simulation, is_pellet: torch.Tensor | None = None) -> torch.Tensor:
+        """``[B]`` mass in each member's upper box, kg; with ``is_pellet`` (``[B, Nb]`` bool, the pellet
+        bodies): ``[2, B]``, that and its pellets' share (the load cell's two traces from one look at the box)."""
         b = sim.state.bodies
         mass = sim.system.mass * (self.geometry.in_upper_box(b.position[..., 0], b.position[..., 2]) & b.active)
-        if not with_pellets:
+        if is_pellet is None:
             return mass.sum(-1)
-        return torch.stack([mass.sum(-1), (mass * _labelled(self.mixture, sim.system.body_material, "pellet")).sum(-1)])
+        return torch.stack([mass.sum(-1), (mass * is_pellet).sum(-1)])
 
     def _measure(self, sim, members, counts, times, masses, wall, pellet_masses=None) -> DrawDownResult:
         g, s = self.geometry, self.settings
