@@ -23,6 +23,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 from collections import Counter
 from pathlib import Path
 
@@ -868,3 +869,76 @@ def test_an_artifact_key_does_not_see_the_machine_s_last_bits():
     assert _data_key(X.tolist(), y * (1 + 10.0 ** (2 - KEY_DIGITS)), noise.tolist(), {"kernel": "matern52"}, 3) != key
     assert _data_key(X.tolist(), y.tolist(), noise.tolist(), {"kernel": "rbf"}, 3) != key
     assert _data_key(X.tolist(), y.tolist(), None, {"kernel": "matern52"}, 3) != key
+
+
+def test_jam_conditions_feed_the_jam_classifier_and_never_the_objective(tmp_path):
+    """``surrogate.jam_conditions``: every point of the surrogate stage also runs on 75-25 with the
+    same seeds. In the known model 50-50 sees only the sum of the two sliding frictions (a ridge of
+    equal Eq. 7), while the 75-25 fill arches wherever mu_s_pp < 0.6, on a part of that ridge (the
+    truth has 0.62), and flows at 50-50 everywhere. The 75-25 runs stay out of Eq. 7: the stage's points
+    and objective are those of the same stage without them, value for value. They reach the GA's
+    classifier: where the GA without them lands in the arching part of the ridge, with them it lands
+    outside it (mu_s_pp >= 0.6 within 0.02) at an Eq. 7 within 0.01 of the ridge's, with a small
+    chance of jamming; without them no run jammed."""
+    import functools
+
+    from bo.calibration.pipeline import SurrogateStageSettings, ga_stage, surrogate_stage
+    from bo.surrogate.acquisition import AcquisitionSettings, AdaptiveSettings
+    from bo.surrogate.gp import SurrogateConfig
+
+    lab = km.known_measurement().condition("50-50").kpis
+    kpis = ("angle_of_repose_deg", "shear_angle_deg", "mass_flow_rate_full_kg_s", "mass_lower_box_full_kg")
+    objective = ObjectiveSpec.from_measured({k: float(lab[k.replace("_full", "")].mean) for k in kpis}, None)
+    names, bounds = ("mu_s_pp", "mu_s_ss"), np.array([[0.45, 0.6], [0.8, 0.95]])
+    surrogate = SurrogateStageSettings(
+        parameters=names, bounds=None, seeds=(0, 1),
+        adaptive=AdaptiveSettings(budget=14, points_per_parameter=5, q=4, target_r2=0.999, n_folds=4, cv_seeds=(0,),
+                                  kernels=("matern52",), seed=0,
+                                  acquisition=AcquisitionSettings(num_restarts=2, raw_samples=64, mc_samples=32,
+                                                                  maxiter=30)),
+        config=SurrogateConfig(kernel="matern52", strategy="scalar"), compare_strategies=False)
+    outcomes, gas = {}, {}
+    for label, jam_conditions in (("without", ()), ("with", ("75-25",))):
+        s = dataclasses.replace(surrogate, jam_conditions=jam_conditions)
+        settings = km.small_settings(surrogate=s, ga_repetitions=2).validate()
+        store = CampaignStore(tmp_path / f"{label}.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
+        executor = InProcessExecutor(functools.partial(km.known_batch, arch=0.6), batch_size=8)
+        out = surrogate_stage(store, executor, condition="50-50", names=names, bounds=bounds, objective=objective,
+                              s=s, echo=lambda line: None)
+        outcomes[label], gas[label] = out, ga_stage(store, out, objective, settings, echo=lambda line: None)
+        runs = Counter((stage, r.point_index, r.seed, r.condition) for stage in ("initial", "round-1")
+                       for r in store.records(stage, status="done"))
+        assert set(runs.values()) == {1} and {c for *_, c in runs} == {"50-50", *jam_conditions}
+        assert len(runs) == 14 * 2 * (1 + len(jam_conditions))  # every point, both seeds, each condition
+    without, with_ = outcomes["without"], outcomes["with"]
+    np.testing.assert_array_equal(with_.state.X, without.state.X)
+    np.testing.assert_array_equal(with_.state.y, without.state.y)
+    assert without.elsewhere is None and gas["without"].jam_note == "" and gas["without"].jam_probability is None
+    # the 75-25 runs: condition-major columns, jammed exactly where the known rule says
+    assert with_.elsewhere.shape == (14, 2, len(kpis)) and with_.jammed_elsewhere.shape == (14, 2)
+    np.testing.assert_array_equal(with_.jammed_elsewhere, np.repeat(with_.state.X[:, :1] < 0.6, 2, axis=1))
+    assert not with_.jammed.any()  # 50-50 flowed everywhere
+    ga = gas["with"]
+    n_jammed = int(with_.jammed_elsewhere.sum())
+    assert 0 < n_jammed < 28
+    assert ga.jam_note.startswith(f"{n_jammed} of the surrogate stage's 56 runs on 50-50, 75-25 jammed")
+    x = [ga.calibrated[n] for n in names]
+    assert gas["without"].calibrated["mu_s_pp"] < 0.6 - 0.02  # the case the jam conditions are for
+    assert x[0] >= 0.6 - 0.02 and ga.jam_probability < 0.2
+    ridge = min(_noise_free_objective(types.SimpleNamespace(surrogate=with_, objective=objective), [p, q])
+                for p in np.linspace(0.45, 0.8, 36) for q in np.linspace(0.6, 0.95, 36))
+    assert _noise_free_objective(types.SimpleNamespace(surrogate=with_, objective=objective), x) < ridge + 0.01
+
+
+def test_jam_conditions_are_checked():
+    """The calibrated condition, a repeat or an unknown condition among the jam conditions is a clear error."""
+    from bo.calibration.pipeline import validation_conditions
+
+    base = km.small_settings()
+    for bad in (("50-50",), ("75-25", "75-25")):
+        with pytest.raises(ConfigError, match=r"surrogate.jam_conditions = .* distinct measured conditions other "
+                                              r"than the calibrated '50-50'"):
+            dataclasses.replace(base, surrogate=dataclasses.replace(base.surrogate, jam_conditions=bad)).validate()
+    unknown = dataclasses.replace(base, surrogate=dataclasses.replace(base.surrogate, jam_conditions=("90-10",)))
+    with pytest.raises(ConfigError, match=r"surrogate.jam_conditions: \['90-10'\] are not in the measured data"):
+        validation_conditions(unknown.validate(), km.known_measurement())

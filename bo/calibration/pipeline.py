@@ -142,6 +142,13 @@ class SurrogateStageSettings:
             ran part of before its bounds changed): their finished points inside the bounds enter
             the surrogate's data as points already run (:func:`design_points`), after the
             screening's, and the initial Latin hypercube shrinks by as many.
+        jam_conditions: measured conditions (not the calibrated one) that every point this stage
+            runs also runs on, with the same seeds, to see whether its discharge jams there. Their
+            KPIs never enter the objective; their runs join the calibrated condition's as
+            observations of the jam classifier (:mod:`bo.surrogate.jam`), so the GA keeps away from
+            where a fill the lab saw flow arches over the slot, which a calibration on one fill
+            does not see (a pellet-rich fill arches where 50-50 flows). A validation condition
+            named here is still a blind check of its KPIs, not of whether it jams.
     """
 
     parameters: tuple[str, ...] | None
@@ -155,6 +162,7 @@ class SurrogateStageSettings:
     reuse_screening: bool = False
     limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     reuse_designs: tuple[str, ...] = ()
+    jam_conditions: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -217,6 +225,9 @@ class CalibrationSettings:
         s = self.surrogate
         if not s.seeds or len(set(s.seeds)) != len(s.seeds):
             raise out_of_range("surrogate.seeds", s.seeds, "a non-empty list of distinct ints", source)
+        if self.condition in s.jam_conditions or len(set(s.jam_conditions)) != len(s.jam_conditions):
+            raise out_of_range("surrogate.jam_conditions", list(s.jam_conditions),
+                               f"distinct measured conditions other than the calibrated {self.condition!r}", source)
         if s.config.strategy not in STRATEGIES:
             raise out_of_range("surrogate.strategy", s.config.strategy, f"one of {list(STRATEGIES)}", source)
         if self.ga_strategy is not None and self.ga_strategy not in (*STRATEGIES, GA_BEST):
@@ -277,6 +288,10 @@ class SurrogateOutcome:
         jammed: ``[n, r]`` bool, runs of ``kpi_replicates`` whose discharge jammed (None: not
             recorded); noise: ``[M, M]`` pooled covariance of one run (``noise: pooled``) or None.
             With them another strategy's data follow from ``kpi_replicates`` (:func:`_objective_data`).
+        elsewhere: ``[n, c * r, M]`` KPI values of the same points' runs on the ``c`` jam conditions
+            (``SurrogateStageSettings.jam_conditions``, condition-major; NaN: not run, as for the
+            reused points), and jammed_elsewhere ``[n, c * r]`` bool, those whose discharge jammed;
+            None without jam conditions.
     """
 
     parameters: tuple[str, ...]
@@ -293,6 +308,8 @@ class SurrogateOutcome:
     reused_design_points: int = 0
     jammed: np.ndarray | None = None
     noise: np.ndarray | None = None
+    elsewhere: np.ndarray | None = None
+    jammed_elsewhere: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -708,7 +725,8 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
     ``pooled``: ``[M, M]`` one-run covariance of the objective's KPIs for ``s.noise == "pooled"``.
     ``prior``: points already run, ``(X [n0, d], reps [n0, r0, M], note)`` (:func:`screening_points`):
     they join the data before the LHS, which shrinks by the usable ones to no less than half its
-    size; the budget counts the points this stage runs."""
+    size; the budget counts the points this stage runs. With ``s.jam_conditions`` every point this
+    stage runs runs on them too, and their runs are kept for the jam classifier only."""
     names = tuple(names)
     d = len(names)
     a, config = s.adaptive, s.config
@@ -725,24 +743,34 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
         full = n_initial = a.initial_size(d)
     key = _key("surrogate", names, bounds.tolist(), list(s.seeds), a.seed, n_initial, a.q, config.strategy,
                list(kpis), list(objective.measured), list(objective.weights),
-               *([X0.tolist(), reps0.tolist()] if prior is not None else []))
+               *([X0.tolist(), reps0.tolist()] if prior is not None else []),
+               *([("jam_conditions", list(s.jam_conditions))] if s.jam_conditions else []))
+    conditions = [condition, *s.jam_conditions]
     rows = lambda X: [dict(zip(names, map(float, x))) for x in X]  # noqa: E731
     width = max(len(s.seeds), reps0.shape[1])
     padded = functools.partial(_padded, width=width)
 
-    def evaluated(stage: str, points: Sequence[Mapping[str, float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def evaluated(stage: str, points: Sequence[Mapping[str, float]]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(X [n, d], reps [n, width, M], jammed [n, width], elsewhere [n, c * width, M + 1])``, the
+        last the jam conditions' runs with their jam flag in the last column."""
         X = np.array([[p[n] for n in names] for p in points], dtype=np.float64).reshape(len(points), d)
-        reps = padded(_replicates(store, stage, f"{key}", len(points), s.seeds, condition, list(kpis) + [JAMMED]))
-        return X, reps[..., :-1], reps[..., -1] == 1
+        runs = [padded(_replicates(store, stage, f"{key}", len(points), s.seeds, c, list(kpis) + [JAMMED]))
+                for c in conditions]
+        reps = runs[0]
+        return X, reps[..., :-1], reps[..., -1] == 1, np.concatenate(runs[1:], axis=1) if s.jam_conditions \
+            else np.zeros((len(points), 0, len(kpis) + 1))
 
     if prior is not None:
         echo(f"      {reuse_note}; initial design {n_initial} points instead of {full}")
     points = _run_batch(store, executor, "initial", key,
-                        lambda: rows(latin_hypercube(bounds, n_initial, seed=a.seed)), s.seeds, [condition])
-    X_new, reps_new, jam_new = evaluated("initial", points)
+                        lambda: rows(latin_hypercube(bounds, n_initial, seed=a.seed)), s.seeds, conditions)
+    X_new, reps_new, jam_new, other_new = evaluated("initial", points)
     X_all, reps_all = np.concatenate([X0, X_new]), np.concatenate([padded(reps0), reps_new])
-    # the reused points' runs are read as they were screened or designed, jammed or not
+    # the reused points' runs are read as they were screened or designed, jammed or not; they were not
+    # run on the jam conditions
     jam_all = np.concatenate([np.zeros(padded(reps0).shape[:2], dtype=bool), jam_new])
+    other_all = np.concatenate([np.full((n0,) + other_new.shape[1:], np.nan), other_new])
     other = [t for t in STRATEGIES if t != config.strategy] if s.compare_strategies else []
     # with fixed pooled noise, the GP that learns its noise is cross-validated on the same points too
     learned = f"{config.strategy}, learned noise" if pooled is not None else None
@@ -814,17 +842,21 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
         stage = f"round-{k}"
         batch = _run_batch(store, executor, stage, key, lambda: rows(propose_batch(
             dataclasses.replace(config, kernel=record.kernel), state.X, state.y, bounds, q=q, seed=seed,
-            y_var=state.y_var, objective=objective, settings=a.acquisition)), s.seeds, [condition])
-        X_new, reps_new, jam_new = evaluated(stage, batch)
+            y_var=state.y_var, objective=objective, settings=a.acquisition)), s.seeds, conditions)
+        X_new, reps_new, jam_new, other_new = evaluated(stage, batch)
         X_all = np.concatenate([X_all, X_new])
         reps_all = np.concatenate([reps_all, reps_new])
         jam_all = np.concatenate([jam_all, jam_new])
+        other_all = np.concatenate([other_all, other_new])
     usable, _, _ = _objective_data(reps_all, objective, config.strategy, pooled, need, jam_all)
+    other = other_all[usable]
     return SurrogateOutcome(parameters=names, bounds=bounds, state=state, kpi_replicates=reps_all[usable],
                             rounds=tuple(rounds), stopped_because=reason, points_run=int(X_all.shape[0]) - n0,
                             dropped_points=int((~usable).sum()),
                             strategy_r2={t: tuple(v) for t, v in r2.items()}, reused_points=n0,
-                            reuse_note=reuse_note, jammed=jam_all[usable], noise=pooled)
+                            reuse_note=reuse_note, jammed=jam_all[usable], noise=pooled,
+                            elsewhere=other[..., :-1] if s.jam_conditions else None,
+                            jammed_elsewhere=other[..., -1] == 1 if s.jam_conditions else None)
 
 
 def _summary_to_json(summary: GASummary) -> dict:
@@ -864,14 +896,21 @@ def ga_strategy_for(surrogate: SurrogateOutcome, settings: CalibrationSettings) 
 
 def _jam_flags(surrogate: SurrogateOutcome, objective: ObjectiveSpec) -> tuple[np.ndarray | None, float]:
     """``(flags, jammed objective)``: the surrogate stage's runs as ``flags [n, r]`` (1 jammed,
-    0 flowed, NaN not made) and Eq. 7 of the jammed runs' mean KPIs; ``(None, 1.0)`` when no run
-    jammed. The points whose every run jammed are among them when the rounds' strategy is scalar
-    (per_kpi rounds drop such points)."""
-    if surrogate.jammed is None or not surrogate.jammed.any():
+    0 flowed, NaN not made), with the jam conditions' runs as ``c * r`` more columns, and Eq. 7 of
+    the jammed runs' mean KPIs (a jammed run measures a box that did not flow on any fill, so it is
+    scored against the calibrated condition's lab as it is); ``(None, 1.0)`` when no run jammed.
+    The points whose every run jammed are among them when the rounds' strategy is scalar (per_kpi
+    rounds drop such points)."""
+    if surrogate.jammed is None:
         return None, 1.0
-    reps = surrogate.kpi_replicates
-    flags = np.where(np.isfinite(reps).all(axis=2), surrogate.jammed, np.nan)
-    return flags, float(objective(reps[surrogate.jammed].mean(axis=0)))
+    reps, jammed = surrogate.kpi_replicates, surrogate.jammed
+    if surrogate.elsewhere is not None:
+        reps = np.concatenate([reps, surrogate.elsewhere], axis=1)
+        jammed = np.concatenate([jammed, surrogate.jammed_elsewhere], axis=1)
+    if not jammed.any():
+        return None, 1.0
+    flags = np.where(np.isfinite(reps).all(axis=2), jammed, np.nan)
+    return flags, float(objective(reps[jammed].mean(axis=0)))
 
 
 def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: ObjectiveSpec,
@@ -889,8 +928,10 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
     if why:
         echo(f"      {why}")
     flags, jammed_objective = _jam_flags(surrogate, objective)
+    where = ("" if not settings.surrogate.jam_conditions else
+             f" on {', '.join([settings.condition, *settings.surrogate.jam_conditions])}")
     jam_note = "" if flags is None else (
-        f"{int(np.nansum(flags))} of the surrogate stage's {int(np.isfinite(flags).sum())} runs jammed (Eq. 7 of "
+        f"{int(np.nansum(flags))} of the surrogate stage's {int(np.isfinite(flags).sum())} runs{where} jammed (Eq. 7 of "
         f"a jammed run {jammed_objective:.2f}), so the GA minimises the expected Eq. 7 of one run, (1 - p) f + p "
         f"{jammed_objective:.2f}, with p the chance that it jams by a GP classifier of those runs")
     if jam_note:
@@ -1056,10 +1097,12 @@ def validation_conditions(settings: CalibrationSettings, measured: MeasuredData)
                            f"config (measured data {measured.origin})")
     validation = (tuple(c for c in measured.names if c != settings.condition)
                   if settings.validation_conditions is None else tuple(settings.validation_conditions))
-    unknown = [c for c in validation if c not in measured.names]
-    if unknown:
-        raise ConfigError(f"validation.conditions: {unknown} are not in the measured data {list(measured.names)} "
-                          f"({measured.origin})")
+    for key, names in (("validation.conditions", validation), ("surrogate.jam_conditions",
+                                                               settings.surrogate.jam_conditions)):
+        unknown = [c for c in names if c not in measured.names]
+        if unknown:
+            raise ConfigError(f"{key}: {unknown} are not in the measured data {list(measured.names)} "
+                              f"({measured.origin})")
     return validation
 
 

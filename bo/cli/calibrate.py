@@ -166,11 +166,16 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
             or any(not isinstance(k, str) or not k for k in designs) or len(set(designs)) != len(designs):
         raise out_of_range("reuse_designs", designs, "a list of distinct batch keys of earlier initial designs in "
                            "the store (python scripts/campaign_status.py lists them), or null", where)
+    jam_conditions = cfg.get("jam_conditions") or []
+    if isinstance(jam_conditions, str) or not isinstance(jam_conditions, Sequence) \
+            or any(not isinstance(c, str) or not c for c in jam_conditions):
+        raise out_of_range("jam_conditions", jam_conditions, "a list of measured conditions (e.g. [75-25]) whose "
+                           "runs feed the jam classifier only, or null", where)
     return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=seeds,
                                   adaptive=adaptive, config=config,
                                   compare_strategies=bool(cfg.get("compare_strategies")), added=checked_added,
                                   noise=noise, reuse_screening=reuse, limits=checked_limits,
-                                  reuse_designs=tuple(designs))
+                                  reuse_designs=tuple(designs), jam_conditions=tuple(jam_conditions))
 
 
 def calibration_settings_from(plain: Mapping[str, Any]):
