@@ -765,12 +765,12 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
         echo(f"      {reuse_note}; initial design {n_initial} points instead of {full}")
     points = _run_batch(store, executor, "initial", key,
                         lambda: rows(latin_hypercube(bounds, n_initial, seed=a.seed)), s.seeds, conditions)
-    X_new, reps_new, jam_new, other_new = evaluated("initial", points)
+    X_new, reps_new, jam_new, elsewhere_new = evaluated("initial", points)
     X_all, reps_all = np.concatenate([X0, X_new]), np.concatenate([padded(reps0), reps_new])
     # the reused points' runs are read as they were screened or designed, jammed or not; they were not
     # run on the jam conditions
     jam_all = np.concatenate([np.zeros(padded(reps0).shape[:2], dtype=bool), jam_new])
-    other_all = np.concatenate([np.full((n0,) + other_new.shape[1:], np.nan), other_new])
+    elsewhere_all = np.concatenate([np.full((n0,) + elsewhere_new.shape[1:], np.nan), elsewhere_new])
     other = [t for t in STRATEGIES if t != config.strategy] if s.compare_strategies else []
     # with fixed pooled noise, the GP that learns its noise is cross-validated on the same points too
     learned = f"{config.strategy}, learned noise" if pooled is not None else None
@@ -843,20 +843,20 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
         batch = _run_batch(store, executor, stage, key, lambda: rows(propose_batch(
             dataclasses.replace(config, kernel=record.kernel), state.X, state.y, bounds, q=q, seed=seed,
             y_var=state.y_var, objective=objective, settings=a.acquisition)), s.seeds, conditions)
-        X_new, reps_new, jam_new, other_new = evaluated(stage, batch)
+        X_new, reps_new, jam_new, elsewhere_new = evaluated(stage, batch)
         X_all = np.concatenate([X_all, X_new])
         reps_all = np.concatenate([reps_all, reps_new])
         jam_all = np.concatenate([jam_all, jam_new])
-        other_all = np.concatenate([other_all, other_new])
+        elsewhere_all = np.concatenate([elsewhere_all, elsewhere_new])
     usable, _, _ = _objective_data(reps_all, objective, config.strategy, pooled, need, jam_all)
-    other = other_all[usable]
+    elsewhere = elsewhere_all[usable]
     return SurrogateOutcome(parameters=names, bounds=bounds, state=state, kpi_replicates=reps_all[usable],
                             rounds=tuple(rounds), stopped_because=reason, points_run=int(X_all.shape[0]) - n0,
                             dropped_points=int((~usable).sum()),
                             strategy_r2={t: tuple(v) for t, v in r2.items()}, reused_points=n0,
                             reuse_note=reuse_note, jammed=jam_all[usable], noise=pooled,
-                            elsewhere=other[..., :-1] if s.jam_conditions else None,
-                            jammed_elsewhere=other[..., -1] == 1 if s.jam_conditions else None)
+                            elsewhere=elsewhere[..., :-1] if s.jam_conditions else None,
+                            jammed_elsewhere=elsewhere[..., -1] == 1 if s.jam_conditions else None)
 
 
 def _summary_to_json(summary: GASummary) -> dict:
