@@ -410,30 +410,31 @@ def test_the_fines_profile_holds_the_box_set_keeps_the_fines_and_varies_slot_res
     assert screening_runs + a.budget + len(s.verification_seeds) + 3 * len(s.validation_seeds) <= 50
 
 
-def test_the_round_profile_holds_the_round_trilobe_and_varies_slot_sinter_rolling_and_sliding():
+def test_the_round_profile_holds_the_round_trilobe_and_varies_slot_and_the_sinters_frictions():
     """profile=lab_round: profile=lab_fines's model (the box set, the sinter's whole sieve analysis) with
     the sinter as the default trilobe (lobe spacing 0.15) and the pellets' restitution at the fines
-    optimum's 0.71; the slot's width and the sinter's rolling and sliding friction reach a run's walls
-    and contact sets; every surrogate point runs at 75-25 too, for the jam classifier; the campaign
-    makes at most 68 runs."""
+    optimum's 0.71; the slot's width and the sinter's rolling, sliding and wall friction reach a run's
+    walls and contact sets; every surrogate point runs at 75-25 too, for the jam classifier; the
+    campaign makes at most 74 runs."""
     plain = _plain(profile="lab_round")
     s = calibration_settings_from(plain)
     model, _ = calibration_model_from(plain, load_measured())
     fines, _ = calibration_model_from(_plain(profile="lab_fines"), load_measured())
     assert model.fixed["lobe_spacing_sinter"] == 0.15 and fines.fixed["lobe_spacing_sinter"] == 0.257418
     assert model.fixed["e_pp"] == 0.71 and model.fixed["mu_r_pp"] == fines.fixed["mu_r_pp"] == 0.105828
-    for name in ("fill_friction", "mu_s_pg", "mu_s_sg"):
+    for name in ("fill_friction", "mu_s_pg"):
         assert model.fixed[name] == fines.fixed[name], name
     assert model.geometry == fines.geometry and model.settings.fines_cut is None
-    three = ("geometry_outlet_width", "mu_r_ss", "mu_s_ss")
-    assert s.screening.table.names == three and s.surrogate.parameters == three
+    four = ("geometry_outlet_width", "mu_r_ss", "mu_s_ss", "mu_s_sg")
+    assert s.screening.table.names == four and s.surrogate.parameters == four
     assert s.surrogate.jam_conditions == ("75-25",)
-    test = model.test_for("50-50", [{"geometry_outlet_width": 0.062, "mu_r_ss": 0.33, "mu_s_ss": 0.9}])
+    test = model.test_for("50-50", [{"geometry_outlet_width": 0.062, "mu_r_ss": 0.33, "mu_s_ss": 0.9,
+                                     "mu_s_sg": 0.85}])
     assert test.geometry.outlet_width == 0.062
     sets = test.parameter_sets[0]
-    assert (sets["mu_r_ss"], sets["mu_s_ss"], sets["e_pp"]) == (0.33, 0.9, 0.71)
+    assert (sets["mu_r_ss"], sets["mu_s_ss"], sets["mu_s_sg"], sets["e_pp"]) == (0.33, 0.9, 0.85, 0.71)
     a = s.surrogate.adaptive
     screening_runs = (2 * (s.screening.table.k + s.screening.n_fake) + 1) * len(s.screening.seeds)
     assert screening_runs == 18
     surrogate_runs = a.budget * len(s.surrogate.seeds) * (1 + len(s.surrogate.jam_conditions))
-    assert screening_runs + surrogate_runs + len(s.verification_seeds) + 3 * len(s.validation_seeds) <= 68
+    assert screening_runs + surrogate_runs + len(s.verification_seeds) + 3 * len(s.validation_seeds) <= 74
