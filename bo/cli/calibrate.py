@@ -94,6 +94,15 @@ def _wrap(where: str, build):
         raise ConfigError(f"config {where}: {exc}") from None
 
 
+def _names(cfg: Mapping[str, Any], key: str, where: str, allowed: str) -> list[str]:
+    """``cfg[key]``: a list of distinct non-empty strings (null: none)."""
+    names = cfg.get(key) or []
+    if isinstance(names, str) or not isinstance(names, Sequence) \
+            or any(not isinstance(k, str) or not k for k in names) or len(set(names)) != len(names):
+        raise out_of_range(key, names, allowed, where)
+    return list(names)
+
+
 def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     from bo.surrogate.acquisition import AcquisitionSettings, AdaptiveSettings
     from bo.calibration.pipeline import NOISE_MODELS, SurrogateStageSettings
@@ -161,16 +170,10 @@ def surrogate_settings_from(cfg: Mapping[str, Any], base_seed: int):
     reuse = cfg.get("reuse_screening", False)
     if not isinstance(reuse, bool):
         raise out_of_range("reuse_screening", reuse, "true or false (the screening's points as surrogate data)", where)
-    designs = cfg.get("reuse_designs") or []
-    if isinstance(designs, str) or not isinstance(designs, Sequence) \
-            or any(not isinstance(k, str) or not k for k in designs) or len(set(designs)) != len(designs):
-        raise out_of_range("reuse_designs", designs, "a list of distinct batch keys of earlier initial designs in "
-                           "the store (python scripts/campaign_status.py lists them), or null", where)
-    jam_conditions = cfg.get("jam_conditions") or []
-    if isinstance(jam_conditions, str) or not isinstance(jam_conditions, Sequence) \
-            or any(not isinstance(c, str) or not c for c in jam_conditions):
-        raise out_of_range("jam_conditions", jam_conditions, "a list of measured conditions (e.g. [75-25]) whose "
-                           "runs feed the jam classifier only, or null", where)
+    designs = _names(cfg, "reuse_designs", where, "a list of distinct batch keys of earlier initial designs in the "
+                     "store (python scripts/campaign_status.py lists them), or null")
+    jam_conditions = _names(cfg, "jam_conditions", where, "a list of distinct measured conditions (e.g. [75-25]) "
+                            "whose runs feed the jam classifier only, or null")
     return SurrogateStageSettings(parameters=names, bounds=bounds, seeds=seeds,
                                   adaptive=adaptive, config=config,
                                   compare_strategies=bool(cfg.get("compare_strategies")), added=checked_added,
