@@ -4,11 +4,18 @@ worker time the rest of what is stored will take (``bo.campaign.progress``), per
 
     python scripts/campaign_status.py                       # every store of campaigns/manifest.json
     python scripts/campaign_status.py campaigns/table2/lab.sqlite --workers 2
+    python scripts/campaign_status.py campaigns/table2/lab_round.sqlite --profile lab_round
+
+With ``--profile NAME`` (and ``--override key=value ...``, as on ``torchdem-calibrate``'s command line)
+it also sets the calibration's plan beside the store (``bo.calibration.plan``): the most runs of every
+stage, those reached or not, what is done of them and how long the rest takes at the store's cost of
+a run of each condition (``--costs-from STORE ...``: where the store has no run of a condition yet,
+its runs in those stores of the same model).
 
 Worker time is one-thread process time, as the campaigns run (``executor=dask``, one thread per
 worker): divide by the number of workers for wall time. Stages not reached yet hold no rows and
-are not in the estimate (the calibration's surrogate rounds, verification and validation).
-Stores are only read.
+are not in the estimate (the calibration's surrogate rounds, verification and validation) unless
+``--profile`` gives the plan. Stores are only read.
 """
 from __future__ import annotations
 
@@ -16,6 +23,7 @@ import argparse
 import json
 from pathlib import Path
 
+from bo.calibration.plan import campaign_plan, plan_progress
 from bo.campaign.progress import StoreProgress, store_progress
 from torchdem.drawdown import JAM_FRACTION
 
@@ -60,16 +68,58 @@ def report(progress: StoreProgress, workers: int) -> str:
     return "\n".join(lines)
 
 
+_SOURCES = {"store": "", "costs_from": " (--costs-from)", "all conditions": " (all conditions)", "": ""}
+
+
+def plan_report(profile: str, overrides: list[str], store: str, workers: int, costs_from: list[str]) -> str:
+    """The plan of ``torchdem-calibrate profile=<profile> <overrides>`` beside ``store``."""
+    from hydra import compose, initialize_config_dir
+
+    from bo.cli.calibrate import calibration_settings_from
+    from bo.cli.common import plain_config
+    from torchdem.cli import CONF_DIR
+    from torchdem.measured import load_measured
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        plain = plain_config(compose("calibrate", overrides=[f"profile={profile}", *overrides]))
+    plan = campaign_plan(calibration_settings_from(plain), load_measured(plain.get("measured")))
+    rows = plan_progress(plan, store, costs_from)
+    lines = [f"Plan of profile={profile}{' ' + ' '.join(overrides) if overrides else ''}: {plan.text()}.", "",
+             "| stage | condition | runs at most | done | left | worker time per run |",
+             "| --- | --- | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        per_run = "?" if r.seconds_per_run is None else _duration(r.seconds_per_run)
+        lines.append(f"| {r.stage} | {r.condition} | {r.planned} | {r.done} | {r.left} | "
+                     f"{per_run}{_SOURCES[r.cost_source]} |")
+    left = [r.seconds_left for r in rows if r.left]
+    total = None if None in left else sum(left)
+    borrowed = any(r.cost_source == "all conditions" and r.left for r in rows)
+    lines += ["", f"Left of the plan: at most {sum(r.left for r in rows)} runs, "
+                  + ("? h" if total is None else f"{_hours(total)} of worker time, {_hours(total / workers)} on "
+                     f"{workers} workers")
+                  + (" (a condition without finished runs takes the median of all of them)" if borrowed else "")
+                  + ". The surrogate stage may stop before its budget."]
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("stores", nargs="*", help="store files (default: those of campaigns/manifest.json)")
     parser.add_argument("--workers", type=int, default=2, help="worker processes, for the wall-time figure")
+    parser.add_argument("--profile", help="a calibration profile (conf/profile/): set its plan beside the store")
+    parser.add_argument("--override", nargs="*", default=[], help="more overrides of that calibration, key=value")
+    parser.add_argument("--costs-from", nargs="*", default=[],
+                        help="stores of the same model whose runs give a condition's cost where the store has none")
     args = parser.parse_args()
     if args.workers < 1:
         raise SystemExit(f"--workers {args.workers}: allowed is an int >= 1")
+    if args.profile and len(args.stores) != 1:
+        raise SystemExit(f"--profile {args.profile}: give the one store of that campaign, not {len(args.stores)}")
     stores = args.stores or [str(ROOT / "campaigns" / s["store"])
                              for s in json.loads((ROOT / "campaigns" / "manifest.json").read_text())["stores"]]
     print("\n\n".join(report(store_progress(s), args.workers) for s in stores))
+    if args.profile:
+        print("\n" + plan_report(args.profile, args.override, stores[0], args.workers, args.costs_from))
 
 
 if __name__ == "__main__":

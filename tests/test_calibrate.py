@@ -942,3 +942,67 @@ def test_jam_conditions_are_checked():
     unknown = dataclasses.replace(base, surrogate=dataclasses.replace(base.surrogate, jam_conditions=("90-10",)))
     with pytest.raises(ConfigError, match=r"surrogate.jam_conditions: \['90-10'\] are not in the measured data"):
         validation_conditions(unknown.validate(), km.known_measurement())
+
+
+# -- the plan: how many runs a campaign makes -------------------------------------------------
+@ON_ONE_WORKER
+def test_the_plan_counts_the_runs_the_campaign_made(known_campaign):
+    """``campaign_plan`` of the known-answer campaign's settings: every stage but the surrogate made
+    exactly the runs the plan names, per condition, and the surrogate at most its budget's. The
+    known measurement has a heap height, so the density check is planned (5 stages); the campaign
+    made it. Beside the finished store every exact stage has nothing left, and a run's cost is
+    that of its own condition's finished runs."""
+    from bo.calibration.plan import campaign_plan, plan_progress
+
+    result, _, store, _ = known_campaign
+    plan = campaign_plan(km.small_settings(), km.known_measurement())
+    made = Counter()
+    for stage in {stage for stage, _ in store.batch_keys()}:
+        group = "surrogate" if stage == "initial" or stage.startswith("round-") else stage
+        for r in store.records(stage, status="done"):
+            made[group, r.condition] += 1
+    assert [s.stage for s in plan.stages] == ["screening", "surrogate", "verification", "density", "validation"]
+    for s in plan.stages:
+        for condition, n in s.runs.items():
+            if s.exact:
+                assert made[s.stage, condition] == n, (s.stage, condition)
+            else:
+                assert 0 < made[s.stage, condition] <= n
+    assert {c for _, c in made} == {"50-50", "75-25", "25-75", "50-50-reverse"}
+    assert plan.stages[0].total == 13 * 3  # a DSD of 4 real and 2 fake factors: 13 points, 3 seeds
+    rows = plan_progress(plan, store.path)
+    assert all(r.left == 0 for r in rows if r.exact)
+    assert all(r.cost_source == "store" and r.seconds_per_run > 0 for r in rows)
+
+
+def test_the_plan_of_the_round_profile_and_where_its_costs_come_from(tmp_path):
+    """profile=lab_round's plan is the budget its comments state (74 runs: screening 9 x 2, the
+    surrogate's 21 points on 50-50 and again on 75-25, verification 5, no density check since Table 2
+    has no heap height, validation 3 x 3). A condition the store has no run of takes its cost from
+    ``costs_from`` stores, else from every run of the store."""
+    from bo.calibration.plan import campaign_plan, plan_progress
+    from torchdem.measured import load_measured
+
+    plan = campaign_plan(calibration_settings_from(_plain(["profile=lab_round"])), load_measured(None))
+    assert {s.stage: dict(s.runs) for s in plan.stages} == {
+        "screening": {"50-50": 18}, "surrogate": {"50-50": 21, "75-25": 21}, "verification": {"50-50": 5},
+        "validation": {"75-25": 3, "25-75": 3, "50-50-reverse": 3}}
+    assert plan.total == 74 and plan.text().startswith("at most 74 DEM runs: screening 18 (9 points x 2 seeds")
+    # one store with three 50-50 screening runs (two of them as a batch of two), another with a 75-25 run
+    from bo.campaign.executor import EvalOutcome
+
+    here, other = CampaignStore(tmp_path / "here.sqlite", "h"), CampaignStore(tmp_path / "other.sqlite", "h")
+    here.batch("screening", "b", lambda: [{"a": 0.1}, {"a": 0.2}, {"a": 0.3}], seeds=[0], conditions=["50-50"])
+    other.batch("validation", "v", lambda: [{"a": 0.1}], seeds=[0], conditions=["75-25"])
+    tasks = here.claim(3)
+    here.record([(tasks[0], EvalOutcome({"k": 1.0}, None, 600.0))])
+    here.record([(t, EvalOutcome({"k": 1.0}, None, 1000.0)) for t in tasks[1:]])  # 500 s a run
+    (task,) = other.claim(1)
+    other.record([(task, EvalOutcome({"k": 1.0}, None, 300.0))])
+    rows = {(r.stage, r.condition): r for r in plan_progress(plan, here.path, costs_from=[other.path])}
+    assert rows["screening", "50-50"].done == 3 and rows["screening", "50-50"].left == 15
+    assert (rows["screening", "50-50"].seconds_per_run, rows["screening", "50-50"].cost_source) == (500.0, "store")
+    assert (rows["surrogate", "75-25"].seconds_per_run, rows["surrogate", "75-25"].cost_source) == (300.0, "costs_from")
+    assert (rows["validation", "25-75"].seconds_per_run, rows["validation", "25-75"].cost_source) == (
+        500.0, "all conditions")
+    assert not rows["surrogate", "50-50"].exact and rows["verification", "50-50"].left == 5

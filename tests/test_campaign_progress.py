@@ -149,3 +149,26 @@ def test_a_larger_clump_scale_is_a_cheaper_class(tmp_path):
     assert again[1.0].seconds_per_run == pytest.approx(100.0) and again[1.0].bound == ""
     # 1.15 is relatively nearer 1.3 (0.15 / 1.3) than 1.0 (0.15 / 1.15): it borrows the cheaper class's figure
     assert (again[1.15].seconds_per_run, again[1.15].bound) == (pytest.approx(60.0), "at least")
+
+
+def test_status_script_sets_a_profiles_plan_beside_the_store(tmp_path):
+    """``--profile``: the calibration's plan, stage by stage, with the store's runs of each condition
+    (``bo.calibration.plan``); a condition without runs takes the other store's (``--costs-from``)."""
+    store = CampaignStore(tmp_path / "round.sqlite", "cfg", code_version="test")
+    store.batch("screening", "design", lambda: [{"mu_r_ss": 0.15}, {"mu_r_ss": 0.4}], seeds=[0], conditions=["50-50"])
+    _finish(store, store.claim(1, "screening"), 960.0)
+    other = CampaignStore(tmp_path / "probe.sqlite", "cfg", code_version="test")
+    other.batch("validation", "set", lambda: [{"mu_r_ss": 0.3}], seeds=[0], conditions=["75-25"])
+    _finish(other, other.claim(1, "validation"), 480.0)
+    script = [sys.executable, str(ROOT / "scripts" / "campaign_status.py")]
+    out = subprocess.run(script + [str(store.path), "--profile", "lab_round", "--costs-from", str(other.path)],
+                         capture_output=True, text=True, check=True).stdout
+    assert "Plan of profile=lab_round: at most 74 DEM runs: screening 18 (9 points x 2 seeds on 50-50)" in out
+    assert "| screening | 50-50 | 18 | 1 | 17 | 16.0 min |" in out
+    assert "| surrogate | 75-25 | 21 | 0 | 21 | 8.0 min (--costs-from) |" in out
+    assert "| validation | 25-75 | 3 | 0 | 3 | 16.0 min (all conditions) |" in out
+    # 17 + 21 + 5 + 3 + 3 runs at 16 min, 21 + 3 at 8 min: 976 min of worker time
+    assert "Left of the plan: at most 73 runs, 16.3 h of worker time, 8.1 h on 2 workers (a condition" in out
+    bad = subprocess.run(script + [str(store.path), str(other.path), "--profile", "lab_round"],
+                         capture_output=True, text=True)
+    assert bad.returncode != 0 and "give the one store of that campaign, not 2" in bad.stderr

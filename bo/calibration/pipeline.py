@@ -68,6 +68,7 @@ from bo.surrogate.acquisition import (AdaptiveSettings, RoundRecord, SamplingSta
                                       propose_batch, state_ceiling, state_learned_ceiling)
 from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.model import DENSITY_PREFIX
+from bo.calibration.plan import campaign_plan
 from bo.campaign.executor import Executor, run_pending
 from bo.surrogate.attainable import AttainableRange, AttainableSettings, attainable_ranges
 from bo.surrogate.ga import GASettings, GASummary, ga_bounds, repeated_ga
@@ -1128,6 +1129,7 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
         walls[stage] = round(now - clock, 3)
         clock = now
 
+    echo(f"plan: {campaign_plan(settings, measured).text()}")
     echo(f"[1/6] screening: {settings.screening.table.k} parameters, {len(settings.screening.seeds)} replicates")
     screening = screening_stage(store, executor, settings.screening, lab, out / "screening")
     lap("screening")

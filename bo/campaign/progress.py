@@ -46,7 +46,7 @@ from bo.campaign.store import RECORD_COLUMNS, EvaluationRecord, affinity_distanc
 from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.errors import ConfigError
 
-__all__ = ["SHAPE_BIN", "CostClass", "StoreProgress", "store_progress"]
+__all__ = ["SHAPE_BIN", "CostClass", "RunCost", "StoreProgress", "run_costs", "store_progress"]
 
 _REUSED = "reused:"
 #: The particle-shape parameters that set a run's cost, and which way: +1 costlier as the value grows
@@ -190,40 +190,81 @@ def check_same_model(path: Path, config_hash: str, source: str = "store_progress
                           "of another model")
 
 
+@dataclass(frozen=True)
+class RunCost:
+    """One row of a store with its cost.
+
+    Attributes:
+        stage, condition, state: the row's. seconds: worker seconds of the run (its ``wall_time``
+            over the runs finished in the same batch); None for a row that has not finished or that
+            took another run's result (``reused:``, ``imported:``: no wall time).
+    """
+
+    stage: str
+    condition: str
+    state: str
+    seconds: float | None
+
+
+_COLUMNS = "stage, params, seed, condition, status, wall_time, claimed_by, finished_at, kpis"
+
+
+def _read_rows(path: Path, source: str) -> list[tuple]:
+    conn = open_read_only(path, source)
+    try:
+        return conn.execute(f"SELECT {_COLUMNS} FROM evaluations ORDER BY task_id").fetchall()
+    finally:
+        conn.close()
+
+
+def _costs(rows: list[tuple]) -> list[float | None]:
+    """Worker seconds of each row (``RunCost.seconds``): rows written by one ``record`` call share
+    their owner, finish time and wall time, and split the wall time."""
+    batch_size: dict[tuple, int] = defaultdict(int)
+    counted = [state in ("done", "failed") and wall is not None and not (owner or "").startswith(_REUSED)
+               for _, _, _, _, state, wall, owner, _, _ in rows]
+    for row, yes in zip(rows, counted):
+        if yes:
+            batch_size[row[6], row[7], row[5]] += 1
+    return [row[5] / batch_size[row[6], row[7], row[5]] if yes else None for row, yes in zip(rows, counted)]
+
+
+def run_costs(path: str | Path) -> tuple[RunCost, ...]:
+    """Every row of the store at ``path`` (read only) with its worker seconds, in task order."""
+    rows = _read_rows(Path(path), "run_costs")
+    return tuple(RunCost(stage, condition, state, cost)
+                 for (stage, _, _, condition, state, *_), cost in zip(rows, _costs(rows)))
+
+
 def store_progress(path: str | Path) -> StoreProgress:
     """Tasks per status, worker time spent and the estimated worker time left in a store."""
     path = Path(path)
+    rows = _read_rows(path, "store_progress")
     conn = open_read_only(path)
     try:
-        rows = conn.execute("SELECT stage, params, seed, condition, status, wall_time, claimed_by, finished_at, kpis "
-                            "FROM evaluations ORDER BY task_id").fetchall()
         keyed = conn.execute("SELECT stage, batch_key, status, COUNT(*) FROM evaluations "
                              "GROUP BY stage, batch_key, status ORDER BY MIN(task_id)").fetchall()
     finally:
         conn.close()
     status: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
-    batch_size: dict[tuple, int] = defaultdict(int)
     discharge = dict.fromkeys(("ended", "not ended", "not recorded", "jammed"), 0)
-    for stage, _, _, _, state, wall, owner, finished, kpis in rows:
+    for stage, _, _, _, state, _, _, _, kpis in rows:
         status[stage][state] += 1
         if state == "done":
             k = json.loads(kpis or "{}")
             discharge[discharge_state(k)] += 1
             discharge["jammed"] += discharge_jammed(k)
-        if state in ("done", "failed") and wall is not None and not (owner or "").startswith(_REUSED):
-            batch_size[(owner, finished, wall)] += 1
     costs: dict[tuple, list[float]] = defaultdict(list)
     counts: dict[tuple, dict[str, int]] = {}  # every class seen, with its runs done and failed
     unfinished: dict[tuple, set] = defaultdict(set)
     spent = 0.0
-    for stage, params, seed, condition, state, wall, owner, finished, _ in rows:
+    for (stage, params, seed, condition, state, *_), cost in zip(rows, _costs(rows)):
         geometry = condition.partition("|")[2]
         key = (geometry, _shape(json.loads(params)))
         counts.setdefault(key, {"done": 0, "failed": 0})
         if state in ("pending", "running"):
             unfinished[key].add((stage, params, seed, condition))
-        elif wall is not None and not (owner or "").startswith(_REUSED):
-            cost = wall / batch_size[(owner, finished, wall)]
+        elif cost is not None:
             spent += cost
             counts[key][state] += 1
             if state == "done":

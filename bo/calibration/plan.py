@@ -1,0 +1,188 @@
+"""How many DEM runs a calibration campaign makes at most, stage by stage, and what is left of them.
+
+Contract
+--------
+``campaign_plan(settings, measured)`` reads a ``CalibrationSettings`` (``bo.calibration.pipeline``)
+and the measured data, and returns a ``CampaignPlan``: per stage and condition, the most DEM runs
+the campaign can make there. Only the surrogate stage can stop short of its figure (its rounds
+end when the cross-validated R^2 reaches the target); every other figure is exact:
+
+- screening: the definitive screening design's runs (``2 m + 1`` points for ``m`` real and fake
+  factors, ``m`` even) times its replicate seeds, on the calibrated condition;
+- surrogate: ``budget`` points times the surrogate's seeds, on the calibrated condition and again
+  on each of ``jam_conditions`` (the screening's reused points are not run again);
+- verification: its seeds, twice with ``fresh_verification``;
+- density: its seeds again, where the measured data carry a heap height and the check is on;
+- validation: its seeds on each validation condition.
+
+``plan_progress(plan, path, costs_from=())`` sets the plan beside a campaign store (read only):
+per stage and condition, the runs done and the worker time the rest will take at the median cost
+of that condition's finished runs in the store (``bo.campaign.progress.run_costs``). Where the
+condition has none yet, the figure comes from its runs in the stores ``costs_from`` (runs of the
+same model elsewhere: a probe of the same geometry and particles), else from the median over all
+conditions of the store; ``PlannedRow.cost_source`` says which. A pellet-rich fill empties in half
+the time of 50-50, so the last is a rough figure. A campaign resumes from its store, so this is
+how long the rest of it takes, before the stages not reached have rows.
+
+``python scripts/campaign_status.py STORE --profile NAME`` prints both.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from statistics import median
+from typing import Mapping, Sequence
+
+from bo.campaign.progress import run_costs
+from bo.design.dsd import definitive_screening_design
+from torchdem.measured import MeasuredData
+
+__all__ = ["StagePlan", "CampaignPlan", "PlannedRow", "campaign_plan", "plan_progress"]
+
+#: The store stages of each plan stage (the surrogate's rounds are ``round-1``, ``round-2``, ...).
+STORE_STAGES = {"screening": ("screening",), "surrogate": ("initial", "round-"), "verification": ("verification",),
+                "density": ("density",), "validation": ("validation",)}
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """The most runs one stage makes.
+
+    Attributes:
+        stage: ``screening``, ``surrogate``, ``verification``, ``density`` or ``validation``.
+        runs: condition -> the most runs there (conditions in the order the stage runs them).
+        what: how the figure is made, for people ("9 points x 2 seeds").
+        exact: whether the stage always makes that many (only the surrogate can stop short).
+    """
+
+    stage: str
+    runs: Mapping[str, int]
+    what: str
+    exact: bool = True
+
+    @property
+    def total(self) -> int:
+        return sum(self.runs.values())
+
+
+@dataclass(frozen=True)
+class CampaignPlan:
+    """The stages of a calibration campaign with their most runs; stages that run nothing are left out."""
+
+    stages: tuple[StagePlan, ...]
+
+    @property
+    def total(self) -> int:
+        return sum(s.total for s in self.stages)
+
+    def text(self) -> str:
+        """One line: ``at most 74 DEM runs: screening 18 (9 points x 2 seeds on 50-50), ...``."""
+        return f"at most {self.total} DEM runs: " + ", ".join(
+            f"{s.stage} {'' if s.exact else 'at most '}{s.total} ({s.what})" for s in self.stages)
+
+
+def _n(n: int, word: str) -> str:
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
+def _conditions(names) -> str:
+    names = list(names)
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def campaign_plan(settings, measured: MeasuredData) -> CampaignPlan:
+    """The most DEM runs of each stage of a campaign of ``settings`` (a ``CalibrationSettings``) on
+    ``measured``; see the module docstring."""
+    from bo.calibration.pipeline import HEAP_HEIGHT_KPI, validation_conditions
+
+    settings = settings.validate()
+    condition, stages = settings.condition, []
+    sc = settings.screening
+    points = definitive_screening_design(sc.table.k, int(sc.n_fake)).shape[0]
+    stages.append(StagePlan("screening", {condition: points * len(sc.seeds)},
+                            f"{_n(points, 'point')} x {_n(len(sc.seeds), 'seed')} on {condition}"))
+    s = settings.surrogate
+    budget = s.adaptive.budget
+    where = (condition, *s.jam_conditions)
+    stages.append(StagePlan("surrogate", {c: budget * len(s.seeds) for c in where},
+                            f"{_n(budget, 'point')} x {_n(len(s.seeds), 'seed')} on {_conditions(where)}", exact=False))
+    n_ver = len(settings.verification_seeds)
+    times = 2 if settings.fresh_verification else 1
+    stages.append(StagePlan("verification", {condition: n_ver * times},
+                            _n(n_ver, "seed") + (", and again on this machine" if times == 2 else "")))
+    if settings.density_recalibration and HEAP_HEIGHT_KPI in measured.condition(condition).kpis:
+        stages.append(StagePlan("density", {condition: n_ver}, f"{_n(n_ver, 'seed')} at the rescaled densities"))
+    validation = validation_conditions(settings, measured)
+    if validation:
+        n_val = len(settings.validation_seeds)
+        stages.append(StagePlan("validation", {c: n_val for c in validation},
+                                f"{_n(n_val, 'seed')} on each of {_conditions(validation)}"))
+    return CampaignPlan(tuple(stages))
+
+
+@dataclass(frozen=True)
+class PlannedRow:
+    """One stage and condition of a plan beside a store.
+
+    Attributes:
+        stage, condition: as in ``StagePlan``. planned: the most runs there. done: runs finished
+            in the store (not reused from another stage's run). left: ``max(planned - done, 0)``.
+        seconds_per_run: median worker seconds of a finished run of the condition (any stage); None:
+            no finished run anywhere.
+        cost_source: where ``seconds_per_run`` comes from: ``"store"`` (the condition's runs in the
+            store), ``"costs_from"`` (its runs in the other stores), ``"all conditions"`` (every
+            finished run of the store) or ``""`` (None).
+        exact: the plan's ``exact`` for the stage.
+    """
+
+    stage: str
+    condition: str
+    planned: int
+    done: int
+    left: int
+    seconds_per_run: float | None
+    cost_source: str
+    exact: bool
+
+    @property
+    def seconds_left(self) -> float | None:
+        return None if self.seconds_per_run is None else self.left * self.seconds_per_run
+
+
+def _seconds_by_condition(path: str | Path) -> dict[str, list[float]]:
+    out: dict[str, list[float]] = {}
+    for run in run_costs(path):
+        if run.state == "done" and run.seconds is not None:
+            out.setdefault(run.condition, []).append(run.seconds)
+    return out
+
+
+def plan_progress(plan: CampaignPlan, path: str | Path,
+                  costs_from: Sequence[str | Path] = ()) -> tuple[PlannedRow, ...]:
+    """The plan's stages and conditions with what the store at ``path`` holds of them; see the
+    module docstring for ``costs_from``."""
+    done: dict[tuple[str, str], int] = {}
+    for run in run_costs(path):
+        stage = next((p for p, prefixes in STORE_STAGES.items() if run.stage.startswith(prefixes)), None)
+        if run.state == "done" and stage is not None:
+            done[stage, run.condition] = done.get((stage, run.condition), 0) + 1
+    own = _seconds_by_condition(path)
+    elsewhere: dict[str, list[float]] = {}
+    for other in costs_from:
+        for condition, seconds in _seconds_by_condition(other).items():
+            elsewhere.setdefault(condition, []).extend(seconds)
+    every = [c for v in own.values() for c in v]
+    rows = []
+    for s in plan.stages:
+        for condition, planned in s.runs.items():
+            if own.get(condition):
+                per_run, source = median(own[condition]), "store"
+            elif elsewhere.get(condition):
+                per_run, source = median(elsewhere[condition]), "costs_from"
+            elif every:
+                per_run, source = median(every), "all conditions"
+            else:
+                per_run, source = None, ""
+            n = done.get((s.stage, condition), 0)
+            rows.append(PlannedRow(s.stage, condition, planned, n, max(planned - n, 0), per_run, source, s.exact))
+    return tuple(rows)
