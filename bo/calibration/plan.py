@@ -125,8 +125,9 @@ class PlannedRow:
     """One stage and condition of a plan beside a store.
 
     Attributes:
-        stage, condition: as in ``StagePlan``. planned: the most runs there. done: runs finished
-            in the store (not reused from another stage's run). left: ``max(planned - done, 0)``.
+        stage, condition: as in ``StagePlan``. planned: the most runs there. done: the stage's
+            finished rows of that condition in the store, those that took the result of the same run
+            elsewhere in the stage included. left: ``max(planned - done, 0)``.
         seconds_per_run: median worker seconds of a finished run of the condition (any stage); None:
             no finished run anywhere.
         cost_source: where ``seconds_per_run`` comes from: ``"store"`` (the condition's runs in the

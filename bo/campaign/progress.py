@@ -209,12 +209,8 @@ class RunCost:
 _COLUMNS = "stage, params, seed, condition, status, wall_time, claimed_by, finished_at, kpis"
 
 
-def _read_rows(path: Path, source: str) -> list[tuple]:
-    conn = open_read_only(path, source)
-    try:
-        return conn.execute(f"SELECT {_COLUMNS} FROM evaluations ORDER BY task_id").fetchall()
-    finally:
-        conn.close()
+def _read_rows(conn: sqlite3.Connection) -> list[tuple]:
+    return conn.execute(f"SELECT {_COLUMNS} FROM evaluations ORDER BY task_id").fetchall()
 
 
 def _costs(rows: list[tuple]) -> list[float | None]:
@@ -231,7 +227,11 @@ def _costs(rows: list[tuple]) -> list[float | None]:
 
 def run_costs(path: str | Path) -> tuple[RunCost, ...]:
     """Every row of the store at ``path`` (read only) with its worker seconds, in task order."""
-    rows = _read_rows(Path(path), "run_costs")
+    conn = open_read_only(Path(path), "run_costs")
+    try:
+        rows = _read_rows(conn)
+    finally:
+        conn.close()
     return tuple(RunCost(stage, condition, state, cost)
                  for (stage, _, _, condition, state, *_), cost in zip(rows, _costs(rows)))
 
@@ -239,9 +239,9 @@ def run_costs(path: str | Path) -> tuple[RunCost, ...]:
 def store_progress(path: str | Path) -> StoreProgress:
     """Tasks per status, worker time spent and the estimated worker time left in a store."""
     path = Path(path)
-    rows = _read_rows(path, "store_progress")
     conn = open_read_only(path)
     try:
+        rows = _read_rows(conn)
         keyed = conn.execute("SELECT stage, batch_key, status, COUNT(*) FROM evaluations "
                              "GROUP BY stage, batch_key, status ORDER BY MIN(task_id)").fetchall()
     finally:
