@@ -12,11 +12,14 @@ drift hits them alike. It prints the time per step, the steps per rebuild and th
 first skin, and how much CPU other processes used meanwhile. ``--time-step-factor 1.5`` runs every
 case at 1.5x the member's step from the gate's opening on (``sim.discharge_time_step_fraction`` 0.225
 over 0.15): a longer step moves the spheres further between steps, so the balance may move.
+``--fines-kept`` times the member with the sinter's whole sieve (``sim.fines_cut_mm=null``, as
+``profile=lab_fines`` and ``profile=lab_round`` run it): 3-5 mm fines beside 8.7 mm pellets, where a skin
+of 0.25 x the largest radius is wider than a fine's radius.
 
 Usage::
 
     python scripts/bench_skin.py [--lobe-spacing 0.3] [--fractions 0.25 0.15 0.1 0.35 0.5] [--warm 1500]
-                                 [--chunk 200] [--rounds 6] [--json]
+                                 [--chunk 200] [--rounds 6] [--fines-kept] [--json]
 """
 from __future__ import annotations
 
@@ -39,14 +42,17 @@ from torchdem.reorder import reorder  # noqa: E402
 from torchdem.simulation import Simulation  # noqa: E402
 
 
-def member_with_skin(lobe_spacing: float, seed: int, fraction: float, time_step_factor: float = 1.0) -> Simulation:
+def member_with_skin(lobe_spacing: float, seed: int, fraction: float, time_step_factor: float = 1.0,
+                     fines_kept: bool = False) -> Simulation:
     """The cached settled member, its system built with ``sim.skin_fraction = fraction`` (its step times
     ``time_step_factor`` from here on)."""
+    fines = ["sim.fines_cut_mm=null"] if fines_kept else []
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        plain = plain_config(compose("calibrate", overrides=["profile=lab", f"sim.skin_fraction={fraction}"]))
+        plain = plain_config(compose("calibrate", overrides=["profile=lab", f"sim.skin_fraction={fraction}", *fines]))
     test = model_from(plain).test_for("50-50", [{"lobe_spacing_sinter": lobe_spacing}])
     system, _, _ = test.build([seed], [0])
-    settled = Simulation.load(CACHE / f"search_lab_s{lobe_spacing:g}_seed{seed}_t0.8.pt", system)
+    cached = CACHE / f"search_lab_s{lobe_spacing:g}_seed{seed}_t0.8{'_fines' if fines_kept else ''}.pt"
+    settled = Simulation.load(cached, system)
     system, state = reorder(settled.system, settled.state)
     if time_step_factor != 1:
         system = system.with_time_step(system.dt * time_step_factor, state.step)
@@ -64,6 +70,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=6)
     parser.add_argument("--time-step-factor", type=float, default=1.0,
                         help="every case's step times this from the gate's opening on (> 0)")
+    parser.add_argument("--fines-kept", action="store_true",
+                        help="the sinter's whole sieve (sim.fines_cut_mm=null, as profile=lab_round runs it)")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON too")
     args = parser.parse_args()
     if not args.time_step_factor > 0:
@@ -73,10 +81,10 @@ def main() -> None:
     if args.chunk < 1 or args.rounds < 1 or args.warm < 0:
         parser.error("--chunk and --rounds must be >= 1 and --warm >= 0")
     torch.set_num_threads(1)
-    settled_member(args.lobe_spacing, args.seed, 0.8)  # fills and caches the member once
+    settled_member(args.lobe_spacing, args.seed, 0.8, fines_kept=args.fines_kept)  # fills and caches the member once
     sims = {}
     for f in args.fractions:
-        sims[f] = member_with_skin(args.lobe_spacing, args.seed, f, args.time_step_factor)
+        sims[f] = member_with_skin(args.lobe_spacing, args.seed, f, args.time_step_factor, args.fines_kept)
         sims[f].advance(args.warm)
     spent = {f: 0.0 for f in args.fractions}
     rebuilds = {f: 0 for f in args.fractions}
@@ -91,7 +99,8 @@ def main() -> None:
     steps = args.chunk * args.rounds
     base = args.fractions[0]
     other = monitor.other_cores
-    print(f"lobe spacing {args.lobe_spacing}, seed {args.seed}: {int(sims[base].system.sphere_radius.numel())} "
+    print(f"lobe spacing {args.lobe_spacing}{' (fines kept)' if args.fines_kept else ''}, seed {args.seed}: "
+          f"{int(sims[base].system.sphere_radius.numel())} "
           f"spheres, t = {sims[base].time:.3f} s at the end, {steps} steps of {sims[base].system.dt:.4g} s per case "
           f"after {args.warm}, one thread; "
           "other processes used " + (f"{other:.2f} cores" if other is not None else "? cores")
@@ -105,7 +114,7 @@ def main() -> None:
         out[str(f)] = {"skin_m": sims[f].system.skin, "ms_per_step": ms, "steps_per_rebuild": per_rebuild,
                        "speedup": spent[base] / spent[f]}
     if args.json:
-        print(json.dumps({"lobe_spacing": args.lobe_spacing, "steps": steps, "warm": args.warm,
+        print(json.dumps({"lobe_spacing": args.lobe_spacing, "fines_kept": args.fines_kept, "steps": steps, "warm": args.warm,
                           "time_step_factor": args.time_step_factor,
                           "other_cpu_cores": other, "cases": out}))
 
