@@ -14,12 +14,14 @@ case at 1.5x the member's step from the gate's opening on (``sim.discharge_time_
 over 0.15): a longer step moves the spheres further between steps, so the balance may move.
 ``--fines-kept`` times the member with the sinter's whole sieve (``sim.fines_cut_mm=null``, as
 ``profile=lab_fines`` and ``profile=lab_round`` run it): 3-5 mm fines beside 8.7 mm pellets, where a skin
-of 0.25 x the largest radius is wider than a fine's radius.
+of 0.25 x the largest radius is wider than a fine's radius. ``--same-bits STEPS`` times nothing: it
+steps every skin's member without reordering and prints how far its positions end from the first's (the
+lists hold the same touching pairs in the same order, so a skin should change no bit).
 
 Usage::
 
     python scripts/bench_skin.py [--lobe-spacing 0.3] [--fractions 0.25 0.15 0.1 0.35 0.5] [--warm 1500]
-                                 [--chunk 200] [--rounds 6] [--fines-kept] [--json]
+                                 [--chunk 200] [--rounds 6] [--fines-kept] [--same-bits 3000] [--json]
 """
 from __future__ import annotations
 
@@ -43,9 +45,11 @@ from torchdem.simulation import Simulation  # noqa: E402
 
 
 def member_with_skin(lobe_spacing: float, seed: int, fraction: float, time_step_factor: float = 1.0,
-                     fines_kept: bool = False) -> Simulation:
+                     fines_kept: bool = False, reordered: bool = True) -> Simulation:
     """The cached settled member, its system built with ``sim.skin_fraction = fraction`` (its step times
-    ``time_step_factor`` from here on)."""
+    ``time_step_factor`` from here on); ``reordered``: renumbered along the Morton curve now and every 10
+    rebuilds, as a campaign run is (the order, and so the bits of the force sums, then follows the
+    rebuilds, which the skin times)."""
     fines = ["sim.fines_cut_mm=null"] if fines_kept else []
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         plain = plain_config(compose("calibrate", overrides=["profile=lab", f"sim.skin_fraction={fraction}", *fines]))
@@ -53,10 +57,20 @@ def member_with_skin(lobe_spacing: float, seed: int, fraction: float, time_step_
     system, _, _ = test.build([seed], [0])
     cached = CACHE / f"search_lab_s{lobe_spacing:g}_seed{seed}_t0.8{'_fines' if fines_kept else ''}.pt"
     settled = Simulation.load(cached, system)
-    system, state = reorder(settled.system, settled.state)
+    system, state = reorder(settled.system, settled.state) if reordered else (settled.system, settled.state)
     if time_step_factor != 1:
         system = system.with_time_step(system.dt * time_step_factor, state.step)
-    return Simulation(system, state, reorder_every=10)
+    return Simulation(system, state, reorder_every=10 if reordered else 0)
+
+
+def same_bits(lobe_spacing: float, seed: int, fractions, steps: int, fines_kept: bool) -> dict[float, float]:
+    """Largest position difference, m, of each skin's member from the first's after ``steps`` steps from
+    the gate's opening, none of them reordered: 0.0 where the skin changed no bit of the run."""
+    sims = {f: member_with_skin(lobe_spacing, seed, f, fines_kept=fines_kept, reordered=False) for f in fractions}
+    for sim in sims.values():
+        sim.advance(steps)
+    base = sims[fractions[0]].state.bodies.position
+    return {f: float((sim.state.bodies.position - base).abs().max()) for f, sim in sims.items()}
 
 
 def main() -> None:
@@ -72,6 +86,9 @@ def main() -> None:
                         help="every case's step times this from the gate's opening on (> 0)")
     parser.add_argument("--fines-kept", action="store_true",
                         help="the sinter's whole sieve (sim.fines_cut_mm=null, as profile=lab_round runs it)")
+    parser.add_argument("--same-bits", type=int, default=0, metavar="STEPS",
+                        help="instead of timing: step every skin STEPS steps without reordering and print how far "
+                             "its positions are from the first skin's")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON too")
     args = parser.parse_args()
     if not args.time_step_factor > 0:
@@ -82,6 +99,11 @@ def main() -> None:
         parser.error("--chunk and --rounds must be >= 1 and --warm >= 0")
     torch.set_num_threads(1)
     settled_member(args.lobe_spacing, args.seed, 0.8, fines_kept=args.fines_kept)  # fills and caches the member once
+    if args.same_bits:
+        for f, d in same_bits(args.lobe_spacing, args.seed, args.fractions, args.same_bits, args.fines_kept).items():
+            print(f"  skin {f:5.3g} x r_max: largest position difference from {args.fractions[0]:g} after "
+                  f"{args.same_bits} steps: {d:.3g} m")
+        return
     sims = {}
     for f in args.fractions:
         sims[f] = member_with_skin(args.lobe_spacing, args.seed, f, args.time_step_factor, args.fines_kept)
