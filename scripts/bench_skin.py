@@ -97,6 +97,8 @@ def main() -> None:
         parser.error(f"--fractions {args.fractions}: distinct values in (0, 2] expected")
     if args.chunk < 1 or args.rounds < 1 or args.warm < 0:
         parser.error("--chunk and --rounds must be >= 1 and --warm >= 0")
+    if args.same_bits < 0:
+        parser.error(f"--same-bits {args.same_bits}: expected a number of steps >= 1 (0: time the skins)")
     torch.set_num_threads(1)
     settled_member(args.lobe_spacing, args.seed, 0.8, fines_kept=args.fines_kept)  # fills and caches the member once
     if args.same_bits:

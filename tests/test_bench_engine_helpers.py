@@ -100,6 +100,7 @@ def test_bench_reorder_refuses_cases_without_a_baseline_or_steps(monkeypatch, ca
     (["--fractions", "0.25", "0.25"], "distinct values in (0, 2]"),
     (["--fractions", "0.25", "0"], "distinct values in (0, 2]"),
     (["--rounds", "0"], "--chunk and --rounds must be >= 1"),
+    (["--same-bits", "-5"], "--same-bits -5: expected a number of steps >= 1"),
 ])
 def test_bench_skin_refuses_bad_skins_or_steps(monkeypatch, capsys, argv, message):
     """scripts/bench_skin.py names a bad --fractions or step count before it builds anything."""
