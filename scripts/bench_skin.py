@@ -13,8 +13,9 @@ first skin, and how much CPU other processes used meanwhile. ``--time-step-facto
 case at 1.5x the member's step from the gate's opening on (``sim.discharge_time_step_fraction`` 0.225
 over 0.15): a longer step moves the spheres further between steps, so the balance may move.
 ``--fines-kept`` times the member with the sinter's whole sieve (``sim.fines_cut_mm=null``, as
-``profile=lab_fines`` and ``profile=lab_round`` run it): 3-5 mm fines beside 8.7 mm pellets, where a skin
-of 0.25 x the largest radius is wider than a fine's radius. ``--same-bits STEPS`` times nothing: it
+``profile=lab_fines`` and ``profile=lab_round`` run it): at lobe spacing 0.15, spheres of 1.96-8.70 mm
+radius, half of them under 2.61 mm, so a skin of 0.25 x the largest radius (2.18 mm) is about a median
+sphere's radius. ``--same-bits STEPS`` times nothing: it
 steps every skin's member without reordering and prints how far its positions end from the first's (the
 lists hold the same touching pairs in the same order, so a skin should change no bit).
 
