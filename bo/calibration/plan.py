@@ -150,9 +150,9 @@ class PlannedRow:
         return None if self.seconds_per_run is None else self.left * self.seconds_per_run
 
 
-def _seconds_by_condition(path: str | Path) -> dict[str, list[float]]:
+def _seconds_by_condition(runs) -> dict[str, list[float]]:
     out: dict[str, list[float]] = {}
-    for run in run_costs(path):
+    for run in runs:
         if run.state == "done" and run.seconds is not None:
             out.setdefault(run.condition, []).append(run.seconds)
     return out
@@ -162,15 +162,16 @@ def plan_progress(plan: CampaignPlan, path: str | Path,
                   costs_from: Sequence[str | Path] = ()) -> tuple[PlannedRow, ...]:
     """The plan's stages and conditions with what the store at ``path`` holds of them; see the
     module docstring for ``costs_from``."""
+    runs = run_costs(path)
     done: dict[tuple[str, str], int] = {}
-    for run in run_costs(path):
+    for run in runs:
         stage = next((p for p, prefixes in STORE_STAGES.items() if run.stage.startswith(prefixes)), None)
         if run.state == "done" and stage is not None:
             done[stage, run.condition] = done.get((stage, run.condition), 0) + 1
-    own = _seconds_by_condition(path)
+    own = _seconds_by_condition(runs)
     elsewhere: dict[str, list[float]] = {}
     for other in costs_from:
-        for condition, seconds in _seconds_by_condition(other).items():
+        for condition, seconds in _seconds_by_condition(run_costs(other)).items():
             elsewhere.setdefault(condition, []).extend(seconds)
     every = [c for v in own.values() for c in v]
     rows = []
