@@ -25,8 +25,8 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, checkpoint_dir_for, config_hash, executor_settings_from, flag,
-                           plain_config, store_path_from)
+from bo.cli.common import (MODEL_KEYS, checkpoint_dir_for, executor_settings_from, flag, _int, open_store, plain_config,
+                           store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 
@@ -83,7 +83,6 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     from bo.cli.calibrate import calibration_model_from
     from bo.cli.common import executor_factory
     from bo.cli.discover import calibrated_from, discovery_settings_from
-    from bo.campaign.store import CampaignStore
     from bo.discovery.pipeline import discovery_stages
     from bo.discovery.power import power_stages, power_summary, run_power_study, rows_to_json, tabulate
     from torchdem.measured import load_measured
@@ -105,9 +104,9 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     baseline, source = calibrated_from(plain, model.fixed)
     effects = effects_from(plain, model_context(model, baseline))
     names = sorted({e.mechanism for e in effects})
-    store = CampaignStore(store_path_from(plain, out), config_hash(plain, MODEL_KEYS + ("measured", "calibration")),
-                          allow_config_mismatch=bool(plain.get("allow_config_mismatch")),
-                          extra_stages=discovery_stages() + power_stages(names))
+    store = open_store(store_path_from(plain, out), plain, MODEL_KEYS + ("measured", "calibration"),
+                       allow_config_mismatch=bool(plain.get("allow_config_mismatch")),
+                       extra_stages=discovery_stages() + power_stages(names))
     if reanalysing:
         return reanalyse_report(store, model, baseline, template, effects, settings, numbers, out, echo)
     echo(f"power study: {len(effects)} effects x {numbers['labs']} labs + {numbers['null_labs']} null labs; "

@@ -38,7 +38,7 @@ from bo.campaign.dem import evaluate_batch
 from bo.campaign.executor import EvalOutcome, EvalTask
 from bo.campaign.progress import config_hash_of
 from bo.campaign.store import CampaignStore
-from bo.cli.common import MODEL_KEYS, config_hash, model_from, plain_config
+from bo.cli.common import MODEL_KEYS, model_from, open_store, plain_config, store_hashes
 from torchdem.errors import ConfigError
 
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
@@ -56,8 +56,8 @@ def compose_plain(overrides: list[str], command: str = "calibrate") -> dict:
 
 def lease(args) -> None:
     plain = compose_plain(args.overrides, args.command_of_store)
-    digest = config_hash(plain, HASHED[args.command_of_store])
-    store = CampaignStore(args.store, digest)
+    store = open_store(args.store, plain, HASHED[args.command_of_store])
+    digest = store.config_hash
     tasks = store.lease(args.tasks, args.owner, time.time() + 3600.0 * args.hours)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -72,11 +72,11 @@ def lease(args) -> None:
 def run(args) -> None:
     spec = json.loads(Path(args.tasks_file).read_text())
     plain = compose_plain([*spec["overrides"], *args.overrides], spec["command"])
-    digest = config_hash(plain, HASHED[spec["command"]])
-    if digest != spec["config_hash"]:
+    hashes = store_hashes(plain, HASHED[spec["command"]])
+    if spec["config_hash"] not in hashes:
         raise ConfigError(f"{args.tasks_file}: the overrides {args.overrides} change the model (config hash "
-                          f"{digest} against the store's {spec['config_hash']}); give only "
-                          "execution settings (sim.device, sim.compile, sim.reorder_every)")
+                          f"{hashes[0]} against the store's {spec['config_hash']}); give only "
+                          "execution settings (sim.device, sim.compile, sim.reorder_every, sim.skin_fraction)")
     model = model_from(plain)
     tasks = [EvalTask(t["params"], t["seed"], t["condition"], t["task_id"]) for t in spec["tasks"]]
     started, shown = time.perf_counter(), [-1.0]

@@ -151,9 +151,8 @@ def _parameters(value, key: str, source: str) -> dict[str, float]:
 def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> "CampaignStore":  # noqa: F821
     """Every set's missing runs, in the probe's store; returns the store."""
     from bo.campaign.executor import run_pending
-    from bo.campaign.store import CampaignStore
     from bo.cli.calibrate import calibration_model_for
-    from bo.cli.common import MODEL_KEYS, ExecutorSettings, checkpoint_dir_for, config_hash, executor_from
+    from bo.cli.common import MODEL_KEYS, ExecutorSettings, checkpoint_dir_for, executor_from, open_store
 
     plain, model, _ = calibration_model_for(probe["overrides"])
     named = dict.fromkeys(c for name in probe["sets"] for c in conditions_of(probe, name))
@@ -161,7 +160,7 @@ def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> "CampaignSt
     if unknown:
         raise out_of_range("conditions", unknown, f"conditions of the model {sorted(model.conditions)}", "probe file")
     path = Path(probe["store"])
-    store = CampaignStore(path, config_hash(plain, MODEL_KEYS + ("measured",)), extra_stages=(STAGE,))
+    store = open_store(path, plain, MODEL_KEYS + ("measured",), extra_stages=(STAGE,))
     for name, (params, seeds) in probe["sets"].items():
         store.batch(STAGE, name, lambda p=params: [p], seeds=seeds, conditions=conditions_of(probe, name))
     if probe.get("adopt"):
@@ -184,7 +183,7 @@ def adopt_runs(store, probe: Mapping[str, Any]) -> str:
     spec = probe["adopt"]
     params, seeds = probe["sets"][spec["set"]]
     source = Path(spec["store"])
-    check_same_model(source, store.config_hash, "probe file: adopt")  # read only: a shipped store is not written
+    check_same_model(source, store.model_hashes, "probe file: adopt")  # read only: a shipped store is not written
     runs = [r for stage in spec["stage"] for r in done_records(source, stage, "probe file: adopt")]
     runs = [r for r in runs if r.seed in seeds and r.condition in conditions_of(probe, spec["set"]) and r.params
             and all(n in params and math.isclose(v, params[n], rel_tol=1e-12, abs_tol=0.0)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from bo.cli.common import MODEL_KEYS, config_hash, plain_config
+from bo.cli.common import MODEL_KEYS, plain_config, store_hashes
 from torchdem.cli import CONF_DIR
 
 CAMPAIGNS = Path(__file__).resolve().parent.parent / "campaigns"
@@ -28,7 +28,8 @@ def test_shipped_store_matches_its_command_config(entry):
         plain = plain_config(compose(entry["config"], overrides=entry["overrides"]))
     with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as conn:
         stored = dict(conn.execute("SELECT key, value FROM meta").fetchall())["config_hash"]
-    assert config_hash(plain, MODEL_KEYS + tuple(entry.get("hashed_also", ()))) == stored, f"{entry['store']}: the config of `{entry['command']}` changed"
+    hashes = store_hashes(plain, MODEL_KEYS + tuple(entry.get("hashed_also", ())))
+    assert stored in hashes, f"{entry['store']}: the config of `{entry['command']}` changed"
 
 
 def test_every_shipped_store_is_in_the_manifest():

@@ -1197,6 +1197,31 @@ def test_a_checkpoint_made_in_build_order_resumes_with_reordering_on(tmp_path):
         assert 0 < o.kpis["mass_lower_box_kg"] <= o.kpis["fill_mass_kg"]
 
 
+def test_a_checkpoint_resumes_at_another_skin(tmp_path):
+    """The Verlet skin is an execution setting: a batch checkpointed at one skin finds its checkpoint
+    under the same name at twice the skin, rebuilds the lists at load (a thin skin's lists would miss
+    pairs: tests/test_neighbors.py) and measures every KPI with the mass conserved, the cost carried
+    over. (On this periodic slice a whole rebuild wraps the bodies back, so the runs differ from an
+    uninterrupted one at round-off, as with the reorder.)"""
+    from bo.campaign.dem import checkpoint_path, evaluate_batch
+    from bo.campaign.executor import EvalTask
+
+    model, _ = _dem_model()
+    tasks = [EvalTask({"mu_s_pp": 0.5}, 0, "50-50"), EvalTask({"mu_s_pp": 0.3}, 1, "50-50")]
+    path = checkpoint_path(tmp_path, model, tasks)
+    before = _kill_mid_run(model, tasks, path)
+    wider = dataclasses.replace(model, settings=dataclasses.replace(
+        model.settings, skin_fraction=2 * model.settings.skin_fraction))
+    assert checkpoint_path(tmp_path, wider, tasks) == path
+    resumed = evaluate_batch(wider, tasks, checkpoint_dir=str(tmp_path))
+    assert not path.exists()
+    for o in resumed:
+        assert o.ok, o.error
+        assert o.wall_time >= before
+        assert all(math.isfinite(v) for v in o.kpis.values()), o.kpis
+        assert 0 < o.kpis["mass_lower_box_kg"] <= o.kpis["fill_mass_kg"]
+
+
 def test_clump_shape_prior_fits_the_periodic_slice():
     """On the paper's 4 cm periodic slice the lobe spacing prior starts where the largest sinter
     (25 mm) still fits the minimum image (s > 0.5 - 0.95 x 0.04 / (4 x 0.025) = 0.12), and the

@@ -97,8 +97,7 @@ def _shipped_screening(tmp_path):
     from pathlib import Path
 
     from bo.campaign.executor import InProcessExecutor
-    from bo.campaign.store import CampaignStore
-    from bo.cli.common import MODEL_KEYS, config_hash
+    from bo.cli.common import MODEL_KEYS, open_store
     from bo.screening.pipeline import run_screening
 
     plain = _plain(profile="lab_4s")
@@ -106,7 +105,7 @@ def _shipped_screening(tmp_path):
     s = settings.screening
     shipped = Path(__file__).resolve().parents[1] / "campaigns" / "table2" / "lab_4s.sqlite"
     shutil.copy(shipped, tmp_path / "lab.sqlite")
-    store = CampaignStore(tmp_path / "lab.sqlite", config_hash(plain, MODEL_KEYS + ("measured",)))  # as calibrate
+    store = open_store(tmp_path / "lab.sqlite", plain, MODEL_KEYS + ("measured",))  # as calibrate
     assert store.counts("screening")["done"] == 66
 
     def nothing_runs(tasks):

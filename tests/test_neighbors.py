@@ -639,3 +639,40 @@ def test_the_skin_changes_no_bit_of_a_run():
     for fraction in (0.1, 0.5):
         assert torch.equal(runs[fraction].state.bodies.position, runs[0.25].state.bodies.position)
         assert torch.equal(runs[fraction].state.bodies.angular_momentum, runs[0.25].state.bodies.angular_momentum)
+
+
+def test_a_run_resumed_at_another_skin_ends_with_the_same_bits(tmp_path):
+    """The skin is an execution setting (``torchdem.model.EXECUTION_ONLY``), so a checkpoint may resume
+    at another one: the spheres of the test above, saved after 700 of 1,500 steps at a skin of 0.1 of the
+    largest radius and resumed at 0.5 (whose criterion waits for pairs the thin lists never held), or
+    the other way, end with the bits of the run not interrupted; a resume at the same skin keeps the
+    saved lists (no rebuild at load)."""
+    from torchdem.materials import Material, interaction_table
+    from torchdem.simulation import Simulation
+    from torchdem.system import build_system
+
+    g = torch.Generator().manual_seed(3)
+    glass = Material("glass", shear_modulus=1e7, poisson_ratio=0.25, density=2500.0)
+    table = interaction_table([glass], {("glass", "glass"): dict(mu_s=0.5, mu_r=0.1, restitution=0.5)}, batch=1)
+    radius = torch.where(torch.rand(1, 60, generator=g) < 0.6, 0.002, 0.006).to(F64)
+    sites = torch.cartesian_prod(*[torch.arange(4, dtype=F64) * 0.0135] * 3)
+    position = (sites[torch.randperm(64, generator=g)[:60]] + 0.005).unsqueeze(0)
+    velocity = -(position - 0.025) * 20.0
+
+    def system(fraction):
+        return build_system(position, torch.zeros(1, 60, dtype=torch.long), [glass], table, radius=radius,
+                            velocity=velocity, gravity=(0, 0, 0), skin=fraction * 0.006,
+                            domain=((-0.05, -0.05, -0.05), (0.1, 0.1, 0.1)))
+
+    whole = Simulation(*system(0.25))
+    whole.advance(1500)
+    for saved, resumed in ((0.1, 0.5), (0.5, 0.1), (0.1, 0.1)):
+        first = Simulation(*system(saved))
+        first.advance(700)
+        first.save(tmp_path / "run.pt")
+        again = Simulation.load(tmp_path / "run.pt", system(resumed)[0])
+        assert again.state.rebuilds == first.state.rebuilds + (saved != resumed)
+        again.advance(800)
+        assert torch.equal(again.state.bodies.position, whole.state.bodies.position), (saved, resumed)
+        assert torch.equal(again.state.bodies.angular_momentum, whole.state.bodies.angular_momentum)
+

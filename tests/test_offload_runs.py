@@ -10,6 +10,7 @@ import pytest
 from bo.campaign.dem import evaluate_batch
 from bo.campaign.executor import EvalTask
 from bo.campaign.store import CampaignStore
+from bo.cli.common import config_hash
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("offload_runs", ROOT / "scripts" / "offload_runs.py")
@@ -21,7 +22,7 @@ POINTS = [{"mu_s_pp": 0.3, "mu_s_ss": 0.9}, {"mu_s_pp": 0.8, "mu_s_ss": 0.4}]
 
 def test_leased_runs_come_back_as_the_campaign_would_have_run_them(tmp_path, capsys):
     plain = offload.compose_plain(["profile=smoke"])
-    digest = offload.config_hash(plain, offload.HASHED["calibrate"])
+    digest = config_hash(plain, offload.HASHED["calibrate"])
     path = tmp_path / "c.sqlite"
     store = CampaignStore(path, digest)
     store.batch("screening", "k", lambda: POINTS, seeds=[0], conditions=["50-50"])  # tasks 1, 2
@@ -46,7 +47,7 @@ def test_leased_runs_come_back_as_the_campaign_would_have_run_them(tmp_path, cap
 
 def test_release_gives_back_what_did_not_come_back_and_bad_input_is_named(tmp_path):
     path = tmp_path / "c.sqlite"
-    digest = offload.config_hash(offload.compose_plain(["profile=smoke"]), offload.HASHED["calibrate"])
+    digest = config_hash(offload.compose_plain(["profile=smoke"]), offload.HASHED["calibrate"])
     store = CampaignStore(path, digest)
     store.batch("screening", "k", lambda: POINTS, seeds=[0], conditions=["50-50"])
     offload.main(["lease", str(path), "profile=smoke", "--tasks", "1", "2", "--owner", "gpu:offload",

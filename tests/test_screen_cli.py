@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from bo.cli.common import config_hash, plain_config, screen_settings_from
+from bo.cli.common import MODEL_KEYS, config_hash, plain_config, screen_settings_from
 from bo.cli.screen import screen
 from bo.design.dsd import ParameterTable, definitive_screening_design, paper_parameter_table, scale_design
 from bo.campaign.executor import EvalOutcome, InProcessExecutor
@@ -222,6 +222,32 @@ def test_profiles_compose_to_the_documented_designs():
     assert config_hash(_plain(["+sim.reorder_every=10"])) == config_hash(_plain([]))
     assert config_hash(_plain(["+sim.reorder_every=0"])) == config_hash(_plain(["+sim.reorder_every=3"]))
     assert config_hash(_plain(["sim.dtype=float32"])) != config_hash(_plain(["sim.dtype=float64"]))
+    # so is the Verlet skin (it changes no bit of a run: tests/test_neighbors.py)
+    assert config_hash(_plain(["sim.skin_fraction=0.1"])) == config_hash(_plain([]))
+
+
+def test_a_store_made_while_the_skin_was_hashed_opens_at_any_skin(tmp_path):
+    """Every store made before the Verlet skin became execution-only carries the hash of its config with
+    ``sim.skin_fraction`` in it (0.25 on the CPU profiles, 0.5 on the smoke one): a config at another skin
+    opens it and writes its runs under that hash, a new store takes the hash without the skin, and a
+    store of another model still does not open."""
+    from bo.cli.common import HASHED_SKINS, _digest, open_store, store_hashes
+
+    plain = _plain([])
+    assert plain["sim"]["skin_fraction"] == 0.5 and HASHED_SKINS == (0.25, 0.5)
+    then = _digest(plain, MODEL_KEYS, kept=("skin_fraction",))
+    cpu_skin = _digest(_plain(["sim.skin_fraction=0.25"]), MODEL_KEYS, kept=("skin_fraction",))
+    assert store_hashes(plain) == (config_hash(plain), cpu_skin, then) and then != config_hash(plain)
+    CampaignStore(tmp_path / "then.sqlite", then).batch("screening", "k", lambda: [{"mu_s_pp": 0.5}], seeds=[0],
+                                                        conditions=["50-50"])
+    store = open_store(tmp_path / "then.sqlite", _plain(["sim.skin_fraction=0.1"]))
+    assert store.config_hash == then and store.model_hashes[0] == config_hash(plain)
+    [task] = store.claim(1)
+    store.record([(task, EvalOutcome(kpis={"shear_angle_deg": 30.0}, error=None, wall_time=1.0))])
+    assert [r.config_hash for r in store.records("screening", status="done")] == [then]
+    assert open_store(tmp_path / "now.sqlite", _plain(["sim.skin_fraction=0.1"])).config_hash == config_hash(plain)
+    with pytest.raises(ConfigError, match="config hash"):
+        open_store(tmp_path / "then.sqlite", _plain(["run.fill_time_s=0.3"]))
 
 
 def test_cli_reports_a_bad_config_and_exits_nonzero(tmp_path):

@@ -588,7 +588,8 @@ class DrawDownTest:
 
         def save_checkpoint(simulation: Simulation) -> None:
             tmp = ckpt.with_suffix(ckpt.suffix + ".tmp")
-            torch.save({"state": to_dict(simulation.state), "failed": simulation.failed, "members": members,
+            torch.save({"state": to_dict(simulation.state), "failed": simulation.failed,
+                        "skin": simulation.system.skin, "members": members,
                         "times": torch.tensor(times, dtype=torch.float64),
                         "masses": [torch.as_tensor(m) for m in masses],
                         "pellet_masses": [torch.as_tensor(m) for m in pellet_masses],

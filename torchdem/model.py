@@ -126,8 +126,13 @@ _GEOMETRY_FIELDS = {"slice_depth": _optional_length, "mirror": _flag}
 #: kernels' runs do between CPUs, so a campaign store and a batch's checkpoint do not tell them apart
 #: (``bo.cli.common.config_hash``, ``bo.campaign.dem.checkpoint_path``). ``retry_time_steps`` is
 #: one too: it decides only whether a run that blew up is run again at a shorter step (the outcome
-#: of such a run records the step it ran at, ``time_step_s``).
-EXECUTION_ONLY = ("device", "compile", "reorder_every", "retry_time_steps")
+#: of such a run records the step it ran at, ``time_step_s``). ``skin_fraction`` is one too: the
+#: Verlet skin decides how often the neighbour lists are rebuilt, never which pairs touch nor their
+#: order (without the reorder and on a grid without periods, runs at any skin end with the same bits:
+#: ``tests/test_neighbors.py::test_the_skin_changes_no_bit_of_a_run``; on a periodic one a whole
+#: rebuild wraps the bodies back into the domain, at round-off), and a checkpoint resumed at another
+#: skin rebuilds its lists (:meth:`torchdem.simulation.Simulation.load`).
+EXECUTION_ONLY = ("device", "compile", "reorder_every", "retry_time_steps", "skin_fraction")
 
 
 @dataclass(frozen=True)
@@ -150,7 +155,7 @@ class DrawDownModel:
 
     def without_execution(self) -> "DrawDownModel":
         """This model with its :data:`EXECUTION_ONLY` settings at their defaults: what its runs
-        give, whatever device, compilation or body order they run with."""
+        give, whatever device, compilation, Verlet skin or body order they run with."""
         def defaults(obj):
             return {f.name: f.default for f in dataclasses.fields(obj) if f.name in EXECUTION_ONLY}
         return dataclasses.replace(self, settings=dataclasses.replace(self.settings, **defaults(self.settings)),

@@ -13,7 +13,10 @@ Contract:
   ``failed`` and carries on, so the other members are untouched (members never share data).
 - Bodies that leave the domain box are deactivated and counted in ``state.lost``.
 - ``save(path)`` / ``Simulation.load(path, system)`` write and read the full state, contact
-  history included, so a run resumes bit-for-bit.
+  history included, so a run resumes bit-for-bit. The save records the Verlet skin its lists were
+  built with; a system of another skin rebuilds them at load (lists of a thinner skin would miss
+  pairs the wider one's criterion waits for); on a grid without periods that changes no bit of the
+  run (a whole rebuild on a periodic one wraps the bodies back into the domain, at round-off).
 - ``reorder_every = k > 0`` renumbers the bodies along a space-filling curve after every k-th
   neighbour rebuild (:mod:`torchdem.reorder`), so the contact kernels read partners that lie
   close in memory; ``state.body_id`` keeps every body's id as built, and ``load`` maps the system
@@ -37,7 +40,7 @@ import torch
 
 from torchdem.errors import BlowUpError, ConfigError
 from torchdem.heap import keep_freed_memory
-from torchdem.integrate import Kernels, body_angular_velocity, evaluate_forces, step
+from torchdem.integrate import Kernels, body_angular_velocity, evaluate_forces, rebuild, sphere_positions, step
 from torchdem.reorder import permute_system, reorder
 from torchdem.state import State, state_from_dict, to_dict
 from torchdem.system import System
@@ -230,14 +233,16 @@ class Simulation:
         """Write the full state (bodies, contact lists with history, counters) to ``path``. A tensor
         over more memory than it uses (a kernel's recycled output buffer) is written as a compact
         copy: torch.save writes a tensor's whole storage."""
-        torch.save({"state": _compact(to_dict(self.state)), "failed": self.failed}, Path(path))
+        torch.save({"state": _compact(to_dict(self.state)), "failed": self.failed, "skin": self.system.skin},
+                   Path(path))
 
     @classmethod
     def load(cls, path: str | Path, system: System, guards: GuardSettings = GuardSettings(),
              compile: bool = False, backend: str = "auto", reorder_every: int = 0) -> "Simulation":
         """Restore a run saved by :meth:`save`; ``system`` must be the one it was built with (in
-        the order it was built: a reordered state's order is applied to it here). The state is
-        loaded onto the system's device, so a run saved on a GPU resumes on a CPU and back."""
+        the order it was built: a reordered state's order is applied to it here), up to its Verlet
+        skin: lists saved with another skin (or none recorded) are rebuilt with the system's. The
+        state is loaded onto the system's device, so a run saved on a GPU resumes on a CPU and back."""
         data = torch.load(Path(path), weights_only=True, map_location=system.mass.device)
         state = state_from_dict(data["state"])
         if state.bodies.position.shape[:2] != system.mass.shape:
@@ -248,7 +253,16 @@ class Simulation:
             system = permute_system(system, state.body_id, state.sphere_id)
         sim = cls(system, state, guards, compile, backend, reorder_every)
         sim.failed = dict(data.get("failed", {}))
+        if data.get("skin") != system.skin:
+            sim.rebuild_lists()
         return sim
+
+    def rebuild_lists(self) -> None:
+        """Rebuild both neighbour lists whole at the current positions (contact history carried),
+        as a step does when the skin criterion fires; the forces are left as they are."""
+        xs = sphere_positions(self.system, self.state.bodies)
+        self.state, _ = rebuild(self.system, self.state, xs, self.time,
+                                values=self.kernels.extension(xs) is None)
 
 
 def _compact(d: dict) -> dict:

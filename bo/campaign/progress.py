@@ -41,6 +41,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import median
+from typing import Sequence
 
 from bo.campaign.store import RECORD_COLUMNS, EvaluationRecord, affinity_distance, record_from_row
 from kpi.loadcell import discharge_jammed, discharge_state
@@ -181,13 +182,14 @@ def config_hash_of(path: Path, source: str = "store_progress") -> str | None:
     return None if row is None else row[0]
 
 
-def check_same_model(path: Path, config_hash: str, source: str = "store_progress") -> None:
-    """Refuse a store whose runs are of another model than ``config_hash`` (the hash of the config that
-    would read them as its own), naming both hashes; read only."""
+def check_same_model(path: Path, config_hashes: str | Sequence[str], source: str = "store_progress") -> None:
+    """Refuse a store whose runs are of another model than ``config_hashes`` (the hashes of the model
+    that would read them as its own, ``bo.cli.common.store_hashes``), naming them; read only."""
+    hashes = [config_hashes] if isinstance(config_hashes, str) else list(config_hashes)
     stored = config_hash_of(path, source)
-    if stored != config_hash:
-        raise ConfigError(f"{source}: {path} has config hash {stored!r}, this model's {config_hash!r}: its runs are "
-                          "of another model")
+    if stored not in hashes:
+        raise ConfigError(f"{source}: {path} has config hash {stored!r}, this model's "
+                          f"{' or '.join(map(repr, hashes))}: its runs are of another model")
 
 
 @dataclass(frozen=True)

@@ -69,7 +69,9 @@ Queries return plain data: ``records(...)`` a list of frozen ``EvaluationRecord`
 ``seeds [n]`` and the names of the columns.
 
 The store remembers the config hash it was created with; opening it with another hash raises
-``ConfigError`` naming both hashes and the path unless ``allow_config_mismatch=True``.
+``ConfigError`` naming both hashes and the path unless ``allow_config_mismatch=True``, or the
+store's hash is one of ``also_accepts`` (the same model hashed by an earlier rule), which the
+store then keeps for its rows.
 """
 from __future__ import annotations
 
@@ -364,19 +366,25 @@ class CampaignStore:
         config_hash: hash of the campaign config; must match the one the store was created with.
         code_version: recorded with every write; default ``default_code_version()``.
         allow_config_mismatch: open a store created with another config hash anyway.
+        also_accepts: other hashes of the same model (the hashes of an earlier hashing rule,
+            ``bo.cli.common.store_hashes``): a store created with one of them opens, and its runs
+            keep that hash (``self.config_hash`` becomes the store's).
         lease_seconds: age after which a claim of a live-looking owner counts as stale.
         busy_timeout: seconds to wait for another process's write transaction.
         extra_stages: stage names accepted besides ``STAGES`` and ``round-<n>``.
     """
 
     def __init__(self, path: str | os.PathLike, config_hash: str, code_version: str | None = None,
-                 *, allow_config_mismatch: bool = False, lease_seconds: float = 900.0,
-                 busy_timeout: float = 60.0, extra_stages: Iterable[str] = ()):
+                 *, allow_config_mismatch: bool = False, also_accepts: Iterable[str] = (),
+                 lease_seconds: float = 900.0, busy_timeout: float = 60.0, extra_stages: Iterable[str] = ()):
         source = "CampaignStore"
         if not isinstance(path, (str, os.PathLike)) or str(path) in ("", ":memory:"):
             raise out_of_range("path", path, "a database file path (not ':memory:')", source)
         self.path = Path(path)
         self.config_hash = _check_name(config_hash, "config_hash", source)
+        #: every hash of this store's model: the one given first, then ``also_accepts``
+        self.model_hashes = tuple(dict.fromkeys([self.config_hash, *(_check_name(h, "also_accepts entry", source)
+                                                                      for h in also_accepts)]))
         self.code_version = (default_code_version() if code_version is None
                              else _check_name(code_version, "code_version", source))
         for name, value in (("lease_seconds", lease_seconds), ("busy_timeout", busy_timeout)):
@@ -389,6 +397,8 @@ class CampaignStore:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._init_db()
         self.stored_config_hash = self._meta("config_hash")
+        if self.stored_config_hash in self.model_hashes:
+            self.config_hash = self.stored_config_hash
         if self.stored_config_hash != self.config_hash and not allow_config_mismatch:
             raise ConfigError(
                 f"{self.path}: campaign store was created with config hash "

@@ -29,8 +29,8 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, config_hash, executor_from,
-                           executor_settings_from, flag, plain_config, replicate_seeds, requeue_failed, screen_settings_from,
+from bo.cli.common import (MODEL_KEYS, check_kpis, checkpoint_dir_for, executor_from, executor_settings_from, flag,
+                           _int, open_store, plain_config, replicate_seeds, requeue_failed, screen_settings_from,
                            store_path_from)
 from torchdem.config import parameter_range
 from torchdem.cli import CONF_DIR, one_line_errors
@@ -273,7 +273,6 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     """The whole app on a plain config: check, run (resume), report. Returns a summary."""
     from bo.calibration.pipeline import EXTRA_STAGES, run_calibration, validation_conditions
     from bo.calibration.report import write_calibration_report
-    from bo.campaign.store import CampaignStore
     from torchdem.measured import load_measured, load_paper_tables
 
     settings = calibration_settings_from(plain)
@@ -284,8 +283,8 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     path = store_path_from(plain, out)
     source = seed_store(plain, path)
     # the measured data decide the conditions' mixtures, so they are part of the model
-    store = CampaignStore(path, config_hash(plain, MODEL_KEYS + ("measured",)),
-                          allow_config_mismatch=bool(plain.get("allow_config_mismatch")), extra_stages=EXTRA_STAGES)
+    store = open_store(path, plain, MODEL_KEYS + ("measured",),
+                       allow_config_mismatch=bool(plain.get("allow_config_mismatch")), extra_stages=EXTRA_STAGES)
     requeue_failed(plain, store, echo)
     started = time.perf_counter()
     echo(f"torchdem-calibrate: store {path}" + (f" (from {source})" if source else "") + f", output {out}")

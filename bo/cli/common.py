@@ -106,10 +106,40 @@ ABSENT_WHEN_NULL = {"run": ("max_discharge_time_s", "photo_shadow_depth_m"),
                     "geometry": ("gate_opening_s",)}
 
 
+#: The Verlet skins (``sim.skin_fraction``) the shipped stores were hashed with, before the skin
+#: joined ``torchdem.model.EXECUTION_ONLY``: the CPU profiles' 0.25 and the smoke profile's 0.5. A
+#: store made at one of them is the same model's at any skin (:func:`store_hashes`).
+HASHED_SKINS = (0.25, 0.5)
+
+
 def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> str:
     """Hash of the result-deciding blocks (default ``MODEL_KEYS``) of the resolved config
     (``sim``'s execution-only settings hashed as :data:`HASHED_AS` says, each block's
-    :data:`ABSENT_WHEN_NULL` settings left out while null)."""
+    :data:`ABSENT_WHEN_NULL` settings left out while null): the hash a new store is made with."""
+    return _digest(plain, keys)
+
+
+def store_hashes(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) -> tuple[str, ...]:
+    """The hashes a store of this config's model may carry: :func:`config_hash` first, then the hashes
+    the config had while ``sim.skin_fraction`` was hashed, at each of :data:`HASHED_SKINS` (where the
+    ``sim`` block has the setting), which the stores made then carry."""
+    sim = plain.get("sim") if "sim" in keys else None
+    older = ([_digest({**plain, "sim": {**sim, "skin_fraction": skin}}, keys, kept=("skin_fraction",))
+              for skin in HASHED_SKINS] if isinstance(sim, Mapping) and "skin_fraction" in sim else [])
+    return tuple(dict.fromkeys([config_hash(plain, keys), *older]))
+
+
+def open_store(path, plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS, **kw):
+    """The :class:`~bo.campaign.store.CampaignStore` at ``path`` for this config's model: a new store
+    takes :func:`config_hash`; an existing one any of :func:`store_hashes` (it keeps its own)."""
+    from bo.campaign.store import CampaignStore
+
+    first, *older = store_hashes(plain, keys)
+    return CampaignStore(path, first, also_accepts=older, **kw)
+
+
+def _digest(plain: Mapping[str, Any], keys: tuple[str, ...], kept: tuple[str, ...] = ()) -> str:
+    """:func:`config_hash`, with the execution-only ``sim`` settings in ``kept`` hashed as they are."""
     from torchdem.model import EXECUTION_ONLY
 
     part = {k: plain.get(k) for k in keys}
@@ -118,7 +148,7 @@ def config_hash(plain: Mapping[str, Any], keys: tuple[str, ...] = MODEL_KEYS) ->
             part[block] = {k: v for k, v in part[block].items() if not (k in absent and v is None)}
     if isinstance(part.get("sim"), Mapping):
         sim = part["sim"]
-        part["sim"] = {**{k: v for k, v in sim.items() if k not in EXECUTION_ONLY},
+        part["sim"] = {**{k: v for k, v in sim.items() if k not in EXECUTION_ONLY or k in kept},
                        **{k: v for k, v in HASHED_AS.items() if k in sim}}
     return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
 

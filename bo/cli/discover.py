@@ -23,8 +23,8 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, config_hash, executor_settings_from,
-                           plain_config, replicate_seeds, requeue_failed, store_path_from)
+from bo.cli.common import (MODEL_KEYS, check_kpis, checkpoint_dir_for, executor_settings_from, _int, open_store,
+                           plain_config, replicate_seeds, requeue_failed, store_hashes, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
 
@@ -158,7 +158,7 @@ def baseline_runs(plain: Mapping[str, Any], data, calibrated: Mapping[str, float
     # read only (a shipped store, or one a campaign is writing, is not touched); the calibrate app's hash of
     # this model and data (bo/cli/calibrate.py): a store of another model is refused
     source = f"discovery.baseline_store ({where})"
-    check_same_model(Path(path), config_hash({**plain, "measured": data}, MODEL_KEYS + ("measured",)), source)
+    check_same_model(Path(path), store_hashes({**plain, "measured": data}, MODEL_KEYS + ("measured",)), source)
     # every stage: a run at the set's values is a run of the set, whichever stage asked for it
     return str(path), runs_of_set(done_records(Path(path), None, source), calibrated, conditions)
 
@@ -199,7 +199,6 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     from bo.cli.common import executor_factory
     from bo.discovery.pipeline import discovery_stages, run_discovery
     from bo.discovery.report import write_discovery_report
-    from bo.campaign.store import CampaignStore
     from torchdem.measured import load_measured
 
     settings = discovery_settings_from(plain)
@@ -226,9 +225,8 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     path = store_path_from(plain, out)
     # the store is for this data file and, when given, this choice of its conditions
     hashed = {**plain, "measured": data if subset is None else [data, list(measured.names)]}
-    store = CampaignStore(path, config_hash(hashed, MODEL_KEYS + ("measured", "calibration")),
-                          allow_config_mismatch=bool(plain.get("allow_config_mismatch")),
-                          extra_stages=discovery_stages())
+    store = open_store(path, hashed, MODEL_KEYS + ("measured", "calibration"),
+                       allow_config_mismatch=bool(plain.get("allow_config_mismatch")), extra_stages=discovery_stages())
     requeue_failed(plain, store, echo)
     baseline = baseline_runs(plain, data, calibrated, list(measured.names))
     echo(f"torchdem-discover: {len(measured.names)} conditions of {measured.origin}; calibrated set from {source}; "

@@ -26,23 +26,21 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
-                           measured_kpis_from, model_from, plain_config, requeue_failed, screen_settings_from,
-                           store_path_from)
+from bo.cli.common import (checkpoint_dir_for, executor_from, executor_settings_from, measured_kpis_from, model_from,
+                           open_store, plain_config, requeue_failed, screen_settings_from, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 
 
 def screen(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     """The whole app on a plain config: check, run (resume), analyse, write. Returns a summary."""
     from bo.screening.pipeline import analyse_and_report, run_screening
-    from bo.campaign.store import CampaignStore
 
     settings = screen_settings_from(plain)
     executor_settings = executor_settings_from(plain.get("executor") or {})
     measured = measured_kpis_from(plain)
     model = model_from(plain)
     path = store_path_from(plain, out)
-    store = CampaignStore(path, config_hash(plain), allow_config_mismatch=bool(plain.get("allow_config_mismatch")))
+    store = open_store(path, plain, allow_config_mismatch=bool(plain.get("allow_config_mismatch")))
     requeue_failed(plain, store, echo)
     stage = "screening"
     before = store.counts(stage)["done"] + store.counts(stage)["failed"]

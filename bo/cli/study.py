@@ -24,8 +24,8 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (_int, check_kpis, checkpoint_dir_for, config_hash, executor_from, executor_settings_from,
-                           measured_kpis_from, model_from, plain_config, replicate_seeds, requeue_failed,
+from bo.cli.common import (check_kpis, checkpoint_dir_for, executor_from, executor_settings_from, _int,
+                           measured_kpis_from, model_from, open_store, plain_config, replicate_seeds, requeue_failed,
                            store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
@@ -156,7 +156,6 @@ def study_settings_from(plain: Mapping[str, Any]) -> StudySettings:
 
 def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     """The whole app on a plain config: check, run (resume), analyse, write. Returns a summary."""
-    from bo.campaign.store import CampaignStore
     from bo.screening.pipeline import measured_for
     from bo.studies.pipeline import (STUDY_STAGES, precision_report, run_precision_study, run_shear_modulus_study,
                                      run_time_step_study, shear_modulus_report, smallest_sphere_rayleigh_time_step,
@@ -167,8 +166,8 @@ def run_study(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     model = model_from(plain)
     params = dict(model.fixed)
     path = store_path_from(plain, out)
-    store = CampaignStore(path, config_hash(plain), extra_stages=STUDY_STAGES,
-                          allow_config_mismatch=bool(plain.get("allow_config_mismatch")))
+    store = open_store(path, plain, extra_stages=STUDY_STAGES,
+                       allow_config_mismatch=bool(plain.get("allow_config_mismatch")))
     requeue_failed(plain, store, echo)
     stage = s.study
     counts = store.counts(stage)
