@@ -5,6 +5,7 @@ worker time the rest of what is stored will take (``bo.campaign.progress``), per
     python scripts/campaign_status.py                       # every store of campaigns/manifest.json
     python scripts/campaign_status.py campaigns/table2/lab.sqlite --workers 2
     python scripts/campaign_status.py campaigns/table2/lab_round.sqlite --profile lab_round
+    python scripts/campaign_status.py campaigns/table2/*.sqlite    # and what all of them cost together
 
 With ``--profile NAME`` (and ``--override key=value ...``, as on ``torchdem-calibrate``'s command line)
 it also sets the calibration's plan beside the store (``bo.calibration.plan``): the most runs of every
@@ -15,7 +16,9 @@ its runs in those stores of the same model).
 Worker time is one-thread process time, as the campaigns run (``executor=dask``, one thread per
 worker): divide by the number of workers for wall time. Stages not reached yet hold no rows and
 are not in the estimate (the calibration's surrogate rounds, verification and validation) unless
-``--profile`` gives the plan. Stores are only read.
+``--profile`` gives the plan. Given several stores, it ends with a table of the DEM runs each made and
+their worker time, and the sum: the cost of a body of work (a run adopted from another store, or that
+took another's result, counts in the store that made it). Stores are only read.
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ import json
 from pathlib import Path
 
 from bo.calibration.plan import campaign_plan, plan_progress
-from bo.campaign.progress import StoreProgress, store_progress
+from bo.campaign.progress import StoreProgress, run_costs, store_progress
 from torchdem.drawdown import JAM_FRACTION
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,6 +68,21 @@ def report(progress: StoreProgress, workers: int) -> str:
                   + (f", {d['not recorded']} made before runs recorded it" if d.get("not recorded") else "")
                   + (f"; {d['jammed']} jammed (less than {JAM_FRACTION:.0%} of the fill left the upper box: the grains "
                      f"arched over the slot)" if d.get("jammed") else "") + "."]
+    return "\n".join(lines)
+
+
+def totals_report(stores: list[str], workers: int) -> str:
+    """The DEM runs each store made (done or failed, with a wall time of their own) and their worker
+    time, and the sum over the stores."""
+    lines = ["## All stores", "", "| store | DEM runs made | worker time |", "| --- | ---: | ---: |"]
+    runs, seconds = 0, 0.0
+    for store in stores:
+        made = [c.seconds for c in run_costs(store) if c.seconds is not None]
+        runs, seconds = runs + len(made), seconds + sum(made)
+        lines.append(f"| {store} | {len(made)} | {_hours(sum(made))} |")
+    lines += [f"| all {len(stores)} | {runs} | {_hours(seconds)} |", "",
+              f"Together: {runs} DEM runs, {_hours(seconds)} of worker time, {_hours(seconds / workers)} on {workers} "
+              "workers."]
     return "\n".join(lines)
 
 
@@ -118,6 +136,8 @@ def main() -> None:
     stores = args.stores or [str(ROOT / "campaigns" / s["store"])
                              for s in json.loads((ROOT / "campaigns" / "manifest.json").read_text())["stores"]]
     print("\n\n".join(report(store_progress(s), args.workers) for s in stores))
+    if len(stores) > 1:
+        print("\n" + totals_report(stores, args.workers))
     if args.profile:
         print("\n" + plan_report(args.profile, args.override, stores[0], args.workers, args.costs_from))
 

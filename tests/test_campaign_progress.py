@@ -112,6 +112,17 @@ def test_status_script_reports_a_store(tmp_path):
                          capture_output=True, text=True, check=True).stdout
     assert "  - batch first: 1 pending\n  - batch second: 1 pending" in out
     assert "batch design" not in out
+    assert "All stores" not in out
+    # two stores: what each made and the sum; a run taken from another store counts where it was made
+    other = CampaignStore(tmp_path / "other.sqlite", "cfg", code_version="test")
+    other.batch("screening", "design", lambda: [_point(0.15, 0.4), _point(0.15, 0.6)], seeds=[0], conditions=[LAB])
+    _finish(other, other.claim(2, "screening"), 600.0)  # one batch of two: 5 min each
+    other.batch("screening", "adopted", lambda: [_point(0.15, 0.3)], seeds=[0], conditions=[LAB])
+    assert other.adopt("screening", "adopted", store.records("screening", status="done"), str(store.path)) == 1
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "campaign_status.py"), str(store.path),
+                          str(other.path)], capture_output=True, text=True, check=True).stdout
+    assert f"| {store.path} | 1 | 0.0 h |\n| {other.path} | 2 | 0.2 h |\n| all 2 | 3 | 0.2 h |" in out
+    assert "Together: 3 DEM runs, 0.2 h of worker time, 0.1 h on 2 workers." in out
 
 
 def test_runs_whose_discharge_had_not_ended_are_counted(tmp_path):
