@@ -25,7 +25,7 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, checkpoint_dir_for, executor_settings_from, flag, _int, open_store, plain_config,
+from bo.cli.common import (MODEL_KEYS, _int, checkpoint_dir_for, executor_settings_from, flag, open_store, plain_config,
                            store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range

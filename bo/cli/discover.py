@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, check_kpis, checkpoint_dir_for, executor_settings_from, _int, open_store,
+from bo.cli.common import (MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, executor_settings_from, open_store,
                            plain_config, replicate_seeds, requeue_failed, store_hashes, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range

@@ -24,7 +24,7 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (check_kpis, checkpoint_dir_for, executor_from, executor_settings_from, _int,
+from bo.cli.common import (_int, check_kpis, checkpoint_dir_for, executor_from, executor_settings_from,
                            measured_kpis_from, model_from, open_store, plain_config, replicate_seeds, requeue_failed,
                            store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
