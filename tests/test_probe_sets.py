@@ -95,6 +95,14 @@ def test_sets_run_once_reach_the_dem_and_can_be_adopted(tmp_path):
                    adopt={"set": "base", "store": str(store), "stage": "probe"})
     out = _run(other)
     assert out.returncode != 0 and "its runs are of another model" in out.stderr and "Traceback" not in out.stderr
+    # the Verlet skin is an execution setting, not the model: a probe at another skin takes the same run
+    skinned = _write(tmp_path, "skin.yaml", overrides=["profile=smoke", "sim.skin_fraction=0.3"],
+                     store=str(tmp_path / "fourth.sqlite"), conditions=["50-50"], seeds=[0],
+                     base={"mu_s_pp": 0.9, "mu_s_ss": 0.9}, sets={"base": {}},
+                     adopt={"set": "base", "store": str(store), "stage": ["validation", "probe"]})
+    out = _run(skinned)
+    assert out.returncode == 0, out.stderr
+    assert "1 runs taken from" in out.stdout and "n_done=0" in out.stdout
 
     # contrast_check names each set by what it changes (one condition here: no contrast, but the labels)
     from bo.discovery.contrast import ContrastSet, set_labels
