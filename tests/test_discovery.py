@@ -1174,10 +1174,15 @@ def test_a_batch_killed_mid_run_resumes_from_its_checkpoint(tmp_path):
     assert before > 0 and all(o.wall_time >= before + 0.8 * elapsed for o in resumed)
 
 
-def test_a_checkpoint_made_in_build_order_resumes_with_reordering_on(tmp_path):
-    """The lab campaign switched ``sim.reorder_every`` on while runs stood checkpointed in build
-    order: the batch finds its checkpoint under the same name, resumes it reordered (the file is
-    consumed, the cost carries over) and measures every KPI with the mass conserved."""
+@pytest.mark.parametrize("setting", ["reorder_every", "skin_fraction"])
+def test_a_checkpoint_resumes_with_another_execution_setting(tmp_path, setting):
+    """Execution settings (``torchdem.model.EXECUTION_ONLY``) do not name a checkpoint. The lab campaign
+    switched ``sim.reorder_every`` on while runs stood checkpointed in build order, and ``lab_round``
+    thinned its Verlet skin: the batch finds its checkpoint under the same name, resumes it reordered
+    or at twice the skin (the lists rebuilt at load: a thin skin's would miss pairs,
+    tests/test_neighbors.py), the file is consumed, the cost carries over, and every KPI is measured
+    with the mass conserved. (On this periodic slice either differs from an uninterrupted run at
+    round-off: the reorder renumbers, a whole rebuild wraps the bodies back.)"""
     from bo.campaign.dem import checkpoint_path, evaluate_batch
     from bo.campaign.executor import EvalTask
 
@@ -1186,34 +1191,10 @@ def test_a_checkpoint_made_in_build_order_resumes_with_reordering_on(tmp_path):
     path = checkpoint_path(tmp_path, model, tasks)
 
     before = _kill_mid_run(model, tasks, path)
-    reordered = dataclasses.replace(model, settings=dataclasses.replace(model.settings, reorder_every=1))
-    assert checkpoint_path(tmp_path, reordered, tasks) == path
-    resumed = evaluate_batch(reordered, tasks, checkpoint_dir=str(tmp_path))
-    assert not path.exists()
-    for o in resumed:
-        assert o.ok, o.error
-        assert o.wall_time >= before
-        assert all(math.isfinite(v) for v in o.kpis.values()), o.kpis
-        assert 0 < o.kpis["mass_lower_box_kg"] <= o.kpis["fill_mass_kg"]
-
-
-def test_a_checkpoint_resumes_at_another_skin(tmp_path):
-    """The Verlet skin is an execution setting: a batch checkpointed at one skin finds its checkpoint
-    under the same name at twice the skin, rebuilds the lists at load (a thin skin's lists would miss
-    pairs: tests/test_neighbors.py) and measures every KPI with the mass conserved, the cost carried
-    over. (On this periodic slice a whole rebuild wraps the bodies back, so the runs differ from an
-    uninterrupted one at round-off, as with the reorder.)"""
-    from bo.campaign.dem import checkpoint_path, evaluate_batch
-    from bo.campaign.executor import EvalTask
-
-    model, _ = _dem_model()
-    tasks = [EvalTask({"mu_s_pp": 0.5}, 0, "50-50"), EvalTask({"mu_s_pp": 0.3}, 1, "50-50")]
-    path = checkpoint_path(tmp_path, model, tasks)
-    before = _kill_mid_run(model, tasks, path)
-    wider = dataclasses.replace(model, settings=dataclasses.replace(
-        model.settings, skin_fraction=2 * model.settings.skin_fraction))
-    assert checkpoint_path(tmp_path, wider, tasks) == path
-    resumed = evaluate_batch(wider, tasks, checkpoint_dir=str(tmp_path))
+    value = {"reorder_every": 1, "skin_fraction": 2 * model.settings.skin_fraction}[setting]
+    changed = dataclasses.replace(model, settings=dataclasses.replace(model.settings, **{setting: value}))
+    assert checkpoint_path(tmp_path, changed, tasks) == path
+    resumed = evaluate_batch(changed, tasks, checkpoint_dir=str(tmp_path))
     assert not path.exists()
     for o in resumed:
         assert o.ok, o.error

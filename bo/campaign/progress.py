@@ -182,10 +182,9 @@ def config_hash_of(path: Path, source: str = "store_progress") -> str | None:
     return None if row is None else row[0]
 
 
-def check_same_model(path: Path, config_hashes: str | Sequence[str], source: str = "store_progress") -> None:
-    """Refuse a store whose runs are of another model than ``config_hashes`` (the hashes of the model
-    that would read them as its own, ``bo.cli.common.store_hashes``), naming them; read only."""
-    hashes = [config_hashes] if isinstance(config_hashes, str) else list(config_hashes)
+def check_same_model(path: Path, hashes: Sequence[str], source: str = "store_progress") -> None:
+    """Refuse a store whose runs are of another model than ``hashes`` (the hashes of the model that
+    would read them as its own, ``bo.cli.common.store_hashes``), naming them; read only."""
     stored = config_hash_of(path, source)
     if stored not in hashes:
         raise ConfigError(f"{source}: {path} has config hash {stored!r}, this model's "
