@@ -328,6 +328,24 @@ def test_make_run_finds_the_shipped_box_campaign_complete(tmp_path, monkeypatch)
     assert all(recorded["held_parameters"][k] == pytest.approx(v, rel=1e-5) for k, v in lab.items() if k != "mu_s_pg")
 
 
+def test_make_run_finds_the_shipped_round_campaign_complete(tmp_path, monkeypatch):
+    """`make run`'s campaign (profile=lab_round, store_from=campaigns/table2/lab_round.sqlite) resumes from a
+    copy of the shipped store and sends nothing to the DEM but the verification made again
+    (_replay_shipped): its 74 runs are all there, it calibrates the slot and the sinter's three frictions,
+    it holds the box campaign's set, and its report sets the validation beside the paper's Table A.6."""
+    import json
+    from pathlib import Path
+
+    summary, recorded = _replay_shipped("lab_round", "lab_round", 74, tmp_path, monkeypatch)
+    assert set(recorded["calibrated_parameters"]) == {"geometry_outlet_width", "mu_r_ss", "mu_s_ss", "mu_s_sg"}
+    box = json.loads((Path(__file__).resolve().parents[1] / "campaigns" / "table2"
+                      / "calibration_lab_box.json").read_text())["calibrated_parameters"]
+    assert recorded["held_parameters"]["fill_friction"] == pytest.approx(box["fill_friction"], rel=1e-5)
+    assert recorded["held_parameters"]["mu_s_pg"] == pytest.approx(box["mu_s_pg"], rel=1e-5)
+    report = Path(summary["files"]["md"]).read_text()
+    assert "Largest validation |error|: this campaign 7.46 %, the paper 7.23 %." in report
+
+
 def test_the_box_profile_holds_the_lab_calibration_and_varies_the_box():
     """profile=lab_box: every run has the lab calibration's set (conf/contact/table2_lab.yaml equals
     the shipped calibration_lab.json's parameters to 6 digits) under the four it calibrates: the upper
