@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: run test venv bench clean
+.PHONY: run run-box test venv bench clean
 
 venv: $(STAMP)
 
@@ -17,16 +17,21 @@ $(STAMP): setup.cfg pyproject.toml
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-# The main job: the box calibration of the paper's Table 2 (profile=lab_box: the upper box's width, the
-# fill's friction share and both wall frictions, on the contact set the lab campaign calibrated) from its
-# shipped campaign store (copied to the run directory; the shipped file is never written): it runs only
-# what the store lacks, runs the verification's 5 replicates of the calibrated set again here
-# (verification.fresh) and writes the report. Two one-thread workers, as the campaign ran; the last run
-# takes both cores once the other worker is idle (bo/campaign/cores.py). The contact calibration it builds
-# on: profile=lab store_from=campaigns/table2/lab.sqlite; the first campaign, whose runs stopped 4 s after
-# the gate opened: profile=lab_4s store_from=campaigns/table2/lab_4s.sqlite. The mini-box pipeline against
-# its synthetic twin: torchdem-calibrate profile=cpu (profile=smoke in the tests).
+# The main job: the round-sinter calibration of the paper's Table 2 (profile=lab_round: the slot's width and the
+# sinter's rolling, sliding and wall friction, the sinter's fines kept as sieved, on the box set of profile=lab_box)
+# from its shipped campaign store (copied to the run directory; the shipped file is never written): it runs only
+# what the store lacks, runs the verification's 5 replicates of the calibrated set again here (verification.fresh)
+# and writes the report. Two one-thread workers, as the campaign ran; the last run takes both cores once the other
+# worker is idle (bo/campaign/cores.py). A lab_round run holds 43,706 spheres, so the fresh verification takes
+# about 37 minutes on 2 cores (README, "Results"). The campaigns it builds on, each from its own store:
+# `make run-box` (profile=lab_box, about 14 minutes), profile=lab store_from=campaigns/table2/lab.sqlite; the first
+# campaign, whose runs stopped 4 s after the gate opened: profile=lab_4s store_from=campaigns/table2/lab_4s.sqlite.
+# The mini-box pipeline against its synthetic twin: torchdem-calibrate profile=cpu (profile=smoke in the tests).
 run: $(STAMP)
+	OMP_NUM_THREADS=1 $(VENV)/bin/torchdem-calibrate profile=lab_round store_from=campaigns/table2/lab_round.sqlite \
+		verification.fresh=true executor=dask executor.n_workers=2 executor.batch_size=1
+
+run-box: $(STAMP)
 	OMP_NUM_THREADS=1 $(VENV)/bin/torchdem-calibrate profile=lab_box store_from=campaigns/table2/lab_box.sqlite \
 		verification.fresh=true executor=dask executor.n_workers=2 executor.batch_size=1
 
