@@ -27,13 +27,14 @@ $(STAMP): setup.cfg pyproject.toml
 # `make run-box` (profile=lab_box, about 14 minutes), profile=lab store_from=campaigns/table2/lab.sqlite; the first
 # campaign, whose runs stopped 4 s after the gate opened: profile=lab_4s store_from=campaigns/table2/lab_4s.sqlite.
 # The mini-box pipeline against its synthetic twin: torchdem-calibrate profile=cpu (profile=smoke in the tests).
+FROM_STORE := OMP_NUM_THREADS=1 $(VENV)/bin/torchdem-calibrate verification.fresh=true executor=dask \
+	executor.n_workers=2 executor.batch_size=1
+
 run: $(STAMP)
-	OMP_NUM_THREADS=1 $(VENV)/bin/torchdem-calibrate profile=lab_round store_from=campaigns/table2/lab_round.sqlite \
-		verification.fresh=true executor=dask executor.n_workers=2 executor.batch_size=1
+	$(FROM_STORE) profile=lab_round store_from=campaigns/table2/lab_round.sqlite
 
 run-box: $(STAMP)
-	OMP_NUM_THREADS=1 $(VENV)/bin/torchdem-calibrate profile=lab_box store_from=campaigns/table2/lab_box.sqlite \
-		verification.fresh=true executor=dask executor.n_workers=2 executor.batch_size=1
+	$(FROM_STORE) profile=lab_box store_from=campaigns/table2/lab_box.sqlite
 
 # The C++ kernels are built (or found in torch's cache) before the tests start, on both cores,
 # instead of inside the first test of each test worker. The 25 slowest tests are listed at the end,
