@@ -6,7 +6,8 @@ a ``base`` set and the sets to run, each as changes to the base. Every set is st
 its changes, under stage ``probe`` and its own name, so all sets name the same parameters and a set
 differs from the base exactly where the file says. The runs are the runs a campaign task of these
 parameters makes (same model, same store hash as ``torchdem-calibrate`` with these overrides). A rerun
-with the same store runs only what is missing; a change of a set's values needs a new set name.
+with the same store runs only what is missing; a change of a set's values needs a new set name, while more
+seeds or conditions for a set already run add only their runs (``CampaignStore.batch`` grows the set's batch).
 
     python scripts/probe_sets.py campaigns/table2/probe_contrast.yaml --workers 2
     python scripts/contrast_check.py campaigns/table2/probe_contrast.sqlite --by-set   # C per set

@@ -3,7 +3,7 @@
 
 - Each set is stored as the base with its changes, so every set names the same parameters; the changes
   reach the DEM (the slippery set's fill empties further, as in tests/test_run_parameter_set.py).
-- A rerun runs nothing; ``adopt`` takes a set's runs from another store of the same model instead of
+- A rerun runs nothing, a set given more seeds runs only those; ``adopt`` takes a set's runs from another store of the same model instead of
   running them, and refuses a store of another model; ``contrast_check --by-set`` names each set by
   what it changes.
 - A bad probe file names the key, the value and what is allowed.
@@ -128,6 +128,15 @@ def test_a_set_of_equal_values_on_its_own_seeds_and_conditions_runs_only_what_is
     assert "| verification | 50-50 | 2 (0) |" in out.stdout
     loaded = probe_sets.load_probe(probe)
     assert probe_sets.conditions_of(loaded, "verification") == ["50-50"] == probe_sets.conditions_of(loaded, "found")
+
+    # the set run, given a seed more: its set grows and only the new seed runs
+    probe = _write(tmp_path, "probe.yaml", overrides=["profile=smoke"], store=str(store), conditions=["50-50"],
+                   seeds=[0], base=values, sets={"found": {}, "verification": {}},
+                   sets_seeds={"verification": [0, 1, 2]}, sets_conditions={"verification": ["50-50"]})
+    out = _run(probe)
+    assert out.returncode == 0, out.stderr
+    assert "n_done=1" in out.stdout and "| verification | 50-50 | 3 (0) |" in out.stdout
+    assert _rows(store)[:3] == rows and [(r[0], r[3]) for r in _rows(store)[3:]] == [("verification", 2)]
 
 
 def test_labels_name_where_a_set_leaves_the_common_values():

@@ -101,13 +101,57 @@ def test_near_batch_finds_the_same_experiment_within_the_tolerance_the_closest_f
                          tolerance={"mu_s_pp": -1.0})
 
 
-def test_batch_with_other_seeds_or_conditions_is_refused(tmp_path):
+def test_a_batch_asked_for_without_some_of_its_seeds_or_conditions_is_refused(tmp_path):
     store = new_store(tmp_path)
-    fill(store)
-    with pytest.raises(ConfigError, match=r"seeds=\[0, 1\].*seeds=\[0, 1, 2\]"):
-        fill(store, seeds=(0, 1, 2))
+    fill(store, seeds=(0, 1, 2))
+    with pytest.raises(ConfigError, match=r"seeds=\[0, 1, 2\].*seeds=\[0, 1\].*never lose any"):
+        fill(store, seeds=(0, 1))
     with pytest.raises(ConfigError, match="conditions"):
-        fill(store, conditions=("70-30",))
+        fill(store, seeds=(0, 1, 2), conditions=("70-30",))  # 50-50 would be lost
+    assert len(store.records("initial")) == 3 * 3  # nothing stored by the refused calls
+
+
+def test_a_stored_batch_grows_by_seeds_and_conditions_and_runs_only_what_is_new(tmp_path):
+    """The paper validates on 5 seeds where a campaign planned 3: the same batch, asked for with
+    seeds 0-4, keeps its 3 runs per point and gains pending runs of seeds 3 and 4 only; a new
+    condition adds its runs for every seed; a run done in another batch of the stage is taken."""
+    store = new_store(tmp_path)
+    fill(store, points=POINTS[:2], seeds=(0, 1, 2))
+    finish(store, store.claim(100, "initial"))
+    fill(store, key="elsewhere", points=[POINTS[0]], seeds=(4,), conditions=("70-30",))
+    finish(store, store.claim(100, "initial"), kpis=lambda t: {"angle_of_repose": 99.0})
+    before = {r.task_id: r for r in store.records("initial", batch_key="k")}
+
+    assert fill(store, points=POINTS[:2], seeds=(0, 1, 2, 3, 4)) == POINTS[:2]
+    grown = store.records("initial", batch_key="k")
+    assert all(r == before[r.task_id] for r in grown if r.task_id in before)  # stored runs untouched
+    new = [r for r in grown if r.task_id not in before]
+    assert sorted((r.point_index, r.seed) for r in new) == [(0, 3), (0, 4), (1, 3), (1, 4)]
+    assert {r.status for r in new} == {"pending"} and {r.condition for r in new} == {"50-50"}
+
+    # a condition more, the seeds in another order: the stored order is kept, the new entry appended
+    fill(store, points=POINTS[:2], seeds=(4, 3, 2, 1, 0), conditions=("70-30", "50-50"))
+    assert store._stored_batch("initial", "k")[1:] == ([0, 1, 2, 3, 4], ["50-50", "70-30"])
+    extra = [r for r in store.records("initial", batch_key="k") if r.condition == "70-30"]
+    assert sorted((r.point_index, r.seed) for r in extra) == [(i, s) for i in range(2) for s in range(5)]
+    taken = [r for r in extra if r.status == "done"]
+    assert [(r.point_index, r.seed, r.kpis["angle_of_repose"]) for r in taken] == [(0, 4, 99.0)]
+    assert len(store.records("initial", batch_key="k")) == 2 * 5 * 2
+    # asked for again as grown: nothing more is stored
+    fill(store, points=POINTS[:2], seeds=(0, 1, 2, 3, 4), conditions=("50-50", "70-30"))
+    assert len(store.records("initial", batch_key="k")) == 20
+
+
+def test_a_fresh_batch_grows_without_taking_stored_runs(tmp_path):
+    store = new_store(tmp_path)
+    fill(store, key="shared", points=[POINTS[0]], seeds=(0, 1, 2))
+    finish(store, store.claim(100, "initial"))
+    fresh = lambda seeds: store.batch("initial", "fresh", lambda: [POINTS[0]], seeds=seeds,  # noqa: E731
+                                      conditions=("50-50",), share=False)
+    fresh((0,))
+    fresh((0, 1, 2))
+    assert {r.status for r in store.records("initial", batch_key="fresh")} == {"pending"}
+    assert len(store.records("initial", batch_key="fresh")) == 3
 
 
 def test_bad_points_are_refused_and_nothing_is_stored(tmp_path):

@@ -33,7 +33,11 @@ points of that batch if it exists; otherwise it calls ``make_points()`` once, st
 points (and one pending task per point x seed x condition, condition-major) in one
 transaction and returns them. A resumed campaign therefore re-uses the proposals made before
 a kill. If two processes race to create the same batch, the first commit wins and both
-return its points. Asking for a stored batch with other seeds or conditions is an error.
+return its points. A stored batch grows: asked for with more seeds or conditions (a superset of the
+stored ones), it stores the new lists (the stored entries first, in their order, then the new
+ones) and one pending task for each new point x seed x condition, which takes a run already done
+in its stage where there is one (see "Shared runs"); its stored runs stay as they are. Asking for
+fewer seeds or conditions than are stored is an error: a batch never loses runs.
 
 Shared runs: within a stage, an evaluation is the same run wherever it is asked for when its
 parameters (canonical JSON), seed, condition and config hash are equal (not across stages: the
@@ -517,13 +521,38 @@ class CampaignStore:
                     self._insert_batch(conn, stage, key, points, seeds, conditions, share)
                     return [dict(p) for p in points]
         points, stored_seeds, stored_conditions = stored
-        if stored_seeds != seeds or stored_conditions != conditions:
-            raise ConfigError(
-                f"{self.path}: {source} is stored with seeds={stored_seeds} and "
-                f"conditions={stored_conditions}, but seeds={seeds} and conditions={conditions} "
-                "were asked for; use a new batch key for a different design")
+        if set(stored_seeds) != set(seeds) or set(stored_conditions) != set(conditions):
+            if not (set(stored_seeds) <= set(seeds) and set(stored_conditions) <= set(conditions)):
+                raise ConfigError(
+                    f"{self.path}: {source} is stored with seeds={stored_seeds} and "
+                    f"conditions={stored_conditions}, but seeds={seeds} and conditions={conditions} "
+                    "were asked for; a stored batch can grow by seeds or conditions but never lose any: "
+                    "ask for at least the stored ones, or use a new batch key for a different design")
+            seeds, conditions = self._grow_batch(stage, key, seeds, conditions, share)
         self._restore_withdrawn(stage, key, points, seeds, conditions)
         return points
+
+    def _grow_batch(self, stage: str, key: str, seeds: list[int], conditions: list[str],
+                    share: bool) -> tuple[list[int], list[str]]:
+        """Batch ``(stage, key)`` grown to ``seeds`` and ``conditions`` (each a superset of the stored
+        list): the stored lists extended by the new entries, and a pending task for each new point x
+        seed x condition (taking a run done elsewhere in the stage unless ``share`` is false). The
+        stored lists, grown, are returned."""
+        with self._write() as conn:
+            points, stored_seeds, stored_conditions = self._stored_batch(stage, key, conn)
+            seeds = stored_seeds + [s for s in seeds if s not in stored_seeds]
+            conditions = stored_conditions + [c for c in conditions if c not in stored_conditions]
+            if (seeds, conditions) == (stored_seeds, stored_conditions):  # another process grew it
+                return seeds, conditions
+            conn.execute("UPDATE batches SET seeds = ?, conditions = ? WHERE stage = ? AND batch_key = ?",
+                         (_dumps(seeds), _dumps(conditions), stage, key))
+            present = {(i, s, c) for i, s, c in conn.execute(
+                "SELECT point_index, seed, condition FROM evaluations WHERE stage = ? AND batch_key = ?", (stage, key))}
+            now = time.time()
+            self._insert_tasks(conn, stage, key, points, seeds, conditions, now, skip=present)
+            if share:
+                self._take_shared(conn, stage, key, now)
+        return seeds, conditions
 
     def near_batch(self, stage: str, prefix: str, points: Sequence[Mapping[str, float]], *, seeds: Sequence[int],
                    conditions: Sequence[str], tolerance: Mapping[str, float]
