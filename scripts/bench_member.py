@@ -13,7 +13,7 @@ each in turn (two git worktrees, ``PYTHONPATH`` set to each), several times, alt
 Usage::
 
     python scripts/bench_member.py [--lobe-spacing 0.3] [--start 1.3] [--steps 1000] [--moved-share 0.25] [--json]
-                                   [--device cuda [--compile]] [--fines-kept]
+                                   [--device cuda [--compile]] [--fines-kept [--skin-fraction 0.1]]
 
 ``--moved-share 0`` makes every neighbour rebuild search every sphere (``System.moved_share``).
 ``--time-step-factor 1.5`` times the member at 1.5x its step from ``--start`` on (what
@@ -35,12 +35,13 @@ from torchdem.simulation import Simulation
 
 
 def flowing_member(lobe_spacing: float, seed: int, start: float, device: str = "cpu",
-                   compile: bool = False, fines_kept: bool = False) -> Simulation:
+                   compile: bool = False, fines_kept: bool = False, skin_fraction: float | None = None) -> Simulation:
     """The member run to ``start`` s, cached on disk (only that file is read once it is there);
-    reordered every 10 rebuilds."""
+    reordered every 10 rebuilds; ``skin_fraction``: its lists at that skin from ``start`` on (the cache
+    is run at the profile's; the skin changes no contact, docs/performance.md "Settings")."""
     path = CACHE / f"member_lab_s{lobe_spacing:g}_seed{seed}_t{start:g}{'_fines' if fines_kept else ''}.pt"
     if path.exists():
-        system, _ = member_system(lobe_spacing, seed, device, fines_kept)
+        system, _ = member_system(lobe_spacing, seed, device, fines_kept, skin_fraction)
         return Simulation.load(path, system, reorder_every=10, compile=compile)
     settled = settled_member(lobe_spacing, seed, 0.8, device, fines_kept)
     sim = Simulation(settled.system, settled.state, reorder_every=10)
@@ -48,7 +49,9 @@ def flowing_member(lobe_spacing: float, seed: int, start: float, device: str = "
     sim.run_until(start)
     print(f"ran to {start} s in {time.perf_counter() - started:.0f} s; cached in {path}")
     sim.save(path)
-    return Simulation.load(path, settled.system, reorder_every=10, compile=compile)
+    system = settled.system if skin_fraction is None else member_system(lobe_spacing, seed, device, fines_kept,
+                                                                         skin_fraction)[0]
+    return Simulation.load(path, system, reorder_every=10, compile=compile)
 
 
 def main() -> None:
@@ -67,9 +70,15 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true", help="Simulation(compile=True), compiled in the warm-up")
     parser.add_argument("--fines-kept", action="store_true",
                         help="the sinter's whole sieve (sim.fines_cut_mm=null, as profile=lab_fines runs it)")
+    parser.add_argument("--skin-fraction", type=float, default=None,
+                        help="sim.skin_fraction from --start on (default: profile=lab's 0.25; profile=lab_round runs "
+                             "the fines kept at 0.1)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    sim = flowing_member(args.lobe_spacing, args.seed, args.start, args.device, args.compile, args.fines_kept)
+    if args.skin_fraction is not None and not 0 < args.skin_fraction <= 1:
+        parser.error(f"--skin-fraction {args.skin_fraction}: expected a fraction of the largest radius in (0, 1]")
+    sim = flowing_member(args.lobe_spacing, args.seed, args.start, args.device, args.compile, args.fines_kept,
+                         args.skin_fraction)
     gpu = sim.system.mass.device.type == "cuda"
     clock = time.perf_counter if gpu else time.thread_time
     sync = torch.cuda.synchronize if gpu else (lambda: None)
@@ -88,7 +97,7 @@ def main() -> None:
     elapsed = clock() - started
     out = {"lobe_spacing": args.lobe_spacing, "moved_share": sim.system.moved_share, "device": args.device,
            "compile": args.compile, "fines_kept": args.fines_kept,
-           "spheres": sim.system.n_spheres, "steps": args.steps,
+           "spheres": sim.system.n_spheres, "skin_m": float(sim.system.skin), "steps": args.steps,
            "ms_per_step": 1e3 * elapsed / args.steps, "steps_per_rebuild": args.steps / max(sim.state.rebuilds - rebuilds, 1),
            "dt_s": sim.system.dt, "cpu_s_per_simulated_s": elapsed / (args.steps * sim.system.dt)}
     timed_by = f"wall clock on {args.device}" if gpu else "CPU time, one thread"

@@ -31,12 +31,15 @@ from torchdem.simulation import Simulation
 CACHE = Path(__file__).resolve().parents[1] / ".bench_cache"
 
 
-def member_system(lobe_spacing: float, seed: int, device: str = "cpu", fines_kept: bool = False):
+def member_system(lobe_spacing: float, seed: int, device: str = "cpu", fines_kept: bool = False,
+                  skin_fraction: float | None = None):
     """System and rained state of one lab member (profile=lab, 50-50); ``fines_kept``: the sinter's whole
-    sieve (``sim.fines_cut_mm=null``, as profile=lab_fines runs it) instead of the fines scalped below 10 mm."""
+    sieve (``sim.fines_cut_mm=null``, as profile=lab_fines runs it) instead of the fines scalped below 10 mm;
+    ``skin_fraction``: ``sim.skin_fraction`` (None: the profile's 0.25)."""
+    overrides = ["profile=lab", *(["sim.fines_cut_mm=null"] if fines_kept else []),
+                 *([] if skin_fraction is None else [f"sim.skin_fraction={skin_fraction}"])]
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        plain = plain_config(compose("calibrate", overrides=["profile=lab", *(["sim.fines_cut_mm=null"] if fines_kept
-                                                                              else [])]))
+        plain = plain_config(compose("calibrate", overrides=overrides))
     test = model_from(plain).test_for("50-50", [{"lobe_spacing_sinter": lobe_spacing}])
     system, state, _ = test.build([seed], [0], device=device)
     return system, state
