@@ -976,9 +976,9 @@ def test_the_plan_counts_the_runs_the_campaign_made(known_campaign):
 
 
 def test_the_plan_of_the_round_profile_and_where_its_costs_come_from(tmp_path):
-    """profile=lab_round's plan is the budget its comments state (74 runs: screening 9 x 2, the
+    """profile=lab_round's plan is the budget its comments state (80 runs: screening 9 x 2, the
     surrogate's 21 points on 50-50 and again on 75-25, verification 5, no density check since Table 2
-    has no heap height, validation 3 x 3). A condition the store has no run of takes its cost from
+    has no heap height, validation 3 x 5, the paper's count). A condition the store has no run of takes its cost from
     ``costs_from`` stores, else from every run of the store."""
     from bo.calibration.plan import campaign_plan, plan_progress
     from torchdem.measured import load_measured
@@ -986,8 +986,8 @@ def test_the_plan_of_the_round_profile_and_where_its_costs_come_from(tmp_path):
     plan = campaign_plan(calibration_settings_from(_plain(["profile=lab_round"])), load_measured(None))
     assert {s.stage: dict(s.runs) for s in plan.stages} == {
         "screening": {"50-50": 18}, "surrogate": {"50-50": 21, "75-25": 21}, "verification": {"50-50": 5},
-        "validation": {"75-25": 3, "25-75": 3, "50-50-reverse": 3}}
-    assert plan.total == 74 and plan.text().startswith("at most 74 DEM runs: screening 18 (9 points x 2 seeds")
+        "validation": {"75-25": 5, "25-75": 5, "50-50-reverse": 5}}
+    assert plan.total == 80 and plan.text().startswith("at most 80 DEM runs: screening 18 (9 points x 2 seeds")
     # one store with three 50-50 screening runs (two of them as a batch of two), another with a 75-25 run
     from bo.campaign.executor import EvalOutcome
 

@@ -174,12 +174,12 @@ def test_status_script_sets_a_profiles_plan_beside_the_store(tmp_path):
     script = [sys.executable, str(ROOT / "scripts" / "campaign_status.py")]
     out = subprocess.run(script + [str(store.path), "--profile", "lab_round", "--costs-from", str(other.path)],
                          capture_output=True, text=True, check=True).stdout
-    assert "Plan of profile=lab_round: at most 74 DEM runs: screening 18 (9 points x 2 seeds on 50-50)" in out
+    assert "Plan of profile=lab_round: at most 80 DEM runs: screening 18 (9 points x 2 seeds on 50-50)" in out
     assert "| screening | 50-50 | 18 | 1 | 17 | 16.0 min |" in out
     assert "| surrogate | 75-25 | 21 | 0 | 21 | 8.0 min (--costs-from) |" in out
-    assert "| validation | 25-75 | 3 | 0 | 3 | 16.0 min (all conditions) |" in out
-    # 17 + 21 + 5 + 3 + 3 runs at 16 min, 21 + 3 at 8 min: 976 min of worker time
-    assert "Left of the plan: at most 73 runs, 16.3 h of worker time, 8.1 h on 2 workers (a condition" in out
+    assert "| validation | 25-75 | 5 | 0 | 5 | 16.0 min (all conditions) |" in out
+    # 17 + 21 + 5 + 5 + 5 runs at 16 min, 21 + 5 at 8 min: 1,056 min of worker time
+    assert "Left of the plan: at most 79 runs, 17.6 h of worker time, 8.8 h on 2 workers (a condition" in out
     bad = subprocess.run(script + [str(store.path), str(other.path), "--profile", "lab_round"],
                          capture_output=True, text=True)
     assert bad.returncode != 0 and "give the one store of that campaign, not 2" in bad.stderr
