@@ -521,37 +521,29 @@ class CampaignStore:
                     self._insert_batch(conn, stage, key, points, seeds, conditions, share)
                     return [dict(p) for p in points]
         points, stored_seeds, stored_conditions = stored
-        if set(stored_seeds) != set(seeds) or set(stored_conditions) != set(conditions):
-            if not (set(stored_seeds) <= set(seeds) and set(stored_conditions) <= set(conditions)):
-                raise ConfigError(
-                    f"{self.path}: {source} is stored with seeds={stored_seeds} and "
-                    f"conditions={stored_conditions}, but seeds={seeds} and conditions={conditions} "
-                    "were asked for; a stored batch can grow by seeds or conditions but never lose any: "
-                    "ask for at least the stored ones, or use a new batch key for a different design")
-            seeds, conditions = self._grow_batch(stage, key, seeds, conditions, share)
-        self._restore_withdrawn(stage, key, points, seeds, conditions)
+        if not (set(stored_seeds) <= set(seeds) and set(stored_conditions) <= set(conditions)):
+            raise ConfigError(
+                f"{self.path}: {source} is stored with seeds={stored_seeds} and "
+                f"conditions={stored_conditions}, but seeds={seeds} and conditions={conditions} "
+                "were asked for; a stored batch can grow by seeds or conditions but never lose any: "
+                "ask for at least the stored ones, or use a new batch key for a different design")
+        if set(seeds) - set(stored_seeds) or set(conditions) - set(stored_conditions):
+            seeds, conditions = self._grow_batch(stage, key, seeds, conditions)
+        else:
+            seeds, conditions = stored_seeds, stored_conditions
+        self._add_missing_tasks(stage, key, points, seeds, conditions, share)
         return points
 
-    def _grow_batch(self, stage: str, key: str, seeds: list[int], conditions: list[str],
-                    share: bool) -> tuple[list[int], list[str]]:
-        """Batch ``(stage, key)`` grown to ``seeds`` and ``conditions`` (each a superset of the stored
-        list): the stored lists extended by the new entries, and a pending task for each new point x
-        seed x condition (taking a run done elsewhere in the stage unless ``share`` is false). The
-        stored lists, grown, are returned."""
+    def _grow_batch(self, stage: str, key: str, seeds: list[int], conditions: list[str]) -> tuple[list[int], list[str]]:
+        """The stored seed and condition lists of batch ``(stage, key)`` extended by the new entries of
+        ``seeds`` and ``conditions`` (the stored ones first, in their order), stored and returned; the
+        runs they add are :meth:`_add_missing_tasks`'."""
         with self._write() as conn:
-            points, stored_seeds, stored_conditions = self._stored_batch(stage, key, conn)
+            _, stored_seeds, stored_conditions = self._stored_batch(stage, key, conn)
             seeds = stored_seeds + [s for s in seeds if s not in stored_seeds]
             conditions = stored_conditions + [c for c in conditions if c not in stored_conditions]
-            if (seeds, conditions) == (stored_seeds, stored_conditions):  # another process grew it
-                return seeds, conditions
             conn.execute("UPDATE batches SET seeds = ?, conditions = ? WHERE stage = ? AND batch_key = ?",
                          (_dumps(seeds), _dumps(conditions), stage, key))
-            present = {(i, s, c) for i, s, c in conn.execute(
-                "SELECT point_index, seed, condition FROM evaluations WHERE stage = ? AND batch_key = ?", (stage, key))}
-            now = time.time()
-            self._insert_tasks(conn, stage, key, points, seeds, conditions, now, skip=present)
-            if share:
-                self._take_shared(conn, stage, key, now)
         return seeds, conditions
 
     def near_batch(self, stage: str, prefix: str, points: Sequence[Mapping[str, float]], *, seeds: Sequence[int],
@@ -598,8 +590,10 @@ class CampaignStore:
                     best, found = distance, (key, [dict(p) for p in stored])
         return found
 
-    def _restore_withdrawn(self, stage, key, points, seeds, conditions) -> None:
-        """Pending tasks again for the runs of a batch that :meth:`withdraw_batch` took away."""
+    def _add_missing_tasks(self, stage, key, points, seeds, conditions, share: bool = True) -> None:
+        """Pending tasks for the runs the batch lacks: those :meth:`withdraw_batch` took away, and those
+        of the seeds or conditions it grew by (:meth:`_grow_batch`); each takes a run done elsewhere in
+        the stage unless ``share`` is false."""
         conn = self._connect()
         try:
             have = conn.execute("SELECT COUNT(*) FROM evaluations WHERE stage = ? AND batch_key = ?",
@@ -613,7 +607,8 @@ class CampaignStore:
                 "SELECT point_index, seed, condition FROM evaluations WHERE stage = ? AND batch_key = ?", (stage, key))}
             now = time.time()
             self._insert_tasks(conn, stage, key, points, seeds, conditions, now, skip=present)
-            self._take_shared(conn, stage, key, now)
+            if share:
+                self._take_shared(conn, stage, key, now)
 
     def _stored_batch(self, stage: str, key: str, conn: sqlite3.Connection | None = None):
         own = conn is None
