@@ -598,7 +598,9 @@ def test_screening_points_as_surrogate_data_cut_the_initial_design_and_still_cal
 def test_design_points_reuse_the_finished_points_of_an_earlier_design(tmp_path):
     """``surrogate.reuse_designs``: the finished points of an earlier initial design that lie inside the
     new bounds are surrogate data, with their KPIs per seed; unfinished points and points outside the
-    bounds are left out and counted; a key the store lacks, or a design of other parameters, is an error."""
+    bounds are left out and counted; a key the store lacks, or a design of other parameters, is an error.
+    A parameter the design held takes its held value; several conditions read side by side; the rounds
+    that followed the design count too."""
     from bo.calibration.pipeline import design_points
     from bo.campaign.executor import EvalOutcome
     from bo.campaign.store import CampaignStore
@@ -625,6 +627,27 @@ def test_design_points_reuse_the_finished_points_of_an_earlier_design(tmp_path):
         design_points(store, ["new"], names, bounds, [0], "50-50", ["a"])
     with pytest.raises(ConfigError, match=r"design 'old' varies \['mu_r_pp', 'mu_s_pp'\]; the calibration varies"):
         design_points(store, ["old"], ("mu_s_pp", "e_pp"), bounds, [0], "50-50", ["a"])
+    # one more parameter than the design varied, at the value its runs had
+    X, _, _ = design_points(store, ["old"], ("mu_r_pp", "mu_s_pp", "e_pp"), np.array([[0.045, 0.1, 0.5], [0.19, 0.9, 0.9]]),
+                            [0], "50-50", ["a"], {"e_pp": 0.71})
+    assert X.tolist() == [[0.05, 0.3, 0.71], [0.07, 0.5, 0.71]]
+    with pytest.raises(ConfigError, match=r"need the model's value: known \['e_n'\]"):
+        design_points(store, ["old"], ("mu_r_pp", "mu_s_pp", "e_pp"), bounds, [0], "50-50", ["a"], {"e_n": 0.5})
+    # two conditions, one after the other; the one not run is NaN
+    store.batch("initial", "old", lambda: points, seeds=[0], conditions=["50-50", "75-25"])
+    late = [t for t in store.claim(10, stage="initial") if t.condition == "75-25"]
+    store.record([(t, EvalOutcome.success({"a": 5.0, "b": 2.0}, 1.0)) for t in late
+                  if index[tuple(sorted(t.params.items()))] == 0])
+    X, reps, _ = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.1, 0.9]]), [0],
+                               ["50-50", "75-25"], ["b", "a"])
+    assert reps.shape == (2, 1, 4) and reps[0, 0].tolist() == [1.0, 0.0, 2.0, 5.0]
+    assert np.isnan(reps[1, 0, 2:]).all()
+    # the round that followed the design: its points come after the design's
+    store.batch("round-1", "old", lambda: [{"mu_s_pp": 0.4, "mu_r_pp": 0.1}], seeds=[0], conditions=["50-50"])
+    store.record([(t, EvalOutcome.success({"a": 7.0, "b": 3.0}, 1.0)) for t in store.claim(10, stage="round-1")])
+    X, reps, note = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.1, 0.9]]), [0], "50-50", ["a"])
+    assert X.tolist() == [[0.05, 0.3], [0.07, 0.5], [0.1, 0.4]] and reps[:, 0, 0].tolist() == [0.0, 10.0, 7.0]
+    assert note.startswith("3 finished points of the earlier design ['old'] reused")
 
 
 def test_a_campaign_whose_bounds_change_reuses_the_runs_of_its_earlier_design(tmp_path):
@@ -942,6 +965,93 @@ def test_jam_conditions_are_checked():
     unknown = dataclasses.replace(base, surrogate=dataclasses.replace(base.surrogate, jam_conditions=("90-10",)))
     with pytest.raises(ConfigError, match=r"surrogate.jam_conditions: \['90-10'\] are not in the measured data"):
         validation_conditions(unknown.validate(), km.known_measurement())
+
+
+def test_objective_conditions_calibrate_what_one_fill_cannot_tell(tmp_path):
+    """``objective.conditions``: Eq. 7 over the KPIs of 50-50 and of 75-25. The known model's 50-50 sees
+    only the mean of the two sliding frictions (a ridge of equal Eq. 7 along 0.5 mu_s_pp + 0.5 mu_s_ss
+    = 0.70), while 75-25 weighs the pellets' three times the sinter's; the lab is the model at the truth
+    (0.62, 0.78) on the KPIs its lighter particles do not move. Fitted on both fills, the campaign finds
+    both frictions within 0.03. Every surrogate point and the verification run on both conditions, the
+    objective names 75-25's KPIs ``<kpi>@75-25`` with the weights shared equally, 75-25 is not validated
+    (it is fitted), and the plan, the report and the JSON say so."""
+    from bo.calibration.pipeline import run_calibration
+    from bo.calibration.plan import campaign_plan
+    from bo.surrogate.acquisition import AcquisitionSettings, AdaptiveSettings
+    from bo.surrogate.attainable import AttainableSettings
+    from bo.surrogate.ga import GASettings
+
+    kpis = ("angle_of_repose_deg", "shear_angle_deg", "mass_lower_box_full_kg")
+    base = km.small_settings()
+    surrogate = dataclasses.replace(
+        base.surrogate, parameters=("mu_s_pp", "mu_s_ss"), bounds={"mu_s_pp": (0.45, 0.8), "mu_s_ss": (0.6, 0.95)},
+        adaptive=AdaptiveSettings(budget=16, points_per_parameter=5, q=6, target_r2=0.999, n_folds=4, cv_seeds=(0,),
+                                  kernels=("matern52",), seed=0,
+                                  acquisition=AcquisitionSettings(num_restarts=2, raw_samples=64, mc_samples=32,
+                                                                  maxiter=30)),
+        compare_strategies=False)
+    settings = km.small_settings(objective_kpis=kpis, surrogate=surrogate, objective_conditions=("75-25",),
+                                 density_recalibration=False, ga=GASettings(pop_size=30, n_generations=30),
+                                 ga_repetitions=1, attainable=AttainableSettings(10, 10, explain=False))
+    measured = km.known_measurement()
+    store = CampaignStore(tmp_path / "both.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
+    executor = InProcessExecutor(km.known_batch, batch_size=8)
+    result = run_calibration(store, executor, settings, measured, tmp_path / "out", km.NOMINAL_DENSITY,
+                             echo=lambda line: None)
+    assert result.objective.kpi_names == (*kpis, *(f"{k}@75-25" for k in kpis))
+    assert result.objective.weights == pytest.approx((1 / 6,) * 6)
+    lab_75 = measured.condition("75-25").kpis
+    assert result.objective.measured[3] == pytest.approx(lab_75["angle_of_repose_deg"].mean)
+    x = result.ga.calibrated
+    assert abs(x["mu_s_pp"] - 0.62) < 0.03 and abs(x["mu_s_ss"] - 0.78) < 0.03, x
+    for stage in ("initial", "round-1"):
+        runs = Counter((r.point_index, r.seed) for r in store.records(stage, status="done"))
+        assert set(runs.values()) == {2}  # each point and seed on both conditions
+    assert {r.condition for r in store.records("screening")} == {"50-50"}
+    assert Counter(r.condition for r in store.records("verification", status="done")) == {"50-50": 3, "75-25": 3}
+    assert list(result.verification_fitted) == ["75-25"]
+    assert [a.kpi for a in result.verification_fitted["75-25"]][:3] == list(kpis)
+    assert set(result.validation) == {"25-75", "50-50-reverse"}
+    plan = {s.stage: s.runs for s in campaign_plan(settings, measured).stages}
+    assert plan["surrogate"] == {"50-50": 32, "75-25": 32} and plan["verification"] == {"50-50": 3, "75-25": 3}
+    paths = write_calibration_report(result, tmp_path / "out")
+    report = Path(paths["md"]).read_text()
+    assert "On 75-25, whose KPIs the objective fits too" in report
+    saved = json.loads(Path(paths["json"]).read_text())
+    assert set(saved["verification_fitted"]) == {"75-25"} and "75-25" not in saved["validation"]
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(objective_conditions=("50-50",)), r"objective.conditions = \['50-50'\] is not allowed; expected distinct "
+                                            r"measured conditions other than the calibrated '50-50'"),
+    (dict(objective_conditions=("75-25", "75-25")), r"objective.conditions = .* distinct measured conditions"),
+    (dict(objective_conditions=("75-25",), validation_conditions=("75-25", "25-75")),
+     r"validation.conditions = .* expected conditions other than objective.conditions \['75-25'\]"),
+    (dict(objective_conditions=("90-10",)), r"objective.conditions: \['90-10'\] are not in the measured data"),
+])
+def test_objective_conditions_are_checked(change, message):
+    """The calibrated condition, a repeat, a condition also validated, or one the data do not hold,
+    among the objective's conditions is a clear error."""
+    from bo.calibration.pipeline import validation_conditions
+
+    with pytest.raises(ConfigError, match=message):
+        validation_conditions(km.small_settings(**change).validate(), km.known_measurement())
+
+
+def test_objective_conditions_come_from_the_config():
+    """From the config; a condition that is a jam condition too runs once (the plan counts it once)."""
+    from bo.calibration.plan import campaign_plan
+    from torchdem.measured import load_measured
+
+    settings = calibration_settings_from(_plain(["profile=smoke", "objective.conditions=[75-25]"]))
+    assert settings.objective_conditions == ("75-25",)
+    lab = calibration_settings_from(_plain(["profile=lab_round", "objective.conditions=[75-25]"]))
+    assert lab.surrogate.jam_conditions == ("75-25",)
+    stages = {s.stage: s.runs for s in campaign_plan(lab, load_measured(None)).stages}
+    assert list(stages["surrogate"]) == ["50-50", "75-25"] and list(stages["validation"]) == ["25-75", "50-50-reverse"]
+    assert calibration_settings_from(_plain(["profile=smoke"])).objective_conditions == ()
+    with pytest.raises(ConfigError, match=r"objective: conditions = '75-25' is not allowed; expected a list"):
+        calibration_settings_from(_plain(["profile=smoke", "objective.conditions=75-25"]))
 
 
 # -- the plan: how many runs a campaign makes -------------------------------------------------

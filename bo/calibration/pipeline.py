@@ -11,6 +11,11 @@ and the GA result is kept as a store artifact.
 1. ``screening`` (store stage ``screening``): the definitive screening design with replicate
    seeds and its analysis (``bo.screening.pipeline``): KPIs dominated by DEM noise are excluded (Eqs. 4-6),
    Table 5 selects the parameters, the Table-6 rule proposes the calibration bounds.
+   With ``objective_conditions`` Eq. 7 also counts the KPIs of other measured conditions (another
+   fill's), each named ``<kpi>@<condition>`` (:func:`at_condition`): the calibrated condition's KPIs
+   and theirs, equal weights per condition, so a parameter that only a second fill shows (how
+   friction divides between the materials) is calibrated instead of guessed. Every surrogate point
+   and the verification run on them too, and they are not validated (they are no blind check).
 2. ``surrogate`` (stages ``initial`` and ``round-<k>``): a Latin hypercube of
    ``points_per_parameter x d`` points, each run with every replicate seed; then rounds of ``q``
    batch expected-improvement points (qLogEI) until the mean cross-validated R^2 reaches
@@ -149,7 +154,8 @@ class SurrogateStageSettings:
             observations of the jam classifier (:mod:`bo.surrogate.jam`), so the GA keeps away from
             where a fill the lab saw flow arches over the slot, which a calibration on one fill
             does not see (a pellet-rich fill arches where 50-50 flows). A validation condition
-            named here is still a blind check of its KPIs, not of whether it jams.
+            named here is still a blind check of its KPIs, not of whether it jams. (Conditions whose
+            KPIs enter the objective are ``CalibrationSettings.objective_conditions``.)
     """
 
     parameters: tuple[str, ...] | None
@@ -190,6 +196,11 @@ class CalibrationSettings:
             round; the rounds' own when the other was not cross-validated).
         attainable: the GAs of what the bounds allow (:func:`attainable_stage`), and whether it
             says what holds each range that misses.
+        objective_conditions: measured conditions besides ``condition`` whose KPIs enter Eq. 7
+            (as ``<kpi>@<condition>``, the calibrated condition's weights divided by the number of
+            conditions): every surrogate point and the verification run on them, the screening's
+            points (run on ``condition`` only) do not count as surrogate data, and they are left
+            out of the validation. () calibrates on ``condition`` alone, as the paper.
     """
 
     condition: str
@@ -209,6 +220,7 @@ class CalibrationSettings:
     fresh_verification: bool = False
     ga_strategy: str | None = None
     attainable: AttainableSettings = AttainableSettings()
+    objective_conditions: tuple[str, ...] = ()
 
     def validate(self, source: str = "calibration") -> "CalibrationSettings":
         if self.screening.condition != self.condition:
@@ -229,6 +241,15 @@ class CalibrationSettings:
         if self.condition in s.jam_conditions or len(set(s.jam_conditions)) != len(s.jam_conditions):
             raise out_of_range("surrogate.jam_conditions", list(s.jam_conditions),
                                f"distinct measured conditions other than the calibrated {self.condition!r}", source)
+        fitted = self.objective_conditions
+        if self.condition in fitted or len(set(fitted)) != len(fitted):
+            raise out_of_range("objective.conditions", list(fitted),
+                               f"distinct measured conditions other than the calibrated {self.condition!r}", source)
+        both = [c for c in fitted if c in (self.validation_conditions or ())]
+        if both:
+            raise out_of_range("validation.conditions", list(self.validation_conditions),
+                               f"conditions other than objective.conditions {both} (those are fitted, no blind check)",
+                               source)
         if s.config.strategy not in STRATEGIES:
             raise out_of_range("surrogate.strategy", s.config.strategy, f"one of {list(STRATEGIES)}", source)
         if self.ga_strategy is not None and self.ga_strategy not in (*STRATEGIES, GA_BEST):
@@ -364,6 +385,7 @@ class CalibrationResult:
     discharge_jammed: Mapping[str, int] = field(default_factory=dict)
     attainable: tuple[AttainableRange, ...] = ()
     held_parameters: Mapping[str, float] = field(default_factory=dict)  # the model's, less the calibrated ones
+    verification_fitted: Mapping[str, tuple[KPIAgreement, ...]] = field(default_factory=dict)  # objective_conditions'
 
 
 # --------------------------------------------------------------------------------------------
@@ -467,6 +489,35 @@ def agreement(replicates: np.ndarray, kpis: Sequence[str], measured: Mapping) ->
 
 #: The KPI a run reports its jammed discharge by (``torchdem.drawdown.JAM_FRACTION``).
 JAMMED = "discharge_jammed"
+
+#: Between a KPI and the condition it was measured on in an objective's KPI name (:func:`at_condition`).
+CONDITION_MARK = "@"
+
+
+def at_condition(kpi: str, condition: str) -> str:
+    """The objective's name of ``kpi`` measured on another ``condition`` than the calibrated one:
+    ``shear_angle_deg@75-25`` (``CalibrationSettings.objective_conditions``)."""
+    return f"{kpi}{CONDITION_MARK}{condition}"
+
+
+def objective_blocks(objective: ObjectiveSpec, condition: str) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """``((condition, DEM KPI names), ...)``: the conditions whose runs the objective's KPIs are read
+    from, the calibrated ``condition`` first, each with its KPIs in the objective's order (every
+    condition has the same KPIs, :func:`objective_for`). Concatenated they are the objective's KPI axis."""
+    blocks: dict[str, list[str]] = {condition: []}
+    for name in objective.kpi_names:
+        kpi, _, where = name.partition(CONDITION_MARK)
+        blocks.setdefault(where or condition, []).append(kpi)
+    return tuple((c, tuple(k)) for c, k in blocks.items())
+
+
+def objective_measurements(objective: ObjectiveSpec, condition: str, measured: MeasuredData) -> dict:
+    """``{objective KPI name: the lab's Measurement}`` (mean and 95 % CI), each KPI's from its condition."""
+    out = {}
+    for where, kpis in objective_blocks(objective, condition):
+        lab = measured_for(kpis, measured.condition(where).kpis)
+        out.update({(k if where == condition else at_condition(k, where)): v for k, v in lab.items()})
+    return out
 
 #: Fewest screening points inside the surrogate's bounds whose replicates the pooled noise is taken
 #: from; with fewer it is pooled over every screening point.
@@ -663,12 +714,22 @@ def screening_points(results: ScreeningResults, names: Sequence[str], bounds: np
 
 
 def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str], bounds: np.ndarray,
-                  seeds: Sequence[int], condition: str, kpis: Sequence[str]) -> tuple[np.ndarray, np.ndarray, str]:
+                  seeds: Sequence[int], condition: str | Sequence[str], kpis: Sequence[str],
+                  nominal: Mapping[str, float] | None = None) -> tuple[np.ndarray, np.ndarray, str]:
     """The finished points of earlier initial designs as surrogate data: ``(X [n, d], reps [n, r, M],
-    note)`` for the ``initial`` batches ``keys`` of ``store``, the runs of ``condition`` with one of
-    ``seeds`` (``r``), KPIs ``kpis`` (``M``). A point with no finished run, or outside ``bounds
-    [2, d]``, is left out (the note counts them). Raises ConfigError for a key the store does not
-    hold or a batch whose points vary other parameters than ``names``."""
+    note)`` for the ``initial`` batches ``keys`` of ``store`` and the rounds that followed them
+    (``round-<k>`` batches of the same key: an earlier campaign's whole surrogate stage), the runs of
+    ``condition`` with one of ``seeds`` (``r``), KPIs ``kpis`` (``M``). Several conditions give their KPIs one after the other
+    (``M = c * len(kpis)``, NaN where a condition was not run: an objective over several conditions).
+    A point with no finished run, or outside ``bounds [2, d]``, is left out (the note counts them).
+    A calibrated parameter the design did not vary takes ``nominal[name]``, the value its runs had
+    (the model's held value: a campaign that calibrates one more parameter reuses the design of one
+    that held it). Raises ConfigError for a key the store does not hold, or a batch whose points vary
+    a parameter not in ``names`` or lack one of ``names`` that ``nominal`` does not give."""
+    nominal = dict(nominal or {})
+    conditions = [condition] if isinstance(condition, str) else list(condition)
+    column = {c: j * len(kpis) for j, c in enumerate(conditions)}
+    width = len(conditions) * len(kpis)
     held = [k for _, k in store.batch_keys("initial")]
     X, reps, not_run = [], [], 0
     index = {int(seed): r for r, seed in enumerate(seeds)}
@@ -677,22 +738,27 @@ def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str
         if key not in held:
             raise ConfigError(f"surrogate.reuse_designs: {store.path} holds no initial design {key!r}; it holds "
                               f"{held}")
-        records = store.records("initial", batch_key=key)
-        points: dict[int, tuple[dict, np.ndarray]] = {}
+        stages = [s for s, k in store.batch_keys() if k == key and (s == "initial" or s.startswith("round-"))]
+        records = [rec for s in stages for rec in store.records(s, batch_key=key)]
+        points: dict[tuple[str, int], tuple[dict, np.ndarray]] = {}
         for rec in records:
-            if set(rec.params) != set(names):
+            if set(rec.params) - set(names) or set(names) - set(rec.params) - set(nominal):
                 raise ConfigError(f"surrogate.reuse_designs: design {key!r} varies {sorted(rec.params)}; the "
-                                  f"calibration varies {sorted(names)}")
-            if rec.status != "done" or rec.condition != condition or rec.seed not in index or rec.kpis is None:
+                                  f"calibration varies {sorted(names)}"
+                                  + (f" (those it did not vary need the model's value: known {sorted(nominal)})"
+                                     if not set(rec.params) - set(names) else ""))
+            if rec.status != "done" or rec.condition not in column or rec.seed not in index or rec.kpis is None:
                 continue
-            _, values = points.setdefault(rec.point_index, (rec.params, np.full((len(seeds), len(kpis)), np.nan)))
-            values[index[rec.seed]] = [rec.kpis.get(k, math.nan) for k in kpis]
-        not_run += len({rec.point_index for rec in records}) - len(points)
-        for i in sorted(points):
-            X.append([points[i][0][n] for n in names])
+            _, values = points.setdefault((rec.stage, rec.point_index),
+                                          (rec.params, np.full((len(seeds), width), np.nan)))
+            j = column[rec.condition]
+            values[index[rec.seed], j:j + len(kpis)] = [rec.kpis.get(k, math.nan) for k in kpis]
+        not_run += len({(rec.stage, rec.point_index) for rec in records}) - len(points)
+        for i in sorted(points, key=lambda sp: (stages.index(sp[0]), sp[1])):
+            X.append([points[i][0].get(n, nominal.get(n)) for n in names])
             reps.append(points[i][1])
     X_all = np.array(X, dtype=np.float64).reshape(len(X), len(names))
-    reps_all = np.array(reps, dtype=np.float64).reshape(len(reps), len(seeds), len(kpis))
+    reps_all = np.array(reps, dtype=np.float64).reshape(len(reps), len(seeds), width)
     reps_all[~np.isfinite(reps_all)] = np.nan
     inside = np.all((X_all >= bounds[0] - tol) & (X_all <= bounds[1] + tol), axis=1)
     outside = int((~inside).sum())
@@ -727,11 +793,19 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
     ``prior``: points already run, ``(X [n0, d], reps [n0, r0, M], note)`` (:func:`screening_points`):
     they join the data before the LHS, which shrinks by the usable ones to no less than half its
     size; the budget counts the points this stage runs. With ``s.jam_conditions`` every point this
-    stage runs runs on them too, and their runs are kept for the jam classifier only."""
+    stage runs runs on them too, and their runs are kept for the jam classifier only. An objective
+    with KPIs of other conditions (:func:`objective_blocks`) has every point run on those too, each
+    seed's runs read as one observation of all its KPIs (jammed when any of them jammed); ``prior``
+    then gives the calibrated condition's KPIs only, and the others are NaN (not run)."""
     names = tuple(names)
     d = len(names)
     a, config = s.adaptive, s.config
     kpis = objective.kpi_names
+    blocks = objective_blocks(objective, condition)
+    if prior is not None and prior[1].shape[2] != len(kpis):  # run on the calibrated condition only
+        m0 = prior[1].shape[2]
+        prior = (prior[0], np.concatenate([prior[1], np.full(prior[1].shape[:2] + (len(kpis) - m0,), np.nan)],
+                                          axis=2), prior[2])
     need = min(2, len(s.seeds))
     if prior is not None:
         X0, reps0, reuse_note = prior
@@ -746,21 +820,26 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                list(kpis), list(objective.measured), list(objective.weights),
                *([X0.tolist(), reps0.tolist()] if prior is not None else []),
                *([("jam_conditions", list(s.jam_conditions))] if s.jam_conditions else []))
-    conditions = [condition, *s.jam_conditions]
+    fitted = [c for c, _ in blocks]
+    jam_only = [c for c in s.jam_conditions if c not in fitted]  # an objective condition's runs feed it anyway
+    conditions = [*fitted, *jam_only]
+    own = list(blocks[0][1])  # every condition's KPIs, as the calibrated condition's
     rows = lambda X: [dict(zip(names, map(float, x))) for x in X]  # noqa: E731
     width = max(len(s.seeds), reps0.shape[1])
     padded = functools.partial(_padded, width=width)
 
     def evaluated(stage: str, points: Sequence[Mapping[str, float]]
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``(X [n, d], reps [n, width, M], jammed [n, width], elsewhere [n, c * width, M + 1])``, the
-        last the jam conditions' runs with their jam flag in the last column."""
+        """``(X [n, d], reps [n, width, M], jammed [n, width], elsewhere [n, c * width, m + 1])``, the
+        last the jam conditions' runs (``m`` KPIs of one condition) with their jam flag in the last column."""
         X = np.array([[p[n] for n in names] for p in points], dtype=np.float64).reshape(len(points), d)
-        runs = [padded(_replicates(store, stage, f"{key}", len(points), s.seeds, c, list(kpis) + [JAMMED]))
+        runs = [padded(_replicates(store, stage, f"{key}", len(points), s.seeds, c, own + [JAMMED]))
                 for c in conditions]
-        reps = runs[0]
-        return X, reps[..., :-1], reps[..., -1] == 1, np.concatenate(runs[1:], axis=1) if s.jam_conditions \
-            else np.zeros((len(points), 0, len(kpis) + 1))
+        mine = runs[:len(fitted)]
+        reps = np.concatenate([r[..., :-1] for r in mine], axis=2)
+        jammed = np.any([r[..., -1] == 1 for r in mine], axis=0)
+        return X, reps, jammed, np.concatenate(runs[len(fitted):], axis=1) if jam_only \
+            else np.zeros((len(points), 0, len(own) + 1))
 
     if prior is not None:
         echo(f"      {reuse_note}; initial design {n_initial} points instead of {full}")
@@ -856,8 +935,8 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                             dropped_points=int((~usable).sum()),
                             strategy_r2={t: tuple(v) for t, v in r2.items()}, reused_points=n0,
                             reuse_note=reuse_note, jammed=jam_all[usable], noise=pooled,
-                            elsewhere=elsewhere[..., :-1] if s.jam_conditions else None,
-                            jammed_elsewhere=elsewhere[..., -1] == 1 if s.jam_conditions else None)
+                            elsewhere=elsewhere[..., :-1] if jam_only else None,
+                            jammed_elsewhere=elsewhere[..., -1] == 1 if jam_only else None)
 
 
 def _summary_to_json(summary: GASummary) -> dict:
@@ -906,7 +985,10 @@ def _jam_flags(surrogate: SurrogateOutcome, objective: ObjectiveSpec) -> tuple[n
         return None, 1.0
     reps, jammed = surrogate.kpi_replicates, surrogate.jammed
     if surrogate.elsewhere is not None:
-        reps = np.concatenate([reps, surrogate.elsewhere], axis=1)
+        # an objective over several conditions has several times one condition's KPIs: a jam
+        # condition's run is scored on each of them, a box that did not flow on any fill
+        reps = np.concatenate([reps, np.tile(surrogate.elsewhere, reps.shape[2] // surrogate.elsewhere.shape[2])],
+                              axis=1)
         jammed = np.concatenate([jammed, surrogate.jammed_elsewhere], axis=1)
     if not jammed.any():
         return None, 1.0
@@ -929,8 +1011,8 @@ def ga_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: Objec
     if why:
         echo(f"      {why}")
     flags, jammed_objective = _jam_flags(surrogate, objective)
-    where = ("" if not settings.surrogate.jam_conditions else
-             f" on {', '.join([settings.condition, *settings.surrogate.jam_conditions])}")
+    run_on = list(dict.fromkeys([settings.condition, *settings.objective_conditions, *settings.surrogate.jam_conditions]))
+    where = "" if len(run_on) == 1 else f" on {', '.join(run_on)}"
     jam_note = "" if flags is None else (
         f"{int(np.nansum(flags))} of the surrogate stage's {int(np.isfinite(flags).sum())} runs{where} jammed (Eq. 7 of "
         f"a jammed run {jammed_objective:.2f}), so the GA minimises the expected Eq. 7 of one run, (1 - p) f + p "
@@ -993,7 +1075,8 @@ ATTAINABLE_JAM_NAME = "jam cap"
 def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objective: ObjectiveSpec,
                      settings: CalibrationSettings, ga: GAOutcome, lab: Mapping,
                      echo: Callable[[str], None] = print) -> tuple[AttainableRange, ...]:
-    """Per objective KPI, the range of one per-KPI surrogate's mean (the points the GA's surrogate
+    """``lab``: the lab's measurement of each objective KPI (:func:`objective_measurements`).
+    Per objective KPI, the range of one per-KPI surrogate's mean (the points the GA's surrogate
     was trained on, the last round's kernel, the first training seed) over the box of the chosen GA
     mode, with the other objective KPIs inside the lab's 95 % CI (:mod:`bo.surrogate.attainable`) and,
     when runs of the surrogate stage jammed, a chance of jamming of at most :data:`ATTAINABLE_MAX_JAM`
@@ -1004,7 +1087,7 @@ def attainable_stage(store: CampaignStore, surrogate: SurrogateOutcome, objectiv
     X = surrogate.state.X[usable]
     b = ga_bounds(surrogate.bounds, dataclasses.replace(settings.ga, restricted=(ga.mode == "restricted")),
                   surrogate.parameters)
-    measured = {k: (float(v.mean), float(v.ci95)) for k, v in measured_for(objective.kpi_names, lab).items()}
+    measured = {k: (float(v.mean), float(v.ci95)) for k, v in lab.items() if k in objective.kpi_names}
     if set(measured) != set(objective.kpi_names):
         return ()
     config = dataclasses.replace(settings.surrogate.config, kernel=surrogate.rounds[-1].kernel, strategy="per_kpi")
@@ -1070,8 +1153,11 @@ def density_stage(store: CampaignStore, executor: Executor, settings: Calibratio
 # The campaign
 # --------------------------------------------------------------------------------------------
 
-def objective_for(settings: CalibrationSettings, screening: ScreeningReport, measured: Mapping) -> ObjectiveSpec:
-    """Eq. 7 over the configured KPIs, or over the screening's kept KPIs that have a measurement."""
+def objective_for(settings: CalibrationSettings, screening: ScreeningReport, measured: Mapping,
+                  data: MeasuredData | None = None) -> ObjectiveSpec:
+    """Eq. 7 over the configured KPIs, or over the screening's kept KPIs that have a measurement,
+    on the calibrated condition (``measured``: its KPIs) and on each of ``settings.objective_conditions``
+    (read from ``data``, the whole measured data), each KPI's weight shared equally among the conditions."""
     lab = measured_for(settings.screening.kpis if settings.objective_kpis is None else settings.objective_kpis,
                        measured)
     if settings.objective_kpis is None:
@@ -1088,7 +1174,25 @@ def objective_for(settings: CalibrationSettings, screening: ScreeningReport, mea
     weights = None if settings.weights is None else {k: settings.weights.get(k) for k in kpis}
     if weights is not None and (set(settings.weights) - set(kpis) or any(w is None for w in weights.values())):
         raise ConfigError(f"objective.weights: {dict(settings.weights)} must give a weight to exactly the KPIs {kpis}")
-    return ObjectiveSpec.from_measured({k: float(lab[k].mean) for k in kpis}, weights, source="objective")
+    values = {k: float(lab[k].mean) for k in kpis}
+    fitted = settings.objective_conditions
+    if fitted:
+        if data is None:
+            raise ConfigError(f"objective.conditions {list(fitted)}: the measured data of those conditions are needed")
+        for c in fitted:
+            if c not in data.names:
+                raise out_of_range("objective.conditions", list(fitted), f"conditions of the measured data "
+                                   f"{list(data.names)}", f"config (measured data {data.origin})")
+            there = measured_for(kpis, data.condition(c).kpis)
+            missing = [k for k in kpis if k not in there]
+            if missing:
+                raise ConfigError(f"objective.conditions: condition {c!r} has no measurement of {missing} "
+                                  f"({data.origin}); every objective condition needs the objective's KPIs {kpis}")
+            values.update({at_condition(k, c): float(there[k].mean) for k in kpis})
+        share = 1.0 / (1 + len(fitted))
+        base = weights or {k: 1.0 / len(kpis) for k in kpis}
+        weights = {name: base[name.partition(CONDITION_MARK)[0]] * share for name in values}
+    return ObjectiveSpec.from_measured(values, weights, source="objective")
 
 
 def validation_conditions(settings: CalibrationSettings, measured: MeasuredData) -> tuple[str, ...]:
@@ -1096,10 +1200,12 @@ def validation_conditions(settings: CalibrationSettings, measured: MeasuredData)
     if settings.condition not in measured.names:
         raise out_of_range("condition", settings.condition, f"a condition of the measured data {list(measured.names)}",
                            f"config (measured data {measured.origin})")
-    validation = (tuple(c for c in measured.names if c != settings.condition)
+    fitted = (settings.condition, *settings.objective_conditions)
+    validation = (tuple(c for c in measured.names if c not in fitted)
                   if settings.validation_conditions is None else tuple(settings.validation_conditions))
     for key, names in (("validation.conditions", validation), ("surrogate.jam_conditions",
-                                                               settings.surrogate.jam_conditions)):
+                                                               settings.surrogate.jam_conditions),
+                       ("objective.conditions", settings.objective_conditions)):
         unknown = [c for c in names if c not in measured.names]
         if unknown:
             raise ConfigError(f"{key}: {unknown} are not in the measured data {list(measured.names)} "
@@ -1133,13 +1239,15 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     echo(f"[1/6] screening: {settings.screening.table.k} parameters, {len(settings.screening.seeds)} replicates")
     screening = screening_stage(store, executor, settings.screening, lab, out / "screening")
     lap("screening")
-    objective = objective_for(settings, screening, lab)
+    objective = objective_for(settings, screening, lab, measured)
+    blocks = objective_blocks(objective, settings.condition)
+    own = blocks[0][1]  # the calibrated condition's objective KPIs (every condition's)
     names, bounds, note = choose_parameters(screening, settings.surrogate)
     echo(f"[2/6] surrogate: {note}; objective KPIs {list(objective.kpi_names)}")
     pooled = None
     if settings.surrogate.noise == "pooled":
         table = screening.results
-        reps = table.kpi_values[:, :, [table.kpi_index(k) for k in objective.kpi_names]]
+        reps = table.kpi_values[:, :, [table.kpi_index(k) for k in own]]
         inside = screening_points_inside(table, names, bounds)
         where = "the screening's replicates"
         if not inside.all() and inside.sum() >= MIN_POOLED_POINTS:
@@ -1148,15 +1256,23 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
             reps, where = reps[inside], f"the replicates of the {int(inside.sum())} screening points inside the bounds"
         pooled, dof = pooled_replicate_covariance(reps)
         echo(f"      GP noise of single runs pooled from {where} ({dof} degrees of freedom): "
-             + ", ".join(f"{k} sd {math.sqrt(pooled[j, j]):.3g}" for j, k in enumerate(objective.kpi_names)))
+             + ", ".join(f"{k} sd {math.sqrt(pooled[j, j]):.3g}" for j, k in enumerate(own))
+             + (f"; the same for a run on {settings.objective_conditions[0] if len(blocks) == 2 else 'each other objective condition'}"
+                ", independent of the calibrated condition's (the screening ran no other)" if len(blocks) > 1 else ""))
+        pooled = np.kron(np.eye(len(blocks)), pooled)
     prior = None
-    if settings.surrogate.reuse_screening:
+    if settings.surrogate.reuse_screening and len(blocks) > 1:
+        echo("      the screening's points are no surrogate data: they were not run on "
+             + ", ".join(settings.objective_conditions))
+    elif settings.surrogate.reuse_screening:
         nominal = {DENSITY_PREFIX + m: float(rho) for m, rho in densities.items()}
-        prior = screening_points(screening.results, names, bounds, objective.kpi_names, nominal)
+        prior = screening_points(screening.results, names, bounds, own, nominal)
     n_earlier = 0
     if settings.surrogate.reuse_designs:
         earlier = design_points(store, settings.surrogate.reuse_designs, names, bounds, settings.surrogate.seeds,
-                                settings.condition, objective.kpi_names)
+                                [c for c, _ in blocks], own, {**(held or {}),
+                                                               **{DENSITY_PREFIX + m: float(rho)
+                                                                  for m, rho in densities.items()}})
         prior, n_earlier = (earlier if prior is None else _joined(prior, earlier)), len(earlier[0])
     surrogate = surrogate_stage(store, executor, condition=settings.condition, names=names, bounds=bounds,
                                 objective=objective, s=settings.surrogate, echo=echo, pooled=pooled, prior=prior)
@@ -1165,15 +1281,20 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     echo("[3/6] genetic algorithm on the surrogate")
     ga = ga_stage(store, surrogate, objective, settings, echo)
     echo("      what the bounds allow: each KPI's surrogate range with the others inside the lab's CI")
-    attainable = attainable_stage(store, surrogate, objective, settings, ga, lab, echo)
+    attainable = attainable_stage(store, surrogate, objective, settings, ga, objective_measurements(
+        objective, settings.condition, measured), echo)
     lap("ga")
-    kpis = tuple(dict.fromkeys(list(objective.kpi_names) + [HEAP_HEIGHT_KPI]
+    kpis = tuple(dict.fromkeys(list(own) + [HEAP_HEIGHT_KPI]
                                + [k for k in settings.screening.kpis if k in measured_for(settings.screening.kpis, lab)]
                                + [JAMMED]))  # jammed runs are counted, not averaged (agreement)
     echo(f"[4/6] verification: {len(settings.verification_seeds)} replicates of the calibrated set")
-    ver = verify(store, executor, "verification", ga.calibrated, settings.verification_seeds, [settings.condition],
-                 kpis)[settings.condition]
+    fitted = [c for c, _ in blocks]
+    if len(fitted) > 1:
+        echo(f"      on {', '.join(fitted)}: the objective's conditions")
+    ver_runs = verify(store, executor, "verification", ga.calibrated, settings.verification_seeds, fitted, kpis)
+    ver = ver_runs[settings.condition]
     verification = agreement(ver, kpis, lab)
+    verification_fitted = {c: agreement(ver_runs[c], kpis, measured.condition(c).kpis) for c in fitted[1:]}
     fresh = None
     if settings.fresh_verification:
         echo(f"      and again on this machine ({len(settings.verification_seeds)} runs, none taken from the store)")
@@ -1211,4 +1332,5 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
                              validation=val, final_parameters=final, evaluations=evaluations, wall_time_s=walls,
                              fresh_verification=fresh, discharge_not_ended=not_ended,
                              discharge_jammed=jammed, attainable=attainable,
-                             held_parameters={k: float(v) for k, v in (held or {}).items() if k not in final})
+                             held_parameters={k: float(v) for k, v in (held or {}).items() if k not in final},
+                             verification_fitted=verification_fitted)

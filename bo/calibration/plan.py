@@ -10,8 +10,10 @@ end when the cross-validated R^2 reaches the target); every other figure is exac
 - screening: the definitive screening design's runs (``2 m + 1`` points for ``m`` real and fake
   factors, ``m`` even) times its replicate seeds, on the calibrated condition;
 - surrogate: ``budget`` points times the surrogate's seeds, on the calibrated condition and again
-  on each of ``jam_conditions`` (the screening's reused points are not run again);
-- verification: its seeds, twice with ``fresh_verification``;
+  on each of ``objective_conditions`` and ``jam_conditions`` (the screening's reused points are not
+  run again);
+- verification: its seeds, twice with ``fresh_verification`` (on the calibrated condition; the
+  stored verification runs on each of ``objective_conditions`` too);
 - density: its seeds again, where the measured data carry a heap height and the check is on;
 - validation: its seeds on each validation condition.
 
@@ -103,13 +105,16 @@ def campaign_plan(settings, measured: MeasuredData) -> CampaignPlan:
                             f"{_n(points, 'point')} x {_n(len(sc.seeds), 'seed')} on {condition}"))
     s = settings.surrogate
     budget = s.adaptive.budget
-    where = (condition, *s.jam_conditions)
+    where = tuple(dict.fromkeys((condition, *settings.objective_conditions, *s.jam_conditions)))
     stages.append(StagePlan("surrogate", {c: budget * len(s.seeds) for c in where},
                             f"{_n(budget, 'point')} x {_n(len(s.seeds), 'seed')} on {_conditions(where)}", exact=False))
     n_ver = len(settings.verification_seeds)
     times = 2 if settings.fresh_verification else 1
-    stages.append(StagePlan("verification", {condition: n_ver * times},
-                            _n(n_ver, "seed") + (", and again on this machine" if times == 2 else "")))
+    fitted = settings.objective_conditions
+    stages.append(StagePlan("verification", {condition: n_ver * times, **{c: n_ver for c in fitted}},
+                            _n(n_ver, "seed") + (f" on {_conditions((condition, *fitted))}" if fitted else "")
+                            + (f", and again on this machine{f' on {condition}' if fitted else ''}"
+                               if times == 2 else "")))
     if settings.density_recalibration and HEAP_HEIGHT_KPI in measured.condition(condition).kpis:
         stages.append(StagePlan("density", {condition: n_ver}, f"{_n(n_ver, 'seed')} at the rescaled densities"))
     validation = validation_conditions(settings, measured)

@@ -113,6 +113,8 @@ def calibration_payload(result: CalibrationResult) -> dict:
                     "heap_measured_m": dens.heap_measured_m, "ratio": dens.ratio, "densities": dict(dens.densities),
                     "verification": [a.to_dict() for a in dens.agreement]},
         "validation": {c: [a.to_dict() for a in rows] for c, rows in result.validation.items()},
+        **({"verification_fitted": {c: [a.to_dict() for a in rows] for c, rows in result.verification_fitted.items()}}
+           if result.verification_fitted else {}),
         "dem_evaluations": dict(result.evaluations),
         "wall_time_s": dict(result.wall_time_s),
     })
@@ -302,6 +304,9 @@ def _markdown(result: CalibrationResult, payload: Mapping, files: Mapping[str, P
     if result.fresh_verification is not None:
         lines += ["", f"The same {len(s.verification_seeds)} runs made again on the machine that wrote this report "
                   "(none taken from the store):", ""] + agreement_table(result.fresh_verification)
+    for c, rows in result.verification_fitted.items():
+        lines += ["", f"On {c}, whose KPIs the objective fits too (`objective.conditions`; no blind check):", ""] \
+            + agreement_table(rows)
     if "fig14" in files:
         lines += ["", f"![Fig. 14]({files['fig14'].name})"]
     lines += ["", "## 5. Bulk density (Figs. 15-16, Table A.5)", ""]

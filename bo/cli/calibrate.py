@@ -204,6 +204,8 @@ def calibration_settings_from(plain: Mapping[str, Any]):
             raise out_of_range("weights", dict(weights), f"weights >= 0 summing to 1 (they sum to {math.fsum(w)!r})",
                                "objective")
         weights = dict(zip(weights, w))
+    fitted = _names(obj, "conditions", "objective", "a list of distinct measured conditions besides the calibrated "
+                    "one whose KPIs join Eq. 7 (e.g. [75-25]), or null")
     ga_cfg = dict(plain.get("ga") or {})
     reps = _int(ga_cfg.pop("repetitions", None), "repetitions", "ga", 1, "an int >= 1 (surrogate trainings)")
     mode = ga_cfg.pop("mode", None)
@@ -229,7 +231,7 @@ def calibration_settings_from(plain: Mapping[str, Any]):
         validation_conditions=conditions, validation_seeds=_seeds(val, "validation", base),
         validate_with_density=bool(val.get("with_density", True)), seed=base,
         fresh_verification=flag(ver.get("fresh", False), "fresh", "verification"), ga_strategy=ga_strategy,
-        attainable=attainable)
+        attainable=attainable, objective_conditions=tuple(fitted))
     return _wrap("", settings.validate)
 
 
