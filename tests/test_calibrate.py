@@ -1021,6 +1021,37 @@ def test_objective_conditions_calibrate_what_one_fill_cannot_tell(tmp_path):
     assert set(saved["verification_fitted"]) == {"75-25"} and "75-25" not in saved["validation"]
 
 
+def test_an_objective_condition_that_is_a_jam_condition_runs_once(tmp_path):
+    """75-25 both in the objective and among the jam conditions (``profile=lab_split``): each point and
+    seed runs once on it, its runs are the objective's 75-25 KPIs, and no run is left for the jam
+    conditions' columns."""
+    from bo.calibration.pipeline import objective_blocks, surrogate_stage
+    from bo.surrogate.acquisition import AdaptiveSettings
+    from bo.surrogate.gp import SurrogateConfig
+
+    measured = km.known_measurement()
+    kpis = ("shear_angle_deg", "mass_lower_box_full_kg")
+    settings = km.small_settings(objective_kpis=kpis, objective_conditions=("75-25",)).validate()
+    lab = lambda c, k: measured.condition(c).kpis[k.replace("_full", "")].mean  # noqa: E731
+    objective = ObjectiveSpec.from_measured({**{k: lab("50-50", k) for k in kpis},
+                                             **{f"{k}@75-25": lab("75-25", k) for k in kpis}}, None)
+    assert objective_blocks(objective, "50-50") == (("50-50", kpis), ("75-25", kpis))
+    s = dataclasses.replace(settings.surrogate, parameters=("mu_s_pp", "mu_s_ss"), seeds=(0,), jam_conditions=("75-25",),
+                            adaptive=AdaptiveSettings(budget=6, points_per_parameter=3, q=2, target_r2=0.999, n_folds=3,
+                                                      cv_seeds=(0,), kernels=("matern52",), seed=0),
+                            config=SurrogateConfig(kernel="matern52", strategy="per_kpi"), compare_strategies=False)
+    store = CampaignStore(tmp_path / "once.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
+    out = surrogate_stage(store, InProcessExecutor(km.known_batch, batch_size=8), condition="50-50",
+                          names=("mu_s_pp", "mu_s_ss"), bounds=np.array([[0.45, 0.6], [0.8, 0.95]]), objective=objective,
+                          s=s, echo=lambda line: None)
+    runs = Counter((r.point_index, r.seed, r.condition) for r in store.records("initial"))
+    assert set(runs.values()) == {1} and len(runs) == 6 * 2
+    assert out.elsewhere is None and out.kpi_replicates.shape == (6, 1, 4)
+    x = out.state.X[0]
+    expected = km.known_kpis({"mu_s_pp": float(x[0]), "mu_s_ss": float(x[1])}, 0, "75-25")
+    np.testing.assert_allclose(out.kpi_replicates[0, 0, 2:], [expected[k] for k in kpis])
+
+
 @pytest.mark.parametrize("change, message", [
     (dict(objective_conditions=("50-50",)), r"objective.conditions = \['50-50'\] is not allowed; expected distinct "
                                             r"measured conditions other than the calibrated '50-50'"),
