@@ -1179,10 +1179,7 @@ def objective_for(settings: CalibrationSettings, screening: ScreeningReport, mea
     if fitted:
         if data is None:
             raise ConfigError(f"objective.conditions {list(fitted)}: the measured data of those conditions are needed")
-        for c in fitted:
-            if c not in data.names:
-                raise out_of_range("objective.conditions", list(fitted), f"conditions of the measured data "
-                                   f"{list(data.names)}", f"config (measured data {data.origin})")
+        for c in fitted:  # their names are checked against the data with the others (validation_conditions)
             there = measured_for(kpis, data.condition(c).kpis)
             missing = [k for k in kpis if k not in there]
             if missing:
@@ -1261,18 +1258,16 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
                 ", independent of the calibrated condition's (the screening ran no other)" if len(blocks) > 1 else ""))
         pooled = np.kron(np.eye(len(blocks)), pooled)
     prior = None
+    nominal = {DENSITY_PREFIX + m: float(rho) for m, rho in densities.items()}  # every earlier run's densities
     if settings.surrogate.reuse_screening and len(blocks) > 1:
         echo("      the screening's points are no surrogate data: they were not run on "
              + ", ".join(settings.objective_conditions))
     elif settings.surrogate.reuse_screening:
-        nominal = {DENSITY_PREFIX + m: float(rho) for m, rho in densities.items()}
         prior = screening_points(screening.results, names, bounds, own, nominal)
     n_earlier = 0
     if settings.surrogate.reuse_designs:
         earlier = design_points(store, settings.surrogate.reuse_designs, names, bounds, settings.surrogate.seeds,
-                                [c for c, _ in blocks], own, {**(held or {}),
-                                                               **{DENSITY_PREFIX + m: float(rho)
-                                                                  for m, rho in densities.items()}})
+                                [c for c, _ in blocks], own, {**(held or {}), **nominal})
         prior, n_earlier = (earlier if prior is None else _joined(prior, earlier)), len(earlier[0])
     surrogate = surrogate_stage(store, executor, condition=settings.condition, names=names, bounds=bounds,
                                 objective=objective, s=settings.surrogate, echo=echo, pooled=pooled, prior=prior)
