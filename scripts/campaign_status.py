@@ -17,8 +17,9 @@ Worker time is one-thread process time, as the campaigns run (``executor=dask``,
 worker): divide by the number of workers for wall time. Stages not reached yet hold no rows and
 are not in the estimate (the calibration's surrogate rounds, verification and validation) unless
 ``--profile`` gives the plan. Given several stores, it ends with a table of the DEM runs each made and
-their worker time, and the sum: the cost of a body of work (a run adopted from another store, or that
-took another's result, counts in the store that made it). Stores are only read.
+their worker time, and the sum: the cost of a body of work (a run adopted from another store, that
+took another's result, or that came with a copy of another store, ``store_from``, counts in the store that
+made it). Stores are only read.
 """
 from __future__ import annotations
 
@@ -61,6 +62,9 @@ def report(progress: StoreProgress, workers: int) -> str:
                   + ("" if left is None else f", {bound or 'about'} {_hours(left / workers)} on {workers} workers")
                   + (" (classes without finished runs borrow their nearest class's figure)" if bound else "")
                   + ". Stages not reached yet are not counted."]
+    if progress.copied_runs:
+        lines.append(f"The store was copied from {progress.copied_from}: {progress.copied_runs} finished runs "
+                     f"({_hours(progress.copied_s)}) came with the copy and are counted there, not in Spent.")
     d = progress.discharge
     if d.get("not ended") or d.get("ended"):
         lines += ["", f"Discharge of the done runs: {d['ended']} ended, {d['not ended']} stopped while the upper box still "
@@ -77,7 +81,7 @@ def totals_report(stores: list[str], workers: int) -> str:
     lines = ["## All stores", "", "| store | DEM runs made | worker time |", "| --- | ---: | ---: |"]
     runs, seconds = 0, 0.0
     for store in stores:
-        made = [c.seconds for c in run_costs(store) if c.seconds is not None]
+        made = [c.seconds for c in run_costs(store) if c.seconds is not None and not c.copied]
         runs, seconds = runs + len(made), seconds + sum(made)
         lines.append(f"| {store} | {len(made)} | {_hours(sum(made))} |")
     lines += [f"| all {len(stores)} | {runs} | {_hours(seconds)} |", "",

@@ -183,3 +183,47 @@ def test_status_script_sets_a_profiles_plan_beside_the_store(tmp_path):
     bad = subprocess.run(script + [str(store.path), str(other.path), "--profile", "lab_round"],
                          capture_output=True, text=True)
     assert bad.returncode != 0 and "give the one store of that campaign, not 2" in bad.stderr
+
+
+def test_a_seeded_store_counts_the_copied_runs_where_they_were_made(tmp_path):
+    """A store seeded with another campaign's (``copy_store``, as ``store_from`` does) notes the rows
+    that came with it: they are spent in the source, not again in the copy, and a sum over both
+    stores counts each run once. The plan of a campaign that reads the source's surrogate design as
+    data (``reuse_designs``) counts as its own the shared screening, its own design's runs and the
+    checks made after them; a copy read as the source's own campaign (``make run``'s) counts
+    everything."""
+    from bo.calibration.plan import CampaignPlan, StagePlan, plan_progress
+    from bo.campaign.progress import run_costs
+    from bo.campaign.store import copy_store
+
+    source = CampaignStore(tmp_path / "round.sqlite", "cfg", code_version="test")
+    for stage, key, n in (("screening", "dsd", 2), ("initial", "old", 3), ("verification", "set/a", 2)):
+        source.batch(stage, key, lambda n=n: [{"mu_r_ss": 0.1 * (i + 1)} for i in range(n)], seeds=[0],
+                     conditions=["50-50"])
+        _finish(source, source.claim(n, stage), 60.0 * n)  # one batch: 60 s a run
+    copy_store(source.path, tmp_path / "split.sqlite")
+    split = CampaignStore(tmp_path / "split.sqlite", "cfg", code_version="test")
+    split.batch("initial", "new", lambda: [{"mu_r_ss": 0.25, "mu_s_pp": 0.7}], seeds=[0], conditions=["50-50"])
+    _finish(split, split.claim(1, "initial"), 500.0)
+
+    costs = run_costs(split.path)
+    assert [c.copied for c in costs] == [True] * 7 + [False]
+    assert all(c.seconds == pytest.approx(60.0) for c in costs[:7])  # still the class's cost figure
+    progress = store_progress(split.path)
+    assert progress.spent_s == pytest.approx(500.0)
+    assert (progress.copied_from, progress.copied_runs, progress.copied_s) == (
+        str(source.path), 7, pytest.approx(420.0))
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "campaign_status.py"), str(source.path),
+                          str(split.path)], capture_output=True, text=True, check=True).stdout
+    assert "| all 2 | 8 | 0.3 h |" in out  # 7 runs at 60 s and one of 500 s, each counted once
+    assert f"copied from {source.path}: 7 finished runs (0.1 h) came with the copy" in out
+
+    stages = (StagePlan("screening", {"50-50": 2}, ""), StagePlan("surrogate", {"50-50": 4}, "", exact=False),
+              StagePlan("verification", {"50-50": 2}, ""))
+    done = lambda plan: {r.stage: r.done for r in plan_progress(plan, split.path)}  # noqa: E731
+    assert done(CampaignPlan(stages, earlier_designs=("old",))) == {"screening": 2, "surrogate": 1, "verification": 0}
+    # a design of its own after the check: the check was of an earlier calibrated set
+    assert done(CampaignPlan(stages)) == {"screening": 2, "surrogate": 4, "verification": 0}
+    copy_store(source.path, tmp_path / "make_run.sqlite")
+    assert {r.stage: r.done for r in plan_progress(CampaignPlan(stages), tmp_path / "make_run.sqlite")} == {
+        "screening": 2, "surrogate": 3, "verification": 2}

@@ -24,7 +24,10 @@ condition has none yet, the figure comes from its runs in the stores ``costs_fro
 same model elsewhere: a probe of the same geometry and particles), else from the median over all
 conditions of the store; ``PlannedRow.cost_source`` says which. A pellet-rich fill empties in half
 the time of 50-50, so the last is a rough figure. A campaign resumes from its store, so this is
-how long the rest of it takes, before the stages not reached have rows.
+how long the rest of it takes, before the stages not reached have rows. A store seeded with another
+campaign's (``store_from``) counts as done only the runs that are this campaign's: the screening's,
+its own surrogate batches' (not the ``reuse_designs`` it reads as data) and the checks made after
+them.
 
 ``python scripts/campaign_status.py STORE --profile NAME`` prints both.
 """
@@ -35,7 +38,7 @@ from pathlib import Path
 from statistics import median
 from typing import Mapping, Sequence
 
-from bo.campaign.progress import run_costs
+from bo.campaign.progress import open_read_only, run_costs
 from bo.design.dsd import definitive_screening_design
 from torchdem.measured import MeasuredData
 
@@ -69,9 +72,12 @@ class StagePlan:
 
 @dataclass(frozen=True)
 class CampaignPlan:
-    """The stages of a calibration campaign with their most runs; stages that run nothing are left out."""
+    """The stages of a calibration campaign with their most runs; stages that run nothing are left out.
+    ``earlier_designs``: the batch keys of the earlier campaigns' surrogate designs it reads as data
+    (``surrogate.reuse_designs``), whose runs are not its own."""
 
     stages: tuple[StagePlan, ...]
+    earlier_designs: tuple[str, ...] = ()
 
     @property
     def total(self) -> int:
@@ -122,7 +128,7 @@ def campaign_plan(settings, measured: MeasuredData) -> CampaignPlan:
         n_val = len(settings.validation_seeds)
         stages.append(StagePlan("validation", {c: n_val for c in validation},
                                 f"{_n(n_val, 'seed')} on each of {_conditions(validation)}"))
-    return CampaignPlan(tuple(stages))
+    return CampaignPlan(tuple(stages), tuple(s.reuse_designs))
 
 
 @dataclass(frozen=True)
@@ -131,8 +137,9 @@ class PlannedRow:
 
     Attributes:
         stage, condition: as in ``StagePlan``. planned: the most runs there. done: the stage's
-            finished rows of that condition in the store, those that took the result of the same run
-            elsewhere in the stage included. left: ``max(planned - done, 0)``.
+            finished rows of that condition in the store that are the campaign's own (see
+            ``plan_progress``), those that took the result of the same run elsewhere in the stage
+            included. left: ``max(planned - done, 0)``.
         seconds_per_run: median worker seconds of a finished run of the condition (any stage); None:
             no finished run anywhere.
         cost_source: where ``seconds_per_run`` comes from: ``"store"`` (the condition's runs in the
@@ -163,16 +170,37 @@ def _seconds_by_condition(runs) -> dict[str, list[float]]:
     return out
 
 
+def _own_done(plan: CampaignPlan, path: str | Path) -> list[tuple[str, str]]:
+    """``(plan stage, condition)`` of every finished row of the store at ``path`` that is the campaign's
+    own. A store seeded with another campaign's (``store_from``) holds that campaign's surrogate
+    design and checks too: the designs the plan reads as data (``earlier_designs``) are not its
+    surrogate's runs, and a verification, density or validation batch made before the campaign's
+    own surrogate batches ended is the check of another calibrated set."""
+    conn = open_read_only(Path(path), "plan_progress")
+    try:
+        rows = conn.execute("SELECT e.stage, e.batch_key, e.condition, b.created_at FROM evaluations e JOIN batches b "
+                            "ON e.stage = b.stage AND e.batch_key = b.batch_key WHERE e.status = 'done' "
+                            "ORDER BY e.task_id").fetchall()
+    finally:
+        conn.close()
+    staged = [(next((p for p, prefixes in STORE_STAGES.items() if stage.startswith(prefixes)), None), key, condition,
+               created) for stage, key, condition, created in rows]
+    surrogate = [created for stage, key, _, created in staged if stage == "surrogate"
+                 and key not in plan.earlier_designs]
+    after = max(surrogate, default=float("inf"))
+    return [(stage, condition) for stage, key, condition, created in staged
+            if stage == "screening" or (stage == "surrogate" and key not in plan.earlier_designs)
+            or (stage in ("verification", "density", "validation") and created > after)]
+
+
 def plan_progress(plan: CampaignPlan, path: str | Path,
                   costs_from: Sequence[str | Path] = ()) -> tuple[PlannedRow, ...]:
     """The plan's stages and conditions with what the store at ``path`` holds of them; see the
     module docstring for ``costs_from``."""
     runs = run_costs(path)
     done: dict[tuple[str, str], int] = {}
-    for run in runs:
-        stage = next((p for p, prefixes in STORE_STAGES.items() if run.stage.startswith(prefixes)), None)
-        if run.state == "done" and stage is not None:
-            done[stage, run.condition] = done.get((stage, run.condition), 0) + 1
+    for stage, condition in _own_done(plan, path):
+        done[stage, condition] = done.get((stage, condition), 0) + 1
     own = _seconds_by_condition(runs)
     elsewhere: dict[str, list[float]] = {}
     for other in costs_from:

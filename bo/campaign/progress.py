@@ -18,7 +18,10 @@ the spheres and cost about 0.6 of one at 1. The densities change the step by sqr
 Cost of a finished run, in worker seconds: its stored ``wall_time`` divided by the number of runs
 finished in the same batch (rows written by one ``record`` call share their owner, finish time
 and wall time), so a batch of two members counts half its wall time per run. Rows that took
-another run's result (``reused:``) cost nothing and are left out.
+another run's result (``reused:``) cost nothing and are left out. A store copied from another
+(``copy_store``, as ``store_from`` seeds a campaign) notes which rows came with the copy: their cost
+stays a figure of their class, but they were made, and are counted as spent, in the source store
+(``RunCost.copied``; ``StoreProgress.copied_runs``), so that a sum over stores counts each run once.
 
 Estimate of an unfinished run: the median cost of its class's finished runs. A class without
 any takes the median of the nearest class of the same geometry (summed relative difference of the
@@ -43,7 +46,7 @@ from pathlib import Path
 from statistics import median
 from typing import Sequence
 
-from bo.campaign.store import RECORD_COLUMNS, EvaluationRecord, affinity_distance, record_from_row
+from bo.campaign.store import COPIED_FROM, RECORD_COLUMNS, EvaluationRecord, affinity_distance, record_from_row
 from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.errors import ConfigError
 
@@ -109,7 +112,7 @@ class StoreProgress:
         path: the store file.
         status: stage -> status -> number of rows (reused rows included, as stored).
         classes: the cost classes, by geometry and then lobe spacings.
-        spent_s: worker seconds of every finished run (failed ones included).
+        spent_s: worker seconds of every finished run (failed ones included) made in this store.
         remaining_s: estimated worker seconds of the unfinished runs; None if a class with
             remaining runs has no cost figure at all.
         remaining_bound: ``""`` (an estimate), ``"at least"``, ``"at most"`` or ``"roughly"``
@@ -121,6 +124,9 @@ class StoreProgress:
             fill left the upper box).
         batches: stage -> batch key -> status -> number of rows (a stage of several batches holds
             designs asked for before, e.g. an initial design whose bounds then changed).
+        copied_from: the store this one was copied from (``bo.campaign.store.copy_store``), else None.
+        copied_runs, copied_s: the finished runs that came with that copy and their worker seconds:
+            made there, they are counted there and not in ``spent_s``.
     """
 
     path: str
@@ -131,6 +137,9 @@ class StoreProgress:
     remaining_bound: str = ""
     discharge: dict[str, int] = field(default_factory=dict)
     batches: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)
+    copied_from: str | None = None
+    copied_runs: int = 0
+    copied_s: float = 0.0
 
     @property
     def remaining_runs(self) -> int:
@@ -205,13 +214,24 @@ class RunCost:
     condition: str
     state: str
     seconds: float | None
+    copied: bool = False
 
 
-_COLUMNS = "stage, params, seed, condition, status, wall_time, claimed_by, finished_at, kpis"
+_COLUMNS = "stage, params, seed, condition, status, wall_time, claimed_by, finished_at, kpis, task_id"
 
 
 def _read_rows(conn: sqlite3.Connection) -> list[tuple]:
     return conn.execute(f"SELECT {_COLUMNS} FROM evaluations ORDER BY task_id").fetchall()
+
+
+def copied_from(conn: sqlite3.Connection) -> tuple[str | None, int]:
+    """``(source, last_task_id)`` of a store made by ``bo.campaign.store.copy_store`` (its rows up to
+    ``last_task_id`` came with the copy), else ``(None, 0)``."""
+    row = conn.execute("SELECT value FROM meta WHERE key = ?", (COPIED_FROM,)).fetchone()
+    if row is None:
+        return None, 0
+    note = json.loads(row[0])
+    return str(note["source"]), int(note["last_task_id"])
 
 
 def _costs(rows: list[tuple]) -> list[float | None]:
@@ -219,7 +239,7 @@ def _costs(rows: list[tuple]) -> list[float | None]:
     their owner, finish time and wall time, and split the wall time."""
     batch_size: dict[tuple, int] = defaultdict(int)
     counted = [state in ("done", "failed") and wall is not None and not (owner or "").startswith(_REUSED)
-               for _, _, _, _, state, wall, owner, _, _ in rows]
+               for _, _, _, _, state, wall, owner, _, _, _ in rows]
     for row, yes in zip(rows, counted):
         if yes:
             batch_size[row[6], row[7], row[5]] += 1
@@ -231,10 +251,11 @@ def run_costs(path: str | Path) -> tuple[RunCost, ...]:
     conn = open_read_only(Path(path), "run_costs")
     try:
         rows = _read_rows(conn)
+        _, last = copied_from(conn)
     finally:
         conn.close()
-    return tuple(RunCost(stage, condition, state, cost)
-                 for (stage, _, _, condition, state, *_), cost in zip(rows, _costs(rows)))
+    return tuple(RunCost(stage, condition, state, cost, task_id <= last)
+                 for (stage, _, _, condition, state, *_, task_id), cost in zip(rows, _costs(rows)))
 
 
 def store_progress(path: str | Path) -> StoreProgress:
@@ -243,13 +264,14 @@ def store_progress(path: str | Path) -> StoreProgress:
     conn = open_read_only(path)
     try:
         rows = _read_rows(conn)
+        source, last = copied_from(conn)
         keyed = conn.execute("SELECT stage, batch_key, status, COUNT(*) FROM evaluations "
                              "GROUP BY stage, batch_key, status ORDER BY MIN(task_id)").fetchall()
     finally:
         conn.close()
     status: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     discharge = dict.fromkeys(("ended", "not ended", "not recorded", "jammed"), 0)
-    for stage, _, _, _, state, _, _, _, kpis in rows:
+    for stage, _, _, _, state, _, _, _, kpis, _ in rows:
         status[stage][state] += 1
         if state == "done":
             k = json.loads(kpis or "{}")
@@ -258,15 +280,19 @@ def store_progress(path: str | Path) -> StoreProgress:
     costs: dict[tuple, list[float]] = defaultdict(list)
     counts: dict[tuple, dict[str, int]] = {}  # every class seen, with its runs done and failed
     unfinished: dict[tuple, set] = defaultdict(set)
-    spent = 0.0
-    for (stage, params, seed, condition, state, *_), cost in zip(rows, _costs(rows)):
+    spent = copied_s = 0.0
+    copied_runs = 0
+    for (stage, params, seed, condition, state, *_, task_id), cost in zip(rows, _costs(rows)):
         geometry = condition.partition("|")[2]
         key = (geometry, _shape(json.loads(params)))
         counts.setdefault(key, {"done": 0, "failed": 0})
         if state in ("pending", "running"):
             unfinished[key].add((stage, params, seed, condition))
         elif cost is not None:
-            spent += cost
+            if task_id <= last:
+                copied_s, copied_runs = copied_s + cost, copied_runs + 1
+            else:
+                spent += cost
             counts[key][state] += 1
             if state == "done":
                 costs[key].append(cost)
@@ -291,4 +317,4 @@ def store_progress(path: str | Path) -> StoreProgress:
     for stage, key, state, n in keyed:
         batches.setdefault(stage, {}).setdefault(key, {})[state] = n
     return StoreProgress(str(path), {s: dict(v) for s, v in status.items()}, tuple(classes), spent, remaining,
-                         total_bound, discharge, batches)
+                         total_bound, discharge, batches, source, copied_runs, copied_s)

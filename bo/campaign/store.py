@@ -172,14 +172,24 @@ CREATE TABLE IF NOT EXISTS artifacts (
 _MISSING = object()
 
 
+#: The meta key of a copied store: JSON ``{"source", "copied_at", "last_task_id"}``; the rows up to
+#: ``last_task_id`` were made in ``source`` (``bo.campaign.progress`` counts their cost there).
+COPIED_FROM = "copied_from"
+
+
 def copy_store(source: Path, target: Path) -> None:
     """Copy the campaign store file ``source`` to ``target`` (replaced if it exists), consistent even
-    while another process writes the source (SQLite's backup API; the source is opened read-only)."""
+    while another process writes the source (SQLite's backup API; the source is opened read-only),
+    and note in the copy's meta (``COPIED_FROM``) which rows came with it."""
     target.parent.mkdir(parents=True, exist_ok=True)
     read = sqlite3.connect(f"file:{source}?mode=ro", uri=True)
     write = sqlite3.connect(target)
     try:
         read.backup(write)
+        with write:
+            (last,) = write.execute("SELECT COALESCE(MAX(task_id), 0) FROM evaluations").fetchone()
+            note = {"source": str(source), "copied_at": time.time(), "last_task_id": int(last)}
+            write.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (COPIED_FROM, json.dumps(note)))
     finally:
         write.close()
         read.close()
