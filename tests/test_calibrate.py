@@ -533,12 +533,13 @@ def test_screening_points_project_onto_the_calibrated_parameters():
     values = np.arange(7 * 2 * 3, dtype=float).reshape(7, 2, 3)
     results = ScreeningResults(("mu_s_pp", "mu_r_pp", "e_pp"), coded, physical, (0, 1), ("a", "b", "c"), values)
     bounds = np.array([[0.3, 3000.0, 0.3], [0.7, 4000.0, 0.65]])     # mu_s_pp, density_pellet, mu_r_pp
-    X, reps, note = screening_points(results, ("mu_s_pp", "density_pellet", "mu_r_pp"), bounds, ("c", "a"),
-                                     {"density_pellet": 3602.4})
+    X, reps, note, jammed = screening_points(results, ("mu_s_pp", "density_pellet", "mu_r_pp"), bounds, ("c", "a"),
+                                             {"density_pellet": 3602.4})
     inside = physical[:, 1] <= 0.65                                   # mu_r_pp at 0.7 lies outside
     assert X.tolist() == np.column_stack([physical[inside, 0], np.full(inside.sum(), 3602.4),
                                           physical[inside, 1]]).tolist()
     assert reps.shape == (inside.sum(), 2, 2) and reps.tolist() == values[inside][:, :, [2, 0]].tolist()
+    assert jammed.shape == (inside.sum(), 2) and not jammed.any()  # the screening reads a jammed run as NaN
     assert note.startswith(f"{inside.sum()} of the screening's 7 design points reused") and "3 left out" in note
     assert "['e_pp'] vary over them" in note
     with pytest.raises(ConfigError, match=r"'density_sinter' was not screened.*no nominal value.*reuse_screening=false"):
@@ -617,35 +618,38 @@ def test_design_points_reuse_the_finished_points_of_an_earlier_design(tmp_path):
                   for t in done])
     names = ("mu_r_pp", "mu_s_pp")  # the calibration's order, not the batch's
     bounds = np.array([[0.045, 0.2], [0.1, 0.9]]).T  # point 2 (mu_r_pp 0.20) is outside
-    X, reps, note = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.1, 0.9]]), [0], "50-50", ["b", "a"])
-    assert X.tolist() == [[0.05, 0.3], [0.07, 0.5]]
+    X, reps, note, jammed = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.1, 0.9]]), [0], "50-50",
+                                          ["b", "a"])
+    assert X.tolist() == [[0.05, 0.3], [0.07, 0.5]] and jammed.tolist() == [[False], [False]]
     assert reps.shape == (2, 1, 2) and reps[:, 0].tolist() == [[1.0, 0.0], [1.0, 10.0]]
     assert note == "2 finished points of the earlier design ['old'] reused; 1 left out, outside the bounds; 1 never run"
-    X, _, note = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.25, 0.9]]), [0], "50-50", ["a"])
+    X, _, note, _ = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.25, 0.9]]), [0], "50-50", ["a"])
     assert len(X) == 3 and "left out" not in note
     with pytest.raises(ConfigError, match=r"holds no initial design 'new'; it holds \['old'\]"):
         design_points(store, ["new"], names, bounds, [0], "50-50", ["a"])
     with pytest.raises(ConfigError, match=r"design 'old' varies \['mu_r_pp', 'mu_s_pp'\]; the calibration varies"):
         design_points(store, ["old"], ("mu_s_pp", "e_pp"), bounds, [0], "50-50", ["a"])
     # one more parameter than the design varied, at the value its runs had
-    X, _, _ = design_points(store, ["old"], ("mu_r_pp", "mu_s_pp", "e_pp"), np.array([[0.045, 0.1, 0.5], [0.19, 0.9, 0.9]]),
-                            [0], "50-50", ["a"], {"e_pp": 0.71})
+    X, _, _, _ = design_points(store, ["old"], ("mu_r_pp", "mu_s_pp", "e_pp"),
+                               np.array([[0.045, 0.1, 0.5], [0.19, 0.9, 0.9]]), [0], "50-50", ["a"], {"e_pp": 0.71})
     assert X.tolist() == [[0.05, 0.3, 0.71], [0.07, 0.5, 0.71]]
     with pytest.raises(ConfigError, match=r"need the model's value: known \['e_n'\]"):
         design_points(store, ["old"], ("mu_r_pp", "mu_s_pp", "e_pp"), bounds, [0], "50-50", ["a"], {"e_n": 0.5})
-    # two conditions, one after the other; the one not run is NaN
+    # two conditions, one after the other; the one not run is NaN. A run that jammed on either marks its seed
+    # jammed, its KPIs as stored
     store.batch("initial", "old", lambda: points, seeds=[0], conditions=["50-50", "75-25"])
     late = [t for t in store.claim(10, stage="initial") if t.condition == "75-25"]
-    store.record([(t, EvalOutcome.success({"a": 5.0, "b": 2.0}, 1.0)) for t in late
+    store.record([(t, EvalOutcome.success({"a": 5.0, "b": 2.0, "discharge_jammed": 1.0}, 1.0)) for t in late
                   if index[tuple(sorted(t.params.items()))] == 0])
-    X, reps, _ = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.1, 0.9]]), [0],
-                               ["50-50", "75-25"], ["b", "a"])
+    X, reps, note, jammed = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.1, 0.9]]), [0],
+                                          ["50-50", "75-25"], ["b", "a"])
     assert reps.shape == (2, 1, 4) and reps[0, 0].tolist() == [1.0, 0.0, 2.0, 5.0]
     assert np.isnan(reps[1, 0, 2:]).all()
+    assert jammed.tolist() == [[True], [False]] and note.endswith("; 1 jammed")
     # the round that followed the design: its points come after the design's
     store.batch("round-1", "old", lambda: [{"mu_s_pp": 0.4, "mu_r_pp": 0.1}], seeds=[0], conditions=["50-50"])
     store.record([(t, EvalOutcome.success({"a": 7.0, "b": 3.0}, 1.0)) for t in store.claim(10, stage="round-1")])
-    X, reps, note = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.1, 0.9]]), [0], "50-50", ["a"])
+    X, reps, note, _ = design_points(store, ["old"], names, np.array([[0.045, 0.2], [0.1, 0.9]]), [0], "50-50", ["a"])
     assert X.tolist() == [[0.05, 0.3], [0.07, 0.5], [0.1, 0.4]] and reps[:, 0, 0].tolist() == [0.0, 10.0, 7.0]
     assert note.startswith("3 finished points of the earlier design ['old'] reused")
 
@@ -1050,6 +1054,57 @@ def test_an_objective_condition_that_is_a_jam_condition_runs_once(tmp_path):
     x = out.state.X[0]
     expected = km.known_kpis({"mu_s_pp": float(x[0]), "mu_s_ss": float(x[1])}, 0, "75-25")
     np.testing.assert_allclose(out.kpi_replicates[0, 0, 2:], [expected[k] for k in kpis])
+
+
+def test_an_earlier_designs_run_that_jammed_on_an_objective_condition_is_read_as_a_jam(tmp_path):
+    """``profile=lab_split`` reuses lab_round's design, whose 75-25 runs were jam checks; one of them arched,
+    and 75-25 is in lab_split's objective. That run measured a box that did not flow (no flow, no face):
+    read as a measurement it gave an Eq. 7 ten times the others' (0.51 against 0.015-0.05), which took
+    the surrogate's CV R^2 below zero and sent 8 of its 10 proposals to corners of the bounds. Read as
+    the stage reads its own jammed runs (``design_points``' ``jammed``), the scalar objective gives such
+    a point the worst Eq. 7 of the points that flowed, and the jam classifier counts it. Here the known
+    model arches at 75-25 wherever mu_s_pp < 0.6."""
+    import functools
+
+    from bo.calibration.pipeline import design_points, objective_blocks, surrogate_stage
+    from bo.surrogate.acquisition import AdaptiveSettings
+    from bo.surrogate.gp import SurrogateConfig
+
+    measured = km.known_measurement()
+    kpis = ("shear_angle_deg", "mass_flow_rate_full_kg_s")
+    lab = lambda c, k: measured.condition(c).kpis[k.replace("_full", "")].mean  # noqa: E731
+    names, bounds = ("mu_s_pp", "mu_s_ss"), np.array([[0.45, 0.6], [0.8, 0.95]])
+    base = km.small_settings(objective_kpis=kpis).validate()
+    adaptive = AdaptiveSettings(budget=6, points_per_parameter=3, q=2, target_r2=0.999, n_folds=3, cv_seeds=(0,),
+                                kernels=("matern52",), seed=0)
+    first = dataclasses.replace(base.surrogate, parameters=names, seeds=(0,), jam_conditions=("75-25",),
+                                adaptive=adaptive, config=SurrogateConfig(kernel="matern52", strategy="scalar"),
+                                compare_strategies=False)
+    store = CampaignStore(tmp_path / "split.sqlite", "known-answer", extra_stages=EXTRA_STAGES)
+    executor = InProcessExecutor(functools.partial(km.known_batch, arch=0.6), batch_size=8)
+    surrogate_stage(store, executor, condition="50-50", names=names, bounds=bounds, s=first, echo=lambda line: None,
+                    objective=ObjectiveSpec.from_measured({k: lab("50-50", k) for k in kpis}, None))
+    (_, key), = store.batch_keys("initial")
+    prior = design_points(store, [key], names, bounds, (0,), ["50-50", "75-25"], kpis)
+    X0, reps0, note, jammed0 = prior
+    arched = X0[:, 0] < 0.6
+    assert arched.any() and not arched.all()
+    np.testing.assert_array_equal(jammed0[:, 0], arched)
+    assert note.endswith(f"; {int(arched.sum())} jammed")
+    assert (reps0[arched, 0, 3] == 0).all()  # as stored: no flow at 75-25
+
+    objective = ObjectiveSpec.from_measured({**{k: lab("50-50", k) for k in kpis},
+                                             **{f"{k}@75-25": lab("75-25", k) for k in kpis}}, None)
+    assert objective_blocks(objective, "50-50") == (("50-50", kpis), ("75-25", kpis))
+    second = dataclasses.replace(first, jam_conditions=(), adaptive=dataclasses.replace(adaptive, budget=3))
+    out = surrogate_stage(store, executor, condition="50-50", names=names, bounds=bounds, objective=objective,
+                          s=second, echo=lambda line: None, prior=prior, pooled=np.eye(4) * 0.01)
+    n0 = len(X0)
+    np.testing.assert_array_equal(out.jammed[:n0, 0], arched)
+    y = np.asarray(out.state.y)
+    flowed = ~out.jammed[:, 0]
+    assert (y[:n0][arched] == y[flowed].max()).all()           # the worst Eq. 7 that flowed, not the jam's own
+    assert y[flowed].max() < float(objective(reps0[arched][0, 0]))  # which was worse still
 
 
 @pytest.mark.parametrize("change, message", [

@@ -680,8 +680,9 @@ def choose_parameters(screening: ScreeningReport, s: SurrogateStageSettings
 
 
 def screening_points(results: ScreeningResults, names: Sequence[str], bounds: np.ndarray, kpis: Sequence[str],
-                     nominal: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, str]:
-    """The screening's design points as surrogate data: ``(X [n, d], reps [n, r, M], note)``.
+                     nominal: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
+    """The screening's design points as surrogate data: ``(X [n, d], reps [n, r, M], note, jammed [n, r])``;
+    the screening reads a run that jammed as NaN (it measured nothing), so ``jammed`` is all False.
 
     Each calibrated parameter (``names``, ``d``) takes the point's screened value or, where the
     screening did not vary it, ``nominal[name]``: the value every screening run had (a
@@ -710,18 +711,22 @@ def screening_points(results: ScreeningResults, names: Sequence[str], bounds: np
             f"({results.n_replicates} runs each)"
             + (f"; {int((~inside).sum())} left out, outside the bounds" if not inside.all() else "")
             + (f"; {varied} vary over them as screened" if varied else ""))
-    return X[inside], np.array(reps[inside]), note
+    return X[inside], np.array(reps[inside]), note, np.zeros(reps[inside].shape[:2], dtype=bool)
 
 
 def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str], bounds: np.ndarray,
                   seeds: Sequence[int], condition: str | Sequence[str], kpis: Sequence[str],
-                  nominal: Mapping[str, float] | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+                  nominal: Mapping[str, float] | None = None) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
     """The finished points of earlier initial designs as surrogate data: ``(X [n, d], reps [n, r, M],
-    note)`` for the ``initial`` batches ``keys`` of ``store`` and the rounds that followed them
+    note, jammed [n, r])`` for the ``initial`` batches ``keys`` of ``store`` and the rounds that followed them
     (``round-<k>`` batches of the same key: an earlier campaign's whole surrogate stage), the runs of
     ``condition`` with one of ``seeds`` (``r``), KPIs ``kpis`` (``M``). Several conditions give their KPIs one after the other
     (``M = c * len(kpis)``, NaN where a condition was not run: an objective over several conditions).
     A point with no finished run, or outside ``bounds [2, d]``, is left out (the note counts them).
+    ``jammed``: the seeds whose run on any of the conditions jammed (``kpi.loadcell.discharge_jammed``),
+    their KPIs as stored (a box that did not flow), so that the surrogate stage reads them as it reads
+    its own jammed runs: with an objective condition a jam-only condition was, an earlier campaign's
+    jammed run there would otherwise be an observation of Eq. 7 ten times the others.
     A calibrated parameter the design did not vary takes ``nominal[name]``, the value its runs had
     (the model's held value: a campaign that calibrates one more parameter reuses the design of one
     that held it). Raises ConfigError for a key the store does not hold, or a batch whose points vary
@@ -731,7 +736,7 @@ def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str
     column = {c: j * len(kpis) for j, c in enumerate(conditions)}
     width = len(conditions) * len(kpis)
     held = [k for _, k in store.batch_keys("initial")]
-    X, reps, not_run = [], [], 0
+    X, reps, jams, not_run = [], [], [], 0
     index = {int(seed): r for r, seed in enumerate(seeds)}
     tol = 1e-9 * (bounds[1] - bounds[0])
     for key in keys:
@@ -740,7 +745,7 @@ def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str
                               f"{held}")
         stages = [s for s, k in store.batch_keys() if k == key and (s == "initial" or s.startswith("round-"))]
         records = [rec for s in stages for rec in store.records(s, batch_key=key)]
-        points: dict[tuple[str, int], tuple[dict, np.ndarray]] = {}
+        points: dict[tuple[str, int], tuple[dict, np.ndarray, np.ndarray]] = {}
         for rec in records:
             if set(rec.params) - set(names) or set(names) - set(rec.params) - set(nominal):
                 raise ConfigError(f"surrogate.reuse_designs: design {key!r} varies {sorted(rec.params)}; the "
@@ -749,24 +754,28 @@ def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str
                                      if not set(rec.params) - set(names) else ""))
             if rec.status != "done" or rec.condition not in column or rec.seed not in index or rec.kpis is None:
                 continue
-            _, values = points.setdefault((rec.stage, rec.point_index),
-                                          (rec.params, np.full((len(seeds), width), np.nan)))
+            _, values, stuck = points.setdefault((rec.stage, rec.point_index), (
+                rec.params, np.full((len(seeds), width), np.nan), np.zeros(len(seeds), dtype=bool)))
             j = column[rec.condition]
             values[index[rec.seed], j:j + len(kpis)] = [rec.kpis.get(k, math.nan) for k in kpis]
+            stuck[index[rec.seed]] |= discharge_jammed(rec.kpis)
         not_run += len({(rec.stage, rec.point_index) for rec in records}) - len(points)
         for i in sorted(points, key=lambda sp: (stages.index(sp[0]), sp[1])):
             X.append([points[i][0].get(n, nominal.get(n)) for n in names])
             reps.append(points[i][1])
+            jams.append(points[i][2])
     X_all = np.array(X, dtype=np.float64).reshape(len(X), len(names))
     reps_all = np.array(reps, dtype=np.float64).reshape(len(reps), len(seeds), width)
     reps_all[~np.isfinite(reps_all)] = np.nan
     inside = np.all((X_all >= bounds[0] - tol) & (X_all <= bounds[1] + tol), axis=1)
     outside = int((~inside).sum())
     X_out, reps_out = X_all[inside], reps_all[inside]
+    jammed = np.array(jams, dtype=bool).reshape(len(jams), len(seeds))[inside]
     note = (f"{len(X_out)} finished points of the earlier design{'s' if len(keys) > 1 else ''} {list(keys)} reused"
             + (f"; {outside} left out, outside the bounds" if outside else "")
-            + (f"; {not_run} never run" if not_run else ""))
-    return X_out, reps_out, note
+            + (f"; {not_run} never run" if not_run else "")
+            + (f"; {int(jammed.any(axis=1).sum())} jammed" if jammed.any() else ""))
+    return X_out, reps_out, note, jammed
 
 
 def _padded(reps: np.ndarray, width: int) -> np.ndarray:
@@ -776,21 +785,25 @@ def _padded(reps: np.ndarray, width: int) -> np.ndarray:
     return out
 
 
-def _joined(first: tuple[np.ndarray, np.ndarray, str], second: tuple[np.ndarray, np.ndarray, str]
-            ) -> tuple[np.ndarray, np.ndarray, str]:
-    """Two sets of points already run, one after the other; replicates padded to the wider."""
+def _joined(first: tuple[np.ndarray, np.ndarray, str, np.ndarray], second: tuple[np.ndarray, np.ndarray, str, np.ndarray]
+            ) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
+    """Two sets of points already run, one after the other; replicates padded to the wider (the runs
+    added neither measured nor jammed)."""
     width = max(first[1].shape[1], second[1].shape[1])
+    jammed = np.zeros((len(first[0]) + len(second[0]), width), dtype=bool)
+    jammed[:len(first[0]), :first[3].shape[1]], jammed[len(first[0]):, :second[3].shape[1]] = first[3], second[3]
     return (np.concatenate([first[0], second[0]]), np.concatenate([_padded(first[1], width), _padded(second[1], width)]),
-            f"{first[2]}; {second[2]}")
+            f"{first[2]}; {second[2]}", jammed)
 
 
 def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str, names: Sequence[str],
                     bounds: np.ndarray, objective: ObjectiveSpec, s: SurrogateStageSettings,
                     echo: Callable[[str], None] = print, pooled: np.ndarray | None = None,
-                    prior: tuple[np.ndarray, np.ndarray, str] | None = None) -> SurrogateOutcome:
+                    prior: tuple[np.ndarray, np.ndarray, str, np.ndarray] | None = None) -> SurrogateOutcome:
     """Stage 2: LHS then qLogEI rounds through the store until the target R^2 or the budget.
     ``pooled``: ``[M, M]`` one-run covariance of the objective's KPIs for ``s.noise == "pooled"``.
-    ``prior``: points already run, ``(X [n0, d], reps [n0, r0, M], note)`` (:func:`screening_points`):
+    ``prior``: points already run, ``(X [n0, d], reps [n0, r0, M], note, jammed [n0, r0])``
+    (:func:`screening_points`, :func:`design_points`):
     they join the data before the LHS, which shrinks by the usable ones to no less than half its
     size; the budget counts the points this stage runs. With ``s.jam_conditions`` every point this
     stage runs runs on them too, and their runs are kept for the jam classifier only. An objective
@@ -805,16 +818,17 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
     if prior is not None and prior[1].shape[2] != len(kpis):  # run on the calibrated condition only
         m0 = prior[1].shape[2]
         prior = (prior[0], np.concatenate([prior[1], np.full(prior[1].shape[:2] + (len(kpis) - m0,), np.nan)],
-                                          axis=2), prior[2])
+                                          axis=2), prior[2], prior[3])
     need = min(2, len(s.seeds))
     if prior is not None:
-        X0, reps0, reuse_note = prior
+        X0, reps0, reuse_note, jam0 = prior
         n0 = X0.shape[0]
-        n0_usable = int(_objective_data(reps0, objective, config.strategy, pooled, need)[0].sum()) if n0 else 0
+        n0_usable = int(_objective_data(reps0, objective, config.strategy, pooled, need, jam0)[0].sum()) if n0 else 0
         full = a.initial_size(d, reused=n0_usable)  # the budget covers the points the design runs
         n_initial = max(full - n0_usable, math.ceil(full / 2))
     else:
         X0, reps0, reuse_note, n0 = np.zeros((0, d)), np.zeros((0, len(s.seeds), len(kpis))), "", 0
+        jam0 = np.zeros((0, len(s.seeds)), dtype=bool)
         full = n_initial = a.initial_size(d)
     key = _key("surrogate", names, bounds.tolist(), list(s.seeds), a.seed, n_initial, a.q, config.strategy,
                list(kpis), list(objective.measured), list(objective.weights),
@@ -847,9 +861,9 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
                         lambda: rows(latin_hypercube(bounds, n_initial, seed=a.seed)), s.seeds, conditions)
     X_new, reps_new, jam_new, elsewhere_new = evaluated("initial", points)
     X_all, reps_all = np.concatenate([X0, X_new]), np.concatenate([padded(reps0), reps_new])
-    # the reused points' runs are read as they were screened or designed, jammed or not; they were not
-    # run on the jam conditions
-    jam_all = np.concatenate([np.zeros(padded(reps0).shape[:2], dtype=bool), jam_new])
+    # the reused points' jammed runs are read as the stage's own (an earlier design's, on the objective's
+    # conditions); they were not run on the jam conditions
+    jam_all = np.concatenate([_padded(jam0[:, :, None], width)[..., 0] == 1, jam_new])
     elsewhere_all = np.concatenate([np.full((n0,) + elsewhere_new.shape[1:], np.nan), elsewhere_new])
     other = [t for t in STRATEGIES if t != config.strategy] if s.compare_strategies else []
     # with fixed pooled noise, the GP that learns its noise is cross-validated on the same points too
