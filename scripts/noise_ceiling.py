@@ -11,7 +11,7 @@ point, condition and batch) in the noise store (default: the same store).
 
 If the Eq. 7 ceiling is below the surrogate's ``target_r2``, the paper's rule on the total variance
 can only stop at the budget; ``surrogate.target_basis=explainable`` counts R^2 against the ceiling.
-Stores are only read.
+Runs whose discharge jammed are left out of both. Stores are only read.
 """
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ from bo.campaign.progress import open_read_only
 from bo.screening.pipeline import measured_name
 from bo.surrogate.gp import objective_noise_variance, r2_ceiling
 from bo.surrogate.objective import ObjectiveSpec
+from kpi.loadcell import discharge_jammed
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
 from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
@@ -43,7 +44,11 @@ def _rows(path: Path, sql: str, args: tuple = ()) -> list:
 
 
 def _kpi_row(text: str, kpis) -> list[float] | None:
+    """The run's KPIs, or None if one is missing or its discharge jammed (a box that did not flow
+    measured no KPI: its zeros are no sample of the spread nor of the noise)."""
     values = json.loads(text or "null") or {}
+    if discharge_jammed(values):
+        return None
     row = [values.get(k) for k in kpis]
     return None if any(v is None or not np.isfinite(v) for v in row) else [float(v) for v in row]
 
@@ -59,9 +64,10 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     kpis = tuple(args.kpis)
 
-    spread = [r for (text,) in _rows(args.store, "SELECT kpis FROM evaluations WHERE status = 'done' AND stage = ? "
-                                     "AND condition = ?", (args.stage, args.condition))
-              if (r := _kpi_row(text, kpis)) is not None]
+    done = _rows(args.store, "SELECT kpis FROM evaluations WHERE status = 'done' AND stage = ? AND condition = ?",
+                 (args.stage, args.condition))
+    spread = [r for (text,) in done if (r := _kpi_row(text, kpis)) is not None]
+    jammed = sum(discharge_jammed(json.loads(text or "null") or {}) for (text,) in done)
     if len(spread) < 3:
         raise ConfigError(f"{args.store}: {len(spread)} done runs of stage {args.stage!r} at {args.condition} with "
                           f"every KPI of {list(kpis)}; the spread needs at least 3")
@@ -82,7 +88,8 @@ def main(argv=None) -> None:
     Y = np.asarray(spread)
     measured = load_measured(None).condition(args.condition).kpis
     spec = ObjectiveSpec(kpis, tuple(measured[measured_name(k)].mean for k in kpis), source="noise_ceiling")
-    print(f"spread: {len(Y)} runs of {args.stage} at {args.condition} in {args.store}")
+    print(f"spread: {len(Y)} runs of {args.stage} at {args.condition} in {args.store}"
+          + (f" ({jammed} that jammed left out)" if jammed else ""))
     print(f"noise: one run's scatter pooled over {dof} degrees of freedom in {noise_store}"
           + (f" (batches with {args.noise_batch!r})" if args.noise_batch else "") + "\n")
     print("| KPI | sd across runs | sd of one run | ceiling |\n| --- | ---: | ---: | ---: |")

@@ -148,7 +148,8 @@ def test_noise_ceiling_script_reads_a_store(tmp_path, capsys):
     """scripts/noise_ceiling.py on a store of known spread and noise: every KPI is
     m (1.3 + 0.2 u) + N(0, (0.02 m)^2) at 60 points u, two seeds each. Analytic ceilings: per KPI
     1 - 0.0004 / (0.04 / 12 + 0.0004) = 0.893; Eq. 7 (all errors positive, so linear) 1 - 0.0001 /
-    (0.04 / 12 + 0.0001) = 0.971."""
+    (0.04 / 12 + 0.0001) = 0.971, with one more run that jammed (all KPIs 0) left out: in the spread
+    it would lift every ceiling to about 0.98, a spread no parameter makes."""
     import importlib.util
 
     from bo.campaign.executor import EvalOutcome
@@ -169,9 +170,14 @@ def test_noise_ceiling_script_reads_a_store(tmp_path, capsys):
     tasks = store.claim(120, "screening")
     store.record([(t, EvalOutcome.success(dict(zip(kpis, m * (1.3 + 0.2 * t.params["u"])
                                                    + rng.normal(0.0, 0.02, len(kpis)) * m)), 1.0)) for t in tasks])
+    # a run that jammed (a box that did not flow: every KPI 0) is no sample of the spread
+    store.batch("screening", "jammed", lambda: [{"u": 0.5}], seeds=[0], conditions=["50-50"])
+    store.record([(t, EvalOutcome.success({**dict.fromkeys(kpis, 0.0), "discharge_jammed": 1.0}, 1.0))
+                  for t in store.claim(1, "screening")])
     script.main([str(store.path)])
     out = capsys.readouterr().out
-    assert "120 runs of screening" in out and "pooled over 60 degrees of freedom" in out
+    assert "120 runs of screening at 50-50" in out and "(1 that jammed left out)" in out
+    assert "pooled over 60 degrees of freedom" in out
     rows = {line.split("|")[1].strip(): float(line.split("|")[4]) for line in out.splitlines()
             if line.startswith("| ") and not line.startswith("| KPI") and not line.startswith("| ---")}
     for k in kpis:
