@@ -43,10 +43,9 @@ def _rows(path: Path, sql: str, args: tuple = ()) -> list:
         conn.close()
 
 
-def _kpi_row(text: str, kpis) -> list[float] | None:
+def _kpi_row(values: dict, kpis) -> list[float] | None:
     """The run's KPIs, or None if one is missing or its discharge jammed (a box that did not flow
     measured no KPI: its zeros are no sample of the spread nor of the noise)."""
-    values = json.loads(text or "null") or {}
     if discharge_jammed(values):
         return None
     row = [values.get(k) for k in kpis]
@@ -64,10 +63,11 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     kpis = tuple(args.kpis)
 
-    done = _rows(args.store, "SELECT kpis FROM evaluations WHERE status = 'done' AND stage = ? AND condition = ?",
-                 (args.stage, args.condition))
-    spread = [r for (text,) in done if (r := _kpi_row(text, kpis)) is not None]
-    jammed = sum(discharge_jammed(json.loads(text or "null") or {}) for (text,) in done)
+    done = [json.loads(text or "null") or {} for (text,) in _rows(
+        args.store, "SELECT kpis FROM evaluations WHERE status = 'done' AND stage = ? AND condition = ?",
+        (args.stage, args.condition))]
+    spread = [r for values in done if (r := _kpi_row(values, kpis)) is not None]
+    jammed = sum(map(discharge_jammed, done))
     if len(spread) < 3:
         raise ConfigError(f"{args.store}: {len(spread)} done runs of stage {args.stage!r} at {args.condition} with "
                           f"every KPI of {list(kpis)}; the spread needs at least 3")
@@ -75,7 +75,7 @@ def main(argv=None) -> None:
     noise_store = args.noise_from or args.store
     for stage, key, point, cond, text in _rows(noise_store, "SELECT stage, batch_key, point_index, condition, kpis "
                                                "FROM evaluations WHERE status = 'done'"):
-        if args.noise_batch in key and (r := _kpi_row(text, kpis)) is not None:
+        if args.noise_batch in key and (r := _kpi_row(json.loads(text or "null") or {}, kpis)) is not None:
             groups[(stage, key, point, cond)].append(r)
     if not groups:
         raise ConfigError(f"{noise_store}: no done runs with every KPI of {list(kpis)} in a batch key containing "

@@ -779,8 +779,10 @@ def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str
 
 
 def _padded(reps: np.ndarray, width: int) -> np.ndarray:
-    """``[n, r, M]`` replicates as ``[n, width, M]`` (``width >= r``), the extra runs NaN (not run)."""
-    out = np.full((reps.shape[0], width, reps.shape[2]), np.nan)
+    """``[n, r, ...]`` replicates as ``[n, width, ...]`` (``width >= r``), the extra runs not run: NaN,
+    or False for ``[n, r]`` jam flags."""
+    flags = reps.dtype == bool
+    out = np.full((reps.shape[0], width, *reps.shape[2:]), False if flags else np.nan, bool if flags else np.float64)
     out[:, :reps.shape[1]] = reps
     return out
 
@@ -790,10 +792,8 @@ def _joined(first: tuple[np.ndarray, np.ndarray, str, np.ndarray], second: tuple
     """Two sets of points already run, one after the other; replicates padded to the wider (the runs
     added neither measured nor jammed)."""
     width = max(first[1].shape[1], second[1].shape[1])
-    jammed = np.zeros((len(first[0]) + len(second[0]), width), dtype=bool)
-    jammed[:len(first[0]), :first[3].shape[1]], jammed[len(first[0]):, :second[3].shape[1]] = first[3], second[3]
-    return (np.concatenate([first[0], second[0]]), np.concatenate([_padded(first[1], width), _padded(second[1], width)]),
-            f"{first[2]}; {second[2]}", jammed)
+    both = lambda j: np.concatenate([_padded(first[j], width), _padded(second[j], width)])  # noqa: E731
+    return np.concatenate([first[0], second[0]]), both(1), f"{first[2]}; {second[2]}", both(3)
 
 
 def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str, names: Sequence[str],
@@ -863,7 +863,7 @@ def surrogate_stage(store: CampaignStore, executor: Executor, *, condition: str,
     X_all, reps_all = np.concatenate([X0, X_new]), np.concatenate([padded(reps0), reps_new])
     # the reused points' jammed runs are read as the stage's own (an earlier design's, on the objective's
     # conditions); they were not run on the jam conditions
-    jam_all = np.concatenate([_padded(jam0[:, :, None], width)[..., 0] == 1, jam_new])
+    jam_all = np.concatenate([padded(jam0), jam_new])
     elsewhere_all = np.concatenate([np.full((n0,) + elsewhere_new.shape[1:], np.nan), elsewhere_new])
     other = [t for t in STRATEGIES if t != config.strategy] if s.compare_strategies else []
     # with fixed pooled noise, the GP that learns its noise is cross-validated on the same points too
