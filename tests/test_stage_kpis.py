@@ -5,8 +5,10 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from bo.calibration.pipeline import agreement
 from bo.campaign.executor import EvalOutcome
 from bo.campaign.store import CampaignStore, copy_store
 from torchdem.errors import ConfigError
@@ -58,8 +60,8 @@ def test_means_errors_and_ci_flags_of_each_stage_against_table_2(tmp_path, capsy
     line = next(s for s in out.splitlines() if s.startswith("| 50-50"))
     assert line == ("| 50-50 | 3 | 1 | 29.60 (+0.4 %) | 38.00 (-10.6 %*) | 10.29 (+0.0 %) | 32.50 (+0.6 %) |")
     # 0.01 deg further out than the CI's half-width is outside it
-    assert script.format_stage_kpis([script.StageKPIs("verification", "set/c", "50-50", None, 1, 0,
-                                                      {"angle_of_repose_deg": 29.96}, {})], measured) \
+    one = agreement(np.array([[29.96]]), ["angle_of_repose_deg"], measured.condition("50-50").kpis)
+    assert script.format_stage_kpis([script.StageKPIs("verification", "set/c", "50-50", None, 1, one)]) \
         .splitlines()[-1] == "| 50-50 | 1 | 0 | 29.96 (+1.7 %*) |"
     assert "angle_of_repose_deg | shear_angle_deg | mass_flow_rate_full_kg_s | mass_lower_box_full_kg |" in out
 
