@@ -456,3 +456,43 @@ def test_the_round_profile_holds_the_round_trilobe_and_varies_slot_and_the_sinte
     surrogate_runs = a.budget * len(s.surrogate.seeds) * (1 + len(s.surrogate.jam_conditions))
     assert len(s.validation_seeds) == 5
     assert screening_runs + surrogate_runs + len(s.verification_seeds) + 3 * len(s.validation_seeds) <= 80
+
+
+def test_the_priors_profile_starts_from_the_papers_values_and_calibrates_every_value_lab_round_held():
+    """profile=lab_priors: lab_round's model (the lab geometry, the fines kept, the default trilobe) with
+    the paper's Table 8 and Table 4 for what it does not calibrate, and as parameters every value the
+    earlier lab campaigns fitted (slot, box width, fill friction, the four sliding frictions, the
+    sinter's rolling, the densities). Each reaches a run; the screening's 21 points lie inside the
+    surrogate's bounds, so all are reused; the plan is at most 140 runs, within the issue's 215."""
+    from bo.calibration.plan import campaign_plan
+
+    plain = _plain(profile="lab_priors")
+    s = calibration_settings_from(plain)
+    model, _ = calibration_model_from(plain, load_measured())
+    round_model, _ = calibration_model_from(_plain(profile="lab_round"), load_measured())
+    held = {"mu_r_pp": 0.12, "e_pp": 0.76, "mu_r_pg": 0.16, "e_ss": 0.35, "e_pg": 0.7, "mu_r_sg": 0.08,
+            "e_sg": 0.4, "lobe_spacing_sinter": 0.15}
+    assert {k: model.fixed[k] for k in held} == held
+    assert model.settings == round_model.settings and model.settings.fines_cut is None
+    ten = ("geometry_outlet_width", "geometry_upper_width", "fill_friction", "mu_s_pp", "mu_s_ss", "mu_r_ss",
+           "mu_s_pg", "mu_s_sg", "density_pellet", "density_sinter")
+    assert s.screening.table.names == ten and s.surrogate.parameters == ten
+    point = {"geometry_outlet_width": 0.061, "geometry_upper_width": 0.33, "fill_friction": 0.7, "mu_s_pp": 0.65,
+             "mu_s_ss": 0.95, "mu_r_ss": 0.3, "mu_s_pg": 0.5, "mu_s_sg": 0.9, "density_pellet": 3300.0,
+             "density_sinter": 3700.0}
+    test = model.test_for("50-50", [point])
+    assert test.geometry.outlet_width == 0.061 and test.geometry.upper_width == 0.33
+    sets = test.parameter_sets[0]
+    for name in ("fill_friction", "mu_s_pp", "mu_s_ss", "mu_r_ss", "mu_s_pg", "mu_s_sg"):
+        assert sets[name] == point[name], name
+    densities = {m.name: m.density for m in test.member_mixtures[0].materials}
+    assert densities == {"pellet": 3300.0, "sinter": 3700.0}
+    # the screening's levels are the surrogate's bounds: every screening point is surrogate data
+    bounds = s.surrogate.bounds
+    for name, levels in zip(s.screening.table.names, s.screening.table.levels()):
+        assert (levels[0], levels[-1]) == tuple(bounds[name]), name
+    plan = campaign_plan(s, load_measured(None))
+    assert {st.stage: dict(st.runs) for st in plan.stages} == {
+        "screening": {"50-50": 42}, "surrogate": {"50-50": 39, "75-25": 39}, "verification": {"50-50": 5},
+        "validation": {"75-25": 5, "25-75": 5, "50-50-reverse": 5}}
+    assert plan.total == 140 <= 215
