@@ -904,9 +904,10 @@ def test_jam_conditions_feed_the_jam_classifier_and_never_the_objective(tmp_path
     equal Eq. 7), while the 75-25 fill arches wherever mu_s_pp < 0.6, on a part of that ridge (the
     truth has 0.62), and flows at 50-50 everywhere. The 75-25 runs stay out of Eq. 7: the stage's points
     and objective are those of the same stage without them, value for value. They reach the GA's
-    classifier: where the GA without them lands in the arching part of the ridge, with them it lands
-    outside it (mu_s_pp >= 0.6 within 0.02) at an Eq. 7 within 0.01 of the ridge's, with a small
-    chance of jamming; without them no run jammed."""
+    classifier: the surrogate without them has points in the arching part of the ridge within 0.01 of
+    the ridge's Eq. 7, so nothing keeps its GA out of there (where on the ridge it lands differs with a
+    machine's last bits); with them the GA lands outside it (mu_s_pp >= 0.6 within 0.02) at an Eq. 7
+    within 0.01 of the ridge's, with a small chance of jamming; without them no run jammed."""
     import functools
 
     from bo.calibration.pipeline import SurrogateStageSettings, ga_stage, surrogate_stage
@@ -950,10 +951,14 @@ def test_jam_conditions_feed_the_jam_classifier_and_never_the_objective(tmp_path
     assert 0 < n_jammed < 28
     assert ga.jam_note.startswith(f"{n_jammed} of the surrogate stage's 56 runs on 50-50, 75-25 jammed")
     x = [ga.calibrated[n] for n in names]
-    assert gas["without"].calibrated["mu_s_pp"] < 0.6 - 0.02  # the case the jam conditions are for
+    grid = [(p, q) for p in np.linspace(0.45, 0.8, 36) for q in np.linspace(0.6, 0.95, 36)]
+    blind = {pq: _noise_free_objective(types.SimpleNamespace(surrogate=without, objective=objective), list(pq))
+             for pq in grid}
+    # the case the jam conditions are for: without them, the ridge reaches into the arching part
+    assert min(v for (p, _), v in blind.items() if p < 0.6 - 0.02) < min(blind.values()) + 0.01
     assert x[0] >= 0.6 - 0.02 and ga.jam_probability < 0.2
-    ridge = min(_noise_free_objective(types.SimpleNamespace(surrogate=with_, objective=objective), [p, q])
-                for p in np.linspace(0.45, 0.8, 36) for q in np.linspace(0.6, 0.95, 36))
+    ridge = min(_noise_free_objective(types.SimpleNamespace(surrogate=with_, objective=objective), list(pq))
+                for pq in grid)
     assert _noise_free_objective(types.SimpleNamespace(surrogate=with_, objective=objective), x) < ridge + 0.01
 
 
