@@ -951,15 +951,13 @@ def test_jam_conditions_feed_the_jam_classifier_and_never_the_objective(tmp_path
     assert 0 < n_jammed < 28
     assert ga.jam_note.startswith(f"{n_jammed} of the surrogate stage's 56 runs on 50-50, 75-25 jammed")
     x = [ga.calibrated[n] for n in names]
+    eq7 = lambda out, p: _noise_free_objective(types.SimpleNamespace(surrogate=out, objective=objective), list(p))  # noqa: E731
     grid = [(p, q) for p in np.linspace(0.45, 0.8, 36) for q in np.linspace(0.6, 0.95, 36)]
-    blind = {pq: _noise_free_objective(types.SimpleNamespace(surrogate=without, objective=objective), list(pq))
-             for pq in grid}
+    blind = {pq: eq7(without, pq) for pq in grid}
     # the case the jam conditions are for: without them, the ridge reaches into the arching part
     assert min(v for (p, _), v in blind.items() if p < 0.6 - 0.02) < min(blind.values()) + 0.01
     assert x[0] >= 0.6 - 0.02 and ga.jam_probability < 0.2
-    ridge = min(_noise_free_objective(types.SimpleNamespace(surrogate=with_, objective=objective), list(pq))
-                for pq in grid)
-    assert _noise_free_objective(types.SimpleNamespace(surrogate=with_, objective=objective), x) < ridge + 0.01
+    assert eq7(with_, x) < min(eq7(with_, pq) for pq in grid) + 0.01
 
 
 def test_jam_conditions_are_checked():
