@@ -951,7 +951,10 @@ def test_jam_conditions_feed_the_jam_classifier_and_never_the_objective(tmp_path
     assert 0 < n_jammed < 28
     assert ga.jam_note.startswith(f"{n_jammed} of the surrogate stage's 56 runs on 50-50, 75-25 jammed")
     x = [ga.calibrated[n] for n in names]
-    eq7 = lambda out, p: _noise_free_objective(types.SimpleNamespace(surrogate=out, objective=objective), list(p))  # noqa: E731
+
+    def eq7(surrogate, point):
+        return _noise_free_objective(types.SimpleNamespace(surrogate=surrogate, objective=objective), list(point))
+
     grid = [(p, q) for p in np.linspace(0.45, 0.8, 36) for q in np.linspace(0.6, 0.95, 36)]
     blind = {pq: eq7(without, pq) for pq in grid}
     # the case the jam conditions are for: without them, the ridge reaches into the arching part
