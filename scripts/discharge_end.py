@@ -69,7 +69,7 @@ def main() -> None:
         print(f"{condition} seed {row['seed']}: discharge ended {row['discharge_duration_s']:.2f} s after the gate "
               f"opened ({row['wall_s']:.0f} s wall); " + ", ".join(
                   f"{k} {row['fixed'][k]:.2f} -> {row['end'][k]:.2f}" for k in KPIS), flush=True)
-    print(f"\n| condition | runs | ended after, s | " + " | ".join(f"{k}: at {s.discharge_time:g} s -> ended (diff)"
+    print("\n| condition | runs | ended after, s | " + " | ".join(f"{k}: at {s.discharge_time:g} s -> ended (diff)"
                                                                   for k in KPIS) + " |")
     print("| --- | ---: | ---: |" + " ---: |" * len(KPIS))
     for condition in dict.fromkeys(r["condition"] for r in rows):

@@ -28,7 +28,7 @@ from omegaconf import DictConfig
 from bo.cli.common import (MODEL_KEYS, _int, checkpoint_dir_for, executor_settings_from, flag, open_store, plain_config,
                            store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
-from torchdem.errors import ConfigError, out_of_range
+from torchdem.errors import out_of_range
 
 
 def effects_from(plain: Mapping[str, Any], context) -> list:
@@ -84,7 +84,7 @@ def run(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     from bo.cli.common import executor_factory
     from bo.cli.discover import calibrated_from, discovery_settings_from
     from bo.discovery.pipeline import discovery_stages
-    from bo.discovery.power import power_stages, power_summary, run_power_study, rows_to_json, tabulate
+    from bo.discovery.power import power_stages, power_summary, run_power_study, tabulate
     from torchdem.measured import load_measured
     from torchdem.mechanisms import model_context
 

@@ -115,8 +115,8 @@ def main() -> None:
 
     seen = [n for n in fit.parameter_names if power[n] >= 0.8]
     if len(seen) >= 2:
-        print(f"\nTell apart (row: the true change over its whole range; column: the other parameter at its "
-              f"best-fitting change; power to reject it), the parameters detected with power >= 0.8:\n")
+        print("\nTell apart (row: the true change over its whole range; column: the other parameter at its "
+              "best-fitting change; power to reject it), the parameters detected with power >= 0.8:\n")
         print("| true \\ other | " + " | ".join(seen) + " |\n| --- |" + " ---: |" * len(seen))
         for a in seen:
             row = [("-" if a == b else f"{distinguishing_power(fit.effect[fit.index(a)], fit.effect[fit.index(b)], sigma):.2f}")

@@ -31,7 +31,7 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from bo.calibration.pipeline import (EXTRA_STAGES, KPIAgreement, _objective_data, agreement, choose_parameters,
+from bo.calibration.pipeline import (EXTRA_STAGES, _objective_data, agreement,
                           run_calibration)
 from bo.calibration.report import write_calibration_report
 from bo.cli.calibrate import calibrate, calibration_settings_from
@@ -286,7 +286,7 @@ def test_report_files_and_counts_match_the_store(known_campaign):
     # the known model's 25-75 runs report a discharge that had not ended: the report counts them
     cut = len(result.settings.validation_seeds)
     assert result.discharge_not_ended == {"validation": cut}
-    assert f"Runs stopped while the upper box still emptied" in md and f"validation {cut}." in md
+    assert "Runs stopped while the upper box still emptied" in md and f"validation {cut}." in md
     # and its first 75-25 run a discharge that jammed: counted, and left out of that condition's means
     assert result.discharge_jammed == {"validation": 1}
     assert "Runs whose discharge jammed" in md

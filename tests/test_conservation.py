@@ -10,11 +10,10 @@
 """
 
 import numpy as np
-import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from conftest import F64, elastic_spheres_in_a_box, glass, simulation, steel
+from conftest import F64, elastic_spheres_in_a_box, glass, steel
 from torchdem.clumps import ClumpTemplate
 from torchdem.materials import interaction_table
 from torchdem.rigid import quat_rotate_inverse

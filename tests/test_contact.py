@@ -4,7 +4,6 @@ Tolerances (from the issue): measured restitution within 1% of the input for e i
 {0.3, 0.5, 0.9}; elastic contact duration within 2% of Hertz theory. The three restitution
 values run as one batched ensemble, one member each.
 """
-import math
 
 import pytest
 import torch

@@ -21,8 +21,6 @@ import dataclasses
 import functools
 import json
 import math
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -34,7 +32,7 @@ from hydra import compose, initialize_config_dir
 from scipy import stats
 
 from bo.cli.calibrate import calibration_model_from
-from bo.cli.discover import calibrated_from, discover, discovery_settings_from, extension_command
+from bo.cli.discover import calibrated_from, discover, extension_command
 from bo.cli.common import plain_config
 from bo.discovery.report import write_discovery_report
 from bo.discovery.pipeline import PARAMETERS, DiscoverySettings, discovery_stages, model_context, run_discovery

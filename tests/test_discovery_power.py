@@ -110,9 +110,6 @@ def test_a_reanalysis_reads_the_store_only_and_says_which_outcomes_follow(tmp_pa
     that runs nothing. Straight after the study every outcome follows; an outcome edited in the
     store is reported with the field that differs; a discovery that would need runs the store does
     not hold (other discovery seeds) is counted, and the store itself is left as it was."""
-    import dataclasses
-    import json
-
     from bo.discovery.power import reanalyse
 
     rho = km.NOMINAL_DENSITY

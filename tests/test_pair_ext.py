@@ -30,7 +30,6 @@ from torchdem import _ext
 from torchdem.clumps import ClumpTemplate
 from torchdem.integrate import Kernels, body_angular_velocity, contact_forces, rebuild, sphere_positions
 from torchdem.materials import interaction_table
-from torchdem.rigid import quat_rotate
 from torchdem.simulation import GuardSettings, Simulation
 from torchdem.system import build_system
 from torchdem.walls import WallSpec

@@ -5,7 +5,6 @@ mu_r R F_n decelerates at a = mu_r g / (1 + I / (m R^2)) = 5/7 mu_r g, so it sto
 s = 7 v0^2 / (10 mu_r g). Tolerance 5% (the issue's). Three rolling-friction coefficients
 run as one ensemble.
 """
-import math
 
 import torch
 

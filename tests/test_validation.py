@@ -1,5 +1,4 @@
 """Bad input is rejected up front with an error naming the value, the range and the source."""
-import math
 
 import pytest
 import torch

@@ -38,7 +38,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from torchdem.errors import ConfigError, out_of_range
+from torchdem.errors import out_of_range
 from torchdem.walls import WallSpec
 
 #: Material name of the symmetry plane of a mirrored slice (``DrawDownGeometry.mirror``).

@@ -18,7 +18,6 @@ import functools
 from dataclasses import dataclass
 from typing import Sequence
 
-import numpy as np
 import torch
 
 from torchdem.clumps import SPHERE, ClumpTemplate, PrincipalTemplate, principal_template

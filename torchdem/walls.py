@@ -198,7 +198,7 @@ def make_walls(specs: Sequence[WallSpec], material_ids: dict[str, int], *,
             raise ConfigError(f"{src}: material {s.material!r} is unknown; known: {sorted(material_ids)}")
         if not s.active_from < s.active_until:
             raise ConfigError(f"{src}: active_from = {s.active_from} must be before active_until = {s.active_until}")
-        v = _vec(s.velocity, "velocity", src)
+        _vec(s.velocity, "velocity", src)  # checked here; the rows keep the spec
         rows.append((c, n, u, torch.linalg.cross(n, u), s))
     _check_no_coincident_walls(rows, source)
     if not rows:

@@ -295,7 +295,7 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     paper = load_paper_tables() if plain.get("measured") is None else None  # the paper's own Table 2
     files = write_calibration_report(result, out, paper=paper)
     wall = time.perf_counter() - started
-    echo(f"calibrated: " + ", ".join(f"{k} = {v:.4g}" for k, v in result.final_parameters.items()))
+    echo("calibrated: " + ", ".join(f"{k} = {v:.4g}" for k, v in result.final_parameters.items()))
     for label, rows in (("verification", result.verification), ("fresh       ", result.fresh_verification or ())):
         for a in rows:
             echo(f"  {label} {a.kpi:28s} DEM {a.dem_mean:.4g} vs lab {a.measured_mean:.4g} +- {a.measured_ci95:.3g}: "
