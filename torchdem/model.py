@@ -268,11 +268,6 @@ def with_material_properties(mixture: Mixture, properties: Mapping[str, Mapping[
     return dataclasses.replace(mixture, materials=tuple(materials))
 
 
-def with_densities(mixture: Mixture, density: Mapping[str, float]) -> Mixture:
-    """The mixture with the given materials' solid densities replaced."""
-    return with_material_properties(mixture, {m: {"density": rho} for m, rho in density.items()})
-
-
 def variant(condition: str, **changes: float | str | bool | None) -> str:
     """Condition name with run-setting or geometry variants, e.g. ``variant("50-50",
     time_step_fraction=0.2)``, ``variant("50-50", dtype="float32")`` or ``variant("50-50",

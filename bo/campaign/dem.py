@@ -46,8 +46,6 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
-
 from bo.campaign.cores import CoreShare, ThreadFollower
 from bo.campaign.executor import EvalOutcome, EvalTask
 from torchdem.drawdown import KPI_UNITS
@@ -170,12 +168,3 @@ def _members_that_fail_alone(model: DrawDownModel, tasks: list[EvalTask]) -> dic
         except ConfigError as exc:
             failed[r] = f"ConfigError: {exc}"
     return failed
-
-
-def kpi_matrix(outcomes: Sequence[EvalOutcome], kpis: Sequence[str]) -> np.ndarray:
-    """``[n, len(kpis)]`` KPI values (NaN for failures and unmeasured KPIs)."""
-    arr = np.full((len(outcomes), len(kpis)), np.nan)
-    for i, o in enumerate(outcomes):
-        if o.ok:
-            arr[i] = [o.kpis.get(k, np.nan) for k in kpis]
-    return arr
