@@ -541,7 +541,21 @@ def test_screening_points_project_onto_the_calibrated_parameters():
     assert reps.shape == (inside.sum(), 2, 2) and reps.tolist() == values[inside][:, :, [2, 0]].tolist()
     assert jammed.shape == (inside.sum(), 2) and not jammed.any()  # the screening reads a jammed run as NaN
     assert note.startswith(f"{inside.sum()} of the screening's 7 design points reused") and "3 left out" in note
-    assert "['e_pp'] vary over them" in note
+    assert "['e_pp'] vary over them" in note and "jammed" not in note
+    # a run that jammed (the screening's NaN) comes back with the KPIs it measured, flagged
+    flags, measured = np.zeros((7, 2), dtype=bool), np.full((7, 2, 2), np.nan)
+    first = int(np.flatnonzero(inside)[0])
+    flags[first, 1], measured[first, 1] = True, [0.0, 0.2]
+    nan_values = values.copy()
+    nan_values[first, 1] = np.nan
+    with_nan = ScreeningResults(("mu_s_pp", "mu_r_pp", "e_pp"), coded, physical, (0, 1), ("a", "b", "c"), nan_values)
+    _, reps, note, jammed = screening_points(with_nan, ("mu_s_pp", "density_pellet", "mu_r_pp"), bounds, ("c", "a"),
+                                             {"density_pellet": 3602.4}, jams=(flags, measured))
+    assert jammed.tolist() == flags[inside].tolist() and reps[0, 1].tolist() == [0.0, 0.2]
+    assert reps[1:].tolist() == values[inside][1:][:, :, [2, 0]].tolist() and "; 1 with a run that jammed" in note
+    with pytest.raises(ConfigError, match=r"jams of shapes \(6, 2\) and \(7, 2, 2\); expected \(7, 2\)"):
+        screening_points(results, ("mu_s_pp", "density_pellet", "mu_r_pp"), bounds, ("c", "a"),
+                         {"density_pellet": 3602.4}, jams=(flags[:6], measured))
     with pytest.raises(ConfigError, match=r"'density_sinter' was not screened.*no nominal value.*reuse_screening=false"):
         screening_points(results, ("mu_s_pp", "density_sinter"), bounds[:, :2], ("a",), {"density_pellet": 3602.4})
 

@@ -24,7 +24,8 @@ from bo.cli.common import MODEL_KEYS, config_hash, plain_config, screen_settings
 from bo.cli.screen import screen
 from bo.design.dsd import ParameterTable, definitive_screening_design, paper_parameter_table, scale_design
 from bo.campaign.executor import EvalOutcome, InProcessExecutor
-from bo.screening.pipeline import analyse_and_report, measured_for, run_screening, screening_batch_key
+from bo.screening.pipeline import (analyse_and_report, jammed_screening_runs, measured_for, run_screening,
+                                   screening_batch_key)
 from bo.screening.stepwise import ScreeningResults
 from bo.campaign.store import CampaignStore
 from torchdem.cli import CONF_DIR
@@ -112,6 +113,15 @@ def test_a_run_whose_discharge_jammed_measured_nothing(tmp_path):
     read = stored_screening(tmp_path / "s.sqlite", KPIS)
     assert read.kpi_names == tuple(KPIS)
     np.testing.assert_array_equal(np.isnan(read.kpi_values), np.isnan(results.kpi_values))
+    # the jammed runs with the KPIs they measured, for a surrogate that reuses the screening's points;
+    # a seed the store has not run has none
+    jammed, values = jammed_screening_runs(store, _table(), n_fake=1, seeds=[3, 5, 7], condition="50-50",
+                                           kpis=KPIS[::-1])
+    assert jammed[:, 0].tolist() == high.tolist() and not jammed[:, 1:].any()
+    names = _table().names
+    expected = [[linear_kpis(dict(zip(names, row)), 3)[k] for k in KPIS[::-1]] for row in results.physical[high]]
+    np.testing.assert_allclose(values[high, 0], expected)
+    assert np.isnan(values[~jammed]).all()
 
 
 def test_run_screening_rejects_bad_inputs_before_storing(tmp_path):

@@ -79,8 +79,8 @@ from bo.surrogate.attainable import AttainableRange, AttainableSettings, attaina
 from bo.surrogate.ga import GASettings, GASummary, ga_bounds, repeated_ga
 from bo.surrogate.jam import fit_jam_model
 from bo.surrogate.objective import ObjectiveSpec
-from bo.screening.pipeline import (ScreeningReport, ScreenSettings, analyse_and_report, json_ready, measured_for,
-                                   run_screening)
+from bo.screening.pipeline import (ScreeningReport, ScreenSettings, analyse_and_report, jammed_screening_runs,
+                                   json_ready, measured_for, run_screening)
 from bo.screening.stepwise import ScreeningResults
 from bo.campaign.store import CampaignStore
 from bo.surrogate.gp import STRATEGIES, SurrogateConfig, as_bounds, cross_validated_r2, fit_surrogate
@@ -680,9 +680,14 @@ def choose_parameters(screening: ScreeningReport, s: SurrogateStageSettings
 
 
 def screening_points(results: ScreeningResults, names: Sequence[str], bounds: np.ndarray, kpis: Sequence[str],
-                     nominal: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
-    """The screening's design points as surrogate data: ``(X [n, d], reps [n, r, M], note, jammed [n, r])``;
-    the screening reads a run that jammed as NaN (it measured nothing), so ``jammed`` is all False.
+                     nominal: Mapping[str, float], jams: tuple[np.ndarray, np.ndarray] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
+    """The screening's design points as surrogate data: ``(X [n, d], reps [n, r, M], note, jammed [n, r])``.
+    The screening reads a run that jammed as NaN (it measured nothing); ``jams``, ``(jammed [runs, r] bool,
+    values [runs, r, M])`` of :func:`bo.screening.pipeline.jammed_screening_runs`, puts those runs back with
+    the KPIs they measured and flags them in ``jammed``, so the surrogate stage reads them as its own jammed
+    runs (the scalar objective's worst miss, the jam classifier's observations); without it ``jammed`` is
+    all False and such a run is one not made.
 
     Each calibrated parameter (``names``, ``d``) takes the point's screened value or, where the
     screening did not vary it, ``nominal[name]``: the value every screening run had (a
@@ -706,12 +711,21 @@ def screening_points(results: ScreeningResults, names: Sequence[str], bounds: np
     X = np.stack(cols, axis=1).astype(np.float64).reshape(results.n_runs, len(names))
     inside = screening_points_inside(results, names, bounds, nominal)
     reps = results.kpi_values[:, :, [results.kpi_index(k) for k in kpis]]
+    jammed = np.zeros(reps.shape[:2], dtype=bool)
+    if jams is not None:
+        jammed, values = np.asarray(jams[0], dtype=bool), np.asarray(jams[1], dtype=np.float64)
+        if jammed.shape != reps.shape[:2] or values.shape != reps.shape:
+            raise ConfigError(f"screening_points: jams of shapes {jammed.shape} and {values.shape}; expected "
+                              f"{reps.shape[:2]} and {reps.shape}, the screening's runs, replicates and KPIs {list(kpis)}")
+        reps = np.where(jammed[:, :, None], values, reps)
     varied = [n for n in screened if n not in names]
+    n_jammed = int(jammed[inside].any(axis=1).sum())
     note = (f"{int(inside.sum())} of the screening's {results.n_runs} design points reused as surrogate data "
             f"({results.n_replicates} runs each)"
             + (f"; {int((~inside).sum())} left out, outside the bounds" if not inside.all() else "")
-            + (f"; {varied} vary over them as screened" if varied else ""))
-    return X[inside], np.array(reps[inside]), note, np.zeros(reps[inside].shape[:2], dtype=bool)
+            + (f"; {varied} vary over them as screened" if varied else "")
+            + (f"; {n_jammed} with a run that jammed" if n_jammed else ""))
+    return X[inside], np.array(reps[inside]), note, np.array(jammed[inside])
 
 
 def design_points(store: CampaignStore, keys: Sequence[str], names: Sequence[str], bounds: np.ndarray,
@@ -1277,7 +1291,10 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
         echo("      the screening's points are no surrogate data: they were not run on "
              + ", ".join(settings.objective_conditions))
     elif settings.surrogate.reuse_screening:
-        prior = screening_points(screening.results, names, bounds, own, nominal)
+        screened = settings.screening
+        prior = screening_points(screening.results, names, bounds, own, nominal, jams=jammed_screening_runs(
+            store, screened.table, n_fake=screened.n_fake, seeds=list(screened.seeds), condition=screened.condition,
+            kpis=own))
     n_earlier = 0
     if settings.surrogate.reuse_designs:
         earlier = design_points(store, settings.surrogate.reuse_designs, names, bounds, settings.surrogate.seeds,

@@ -76,6 +76,7 @@ __all__ = [
     "ScreeningReport",
     "analyse_and_report",
     "design_id",
+    "jammed_screening_runs",
     "json_ready",
     "measured_for",
     "run_screening",
@@ -200,6 +201,28 @@ def run_screening(store: CampaignStore, executor: Executor, table: ParameterTabl
     return ScreeningResults.from_parameter_table(
         table, coded, seeds, kpis, values,
         source=f"{store.path} {stage} dsd/{design_id(table, n_fake)} condition {condition}")
+
+
+def jammed_screening_runs(store: CampaignStore, table: ParameterTable, *, n_fake: int, seeds: Sequence[int],
+                          condition: str, kpis: Sequence[str], stage: str = "screening"
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """``(jammed [runs, r] bool, values [runs, r, M])``: the runs of the stored DSD of ``table`` (one
+    replicate per seed, ``r``) whose discharge jammed, and the KPIs ``kpis`` (``M``) they measured, NaN
+    for every other run. :func:`run_screening` reads those runs as NaN (they measured no test); a
+    surrogate that reuses the screening's points reads them as it reads its own jammed runs. Only the
+    store is read; a batch it does not hold yet has no jammed run."""
+    kpis = _check_kpis(kpis, "jammed_screening_runs")
+    n_runs = definitive_screening_design(table.k, int(n_fake)).shape[0]
+    jammed = np.zeros((n_runs, len(seeds)), dtype=bool)
+    values = np.full((n_runs, len(seeds), len(kpis)), np.nan)
+    for r, seed in enumerate(seeds):
+        for rec in store.records(stage, batch_key=screening_batch_key(table, n_fake, seed), condition=condition,
+                                 status="done"):
+            if rec.kpis is not None and discharge_jammed(rec.kpis):
+                jammed[rec.point_index, r] = True
+                values[rec.point_index, r] = [rec.kpis.get(k, math.nan) for k in kpis]
+    values[~np.isfinite(values)] = np.nan
+    return jammed, values
 
 
 # --------------------------------------------------------------------------------------------
