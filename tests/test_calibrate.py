@@ -1222,3 +1222,8 @@ def test_the_plan_of_the_round_profile_and_where_its_costs_come_from(tmp_path):
     assert (rows["validation", "25-75"].seconds_per_run, rows["validation", "25-75"].cost_source) == (
         500.0, "all conditions")
     assert not rows["surrogate", "50-50"].exact and rows["verification", "50-50"].left == 5
+    # a second screening batch takes over one finished run (same point, seed and condition): still 3 runs done
+    here.batch("screening", "b2", lambda: [{"a": 0.1}, {"a": 0.4}], seeds=[0], conditions=["50-50"])
+    assert [r.status for r in here.records("screening")].count("done") == 4
+    rows = {(r.stage, r.condition): r for r in plan_progress(plan, here.path)}
+    assert rows["screening", "50-50"].done == 3 and rows["screening", "50-50"].left == 15
