@@ -39,6 +39,7 @@ from statistics import median
 from typing import Mapping, Sequence
 
 from bo.campaign.progress import open_read_only, run_costs
+from bo.campaign.store import REUSED
 from bo.design.dsd import definitive_screening_design
 from torchdem.measured import MeasuredData
 
@@ -175,28 +176,26 @@ def _own_done(plan: CampaignPlan, path: str | Path) -> list[tuple[str, str]]:
     own. A store seeded with another campaign's (``store_from``) holds that campaign's surrogate
     design and checks too: the designs the plan reads as data (``earlier_designs``) are not its
     surrogate's runs, and a verification, density or validation batch made before the campaign's
-    own surrogate batches ended is the check of another calibrated set. A run that two batches of
-    one stage share (a batch re-keyed with its finished runs taken over) is one run of the plan."""
+    own surrogate batches ended is the check of another calibrated set. A row that took the result of
+    another own row (the store's shared runs, ``reused:<task id>``) is one run with it."""
     conn = open_read_only(Path(path), "plan_progress")
     try:
-        rows = conn.execute("SELECT e.stage, e.batch_key, e.condition, e.seed, e.params, b.created_at "
+        rows = conn.execute("SELECT e.task_id, e.stage, e.batch_key, e.condition, e.claimed_by, b.created_at "
                             "FROM evaluations e JOIN batches b ON e.stage = b.stage AND e.batch_key = b.batch_key "
                             "WHERE e.status = 'done' ORDER BY e.task_id").fetchall()
     finally:
         conn.close()
-    staged = [(next((p for p, prefixes in STORE_STAGES.items() if stage.startswith(prefixes)), None), key, condition,
-               (condition, seed, params), created) for stage, key, condition, seed, params, created in rows]
-    surrogate = [created for stage, key, *_, created in staged if stage == "surrogate"
+    staged = [(task_id, next((p for p, prefixes in STORE_STAGES.items() if stage.startswith(prefixes)), None), key,
+               condition, owner or "", created) for task_id, stage, key, condition, owner, created in rows]
+    surrogate = [created for _, stage, key, *_, created in staged if stage == "surrogate"
                  and key not in plan.earlier_designs]
     after = max(surrogate, default=float("inf"))
-    own, seen = [], set()
-    for stage, key, condition, run, created in staged:
-        if stage == "screening" or (stage == "surrogate" and key not in plan.earlier_designs) \
-                or (stage in ("verification", "density", "validation") and created > after):
-            if (stage, run) not in seen:  # a batch that took another batch's run shares it: one run of the plan
-                seen.add((stage, run))
-                own.append((stage, condition))
-    return own
+    own = [(task_id, stage, condition, owner) for task_id, stage, key, condition, owner, created in staged
+           if stage == "screening" or (stage == "surrogate" and key not in plan.earlier_designs)
+           or (stage in ("verification", "density", "validation") and created > after)]
+    ids = {task_id for task_id, *_ in own}
+    return [(stage, condition) for _, stage, condition, owner in own
+            if not owner.startswith(REUSED) or int(owner[len(REUSED):]) not in ids]
 
 
 def plan_progress(plan: CampaignPlan, path: str | Path,
