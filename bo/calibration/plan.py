@@ -39,7 +39,7 @@ from statistics import median
 from typing import Mapping, Sequence
 
 from bo.campaign.progress import open_read_only, run_costs
-from bo.campaign.store import REUSED
+from bo.campaign.store import reused_from
 from bo.design.dsd import definitive_screening_design
 from torchdem.measured import MeasuredData
 
@@ -186,7 +186,7 @@ def _own_done(plan: CampaignPlan, path: str | Path) -> list[tuple[str, str]]:
     finally:
         conn.close()
     staged = [(task_id, next((p for p, prefixes in STORE_STAGES.items() if stage.startswith(prefixes)), None), key,
-               condition, owner or "", created) for task_id, stage, key, condition, owner, created in rows]
+               condition, owner, created) for task_id, stage, key, condition, owner, created in rows]
     surrogate = [created for _, stage, key, *_, created in staged if stage == "surrogate"
                  and key not in plan.earlier_designs]
     after = max(surrogate, default=float("inf"))
@@ -195,7 +195,7 @@ def _own_done(plan: CampaignPlan, path: str | Path) -> list[tuple[str, str]]:
            or (stage in ("verification", "density", "validation") and created > after)]
     ids = {task_id for task_id, *_ in own}
     return [(stage, condition) for _, stage, condition, owner in own
-            if not owner.startswith(REUSED) or int(owner[len(REUSED):]) not in ids]
+            if reused_from(owner) not in ids]
 
 
 def plan_progress(plan: CampaignPlan, path: str | Path,

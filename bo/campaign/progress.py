@@ -46,13 +46,13 @@ from pathlib import Path
 from statistics import median
 from typing import Sequence
 
-from bo.campaign.store import COPIED_FROM, RECORD_COLUMNS, EvaluationRecord, affinity_distance, record_from_row
+from bo.campaign.store import (COPIED_FROM, RECORD_COLUMNS, EvaluationRecord, affinity_distance, record_from_row,
+                               reused_from)
 from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.errors import ConfigError
 
 __all__ = ["SHAPE_BIN", "CostClass", "RunCost", "StoreProgress", "run_costs", "store_progress"]
 
-_REUSED = "reused:"
 #: The particle-shape parameters that set a run's cost, and which way: +1 costlier as the value grows
 #: (a larger lobe spacing, smaller lobes: more spheres and a shorter step), -1 cheaper (a larger
 #: clump scale: fewer, larger grains at the same mass).
@@ -238,7 +238,7 @@ def _costs(rows: list[tuple]) -> list[float | None]:
     """Worker seconds of each row (``RunCost.seconds``): rows written by one ``record`` call share
     their owner, finish time and wall time, and split the wall time."""
     batch_size: dict[tuple, int] = defaultdict(int)
-    counted = [state in ("done", "failed") and wall is not None and not (owner or "").startswith(_REUSED)
+    counted = [state in ("done", "failed") and wall is not None and reused_from(owner) is None
                for _, _, _, _, state, wall, owner, _, _, _ in rows]
     for row, yes in zip(rows, counted):
         if yes:

@@ -304,6 +304,13 @@ def record_from_row(row: Sequence) -> "EvaluationRecord":
                             _kpis_from_json(row[9]), *row[10:])
 
 
+def reused_from(claimed_by: str | None) -> int | None:
+    """Task id of the run whose result a row with this ``claimed_by`` took (see "Shared runs"), else None."""
+    if claimed_by and claimed_by.startswith(REUSED):
+        return int(claimed_by[len(REUSED):])
+    return None
+
+
 @dataclass(frozen=True)
 class EvaluationRecord:
     """One row of the ``evaluations`` table (times in Unix seconds, wall time in seconds)."""
@@ -337,9 +344,7 @@ class EvaluationRecord:
     @property
     def reused_from(self) -> int | None:
         """Task id of the run whose result this row took (see "Shared runs"), else None."""
-        if self.claimed_by and self.claimed_by.startswith(REUSED):
-            return int(self.claimed_by[len(REUSED):])
-        return None
+        return reused_from(self.claimed_by)
 
 
 @dataclass(frozen=True)
