@@ -46,12 +46,15 @@ import argparse
 import math
 import sys
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 import yaml
 
 from torchdem.errors import ConfigError, out_of_range
+
+if TYPE_CHECKING:  # the store is imported where a probe runs, so the script's --help stays light
+    from bo.campaign.store import CampaignStore
 
 #: The store stage of a probe's runs.
 STAGE = "probe"
@@ -149,7 +152,7 @@ def _parameters(value, key: str, source: str) -> dict[str, float]:
     return out
 
 
-def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> "CampaignStore":  # noqa: F821
+def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> CampaignStore:
     """Every set's missing runs, in the probe's store; returns the store."""
     from bo.campaign.executor import run_pending
     from bo.cli.calibrate import calibration_model_for
