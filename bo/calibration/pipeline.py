@@ -1342,7 +1342,7 @@ def run_calibration(store: CampaignStore, executor: Executor, settings: Calibrat
     evaluations, not_ended, jammed = {}, {}, {}
     for rec_stage in ["screening", "initial"] + [f"round-{k}" for k in range(1, len(surrogate.rounds))] \
             + ["verification", "density", "validation"]:
-        c = store.counts(rec_stage)
+        c = store.counts(rec_stage, computed_only=True)  # a row that took a stored run's result is no DEM run
         evaluations[rec_stage] = c["done"] + c["failed"]
         done = [r.kpis or {} for r in store.records(rec_stage, status="done")]
         # runs stopped while the upper box still emptied (run.max_discharge_time_s reached or null)
