@@ -6,6 +6,7 @@ may be run beside a campaign.
     python scripts/contrast_check.py campaigns/table2/*.sqlite --by-stage       # 25-75 less 75-25
     python scripts/contrast_check.py campaigns/table2/probe_contrast.sqlite --by-set    # every set's C
     python scripts/contrast_check.py STORE --between 50-50 75-25 --data my_lab.json
+    python scripts/contrast_check.py campaigns/table2/lab_priors.sqlite --between 75-25 50-50 --regress
 """
 from __future__ import annotations
 
@@ -25,9 +26,11 @@ def main() -> None:
     parser.add_argument("--data", default=None, help="measured-data JSON (default: the paper's Table 2)")
     parser.add_argument("--by-stage", action="store_true", help="also the mean C per stage (a discovery's candidates)")
     parser.add_argument("--by-set", action="store_true", help="also every set's C, named by what it changes")
+    parser.add_argument("--regress", action="store_true",
+                        help="also each KPI's C fitted on the parameters the sets vary (one campaign's store)")
     args = parser.parse_args()
     check = contrast_check(args.stores, load_measured(args.data), *args.between)
-    print(format_contrast(check, by_stage=args.by_stage, by_set=args.by_set), end="")
+    print(format_contrast(check, by_stage=args.by_stage, by_set=args.by_set, regress=args.regress), end="")
 
 
 if __name__ == "__main__":

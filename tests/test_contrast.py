@@ -7,6 +7,10 @@
   jammed run and a run that a second store copies are left out; the pooled replicate sd equals the
   textbook pooled sd; a set agrees with the lab exactly when |C - C_lab| <= 1.96 x the combined
   standard error.
+- C's fit on the parameters: on sets whose C is exactly linear in two parameters (a third held), the
+  change per sd is the slope times the parameter's sd (rel 1e-9) and the held one is left out; on a
+  non-linear C the coefficients equal the textbook weighted least squares, (X'WX)^-1 X'Wy with W the
+  inverse squared standard errors (rel 1e-9); too few sets is a ConfigError naming the counts.
 - Bad input (an unknown condition, the same condition twice) names the value and what is allowed.
 """
 from __future__ import annotations
@@ -22,7 +26,7 @@ import pytest
 
 from bo.campaign.executor import EvalOutcome
 from bo.campaign.store import CampaignStore
-from bo.discovery.contrast import Z95, contrast_check, format_contrast, lab_contrast
+from bo.discovery.contrast import Z95, contrast_check, format_contrast, lab_contrast, regress_contrast
 from torchdem.errors import ConfigError
 from torchdem.measured import Condition, KPIValue, MeasuredData, load_measured
 
@@ -123,3 +127,63 @@ def test_script_prints_the_table_for_table_2(tmp_path):
                          capture_output=True, text=True, cwd=REPO, check=True).stdout
     assert out.startswith("## Contrast between conditions, C = KPI(25-75) - KPI(75-25)")
     assert "| angle of repose, deg | +1.08 +- 0.99 | - | - | 0 of 0 |" in out  # the store has no 25-75 runs
+
+
+# sets of (k1, k2): C of the angle of repose is 2 k1 - 0.5 k2 exactly; of the shear angle k1^2 + k2
+K_SETS = [(0.1, 1.0), (0.2, 3.0), (0.3, 2.0), (0.4, 5.0), (0.5, 4.0), (0.6, 1.0), (0.7, 2.0), (0.8, 3.0)]
+
+
+def _linear_store(tmp_path, sets=K_SETS) -> Path:
+    path = tmp_path / "linear.sqlite"
+    store = CampaignStore(path, "hash")
+    for i, (k1, k2) in enumerate(sets):
+        for condition in ("A", "B"):
+            base = 30.0 + 0.01 * i  # runs of equal values would count as one run copied between stores
+            aor, shear = (base + 2 * k1 - 0.5 * k2, base + k1 ** 2 + k2) if condition == "A" else (base, base)
+            # replicates symmetric about the mean, so the means are exact; unequal counts give unequal weights
+            offsets = [-0.1, 0.1] if (condition == "A" and i % 3 == 0) or (condition == "B" and i % 2) else [0.0]
+            key = f"{condition}{i}"
+            store.batch("initial", key, lambda: [{"k1": k1, "k2": k2, "held": 7.0}],
+                        seeds=list(range(len(offsets))), conditions=[condition])
+            store.record([(t, EvalOutcome.success({"angle_of_repose_deg": aor + offsets[t.seed],
+                                                   "shear_angle_deg": shear + offsets[t.seed],
+                                                   "discharge_jammed": 0.0}, 1.0))
+                          for t in store.claim(100, stage="initial", batch_key=key)])
+    return path
+
+
+def test_the_contrasts_fit_on_the_parameters_recovers_its_slopes(tmp_path):
+    check = contrast_check([_linear_store(tmp_path)], _measured(), "A", "B", kpis=KPIS)
+    k = np.array(K_SETS)
+    fit = regress_contrast(check, "angle_of_repose_deg")
+    assert fit.parameters == ("k1", "k2")  # "held" does not vary
+    assert fit.weighted and fit.n_sets == 8
+    sd = k.std(axis=0, ddof=1)
+    assert fit.parameter_sd == pytest.approx(sd, rel=1e-12)
+    assert fit.effect == pytest.approx([2 * sd[0], -0.5 * sd[1]], rel=1e-9)
+    assert fit.mean_c == pytest.approx(2 * k[:, 0].mean() - 0.5 * k[:, 1].mean(), rel=1e-9)
+    assert fit.r2 == pytest.approx(1.0, abs=1e-12)
+    assert fit.at({"k1": 1.0, "k2": 0.0}) == pytest.approx(2.0, rel=1e-9)
+    with pytest.raises(ConfigError, match=r"\['k2'\] are not given"):
+        fit.at({"k1": 1.0})
+
+    shear = regress_contrast(check, "shear_angle_deg")  # k1^2 + k2: not linear, so the weights matter
+    z = np.column_stack([np.ones(8), (k - k.mean(axis=0)) / sd])
+    w = 1.0 / check.standard_error("shear_angle_deg") ** 2
+    assert len(set(np.round(w, 9))) > 1  # unequal weights
+    beta = np.linalg.solve(z.T @ (w[:, None] * z), z.T @ (w * check.contrast("shear_angle_deg")))
+    assert shear.mean_c == pytest.approx(beta[0], rel=1e-9)
+    assert shear.effect == pytest.approx(beta[1:], rel=1e-9)
+    assert 0.9 < shear.r2 < 1.0
+
+    text = format_contrast(check, regress=True)
+    assert "angle of repose, deg: 8 sets, R^2 1.00, C at the sets' mean parameters" in text
+    assert "| parameter | per sd (se) | p | the parameter's sd |" in text
+
+
+def test_the_fit_needs_more_sets_than_parameters(tmp_path):
+    check = contrast_check([_linear_store(tmp_path, K_SETS[:3])], _measured(), "A", "B", kpis=KPIS)
+    with pytest.raises(ConfigError, match="3 parameter sets ran on both 'A' and 'B', and they vary 2 parameters"):
+        regress_contrast(check, "shear_angle_deg")
+    with pytest.raises(ConfigError, match="KPI 'flow' is not one of the check's"):
+        regress_contrast(check, "flow")

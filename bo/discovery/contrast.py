@@ -26,8 +26,16 @@ Contract:
 * ``ContrastCheck.contrast(kpi)``: ``[n_sets]`` C; ``standard_error(kpi)``: ``[n_sets]`` its DEM
   standard error from the pooled sds and the set's runs; ``consistent(kpi)``: ``[n_sets]`` bool,
   ``|C - C_lab|`` within 1.96 x the combined standard error of the set's and the lab's.
+* :func:`regress_contrast` ``(check, kpi) -> ContrastFit``: C on the parameters that every set names
+  and that vary between the sets, by least squares weighted with each set's DEM standard error
+  (statsmodels' WLS; equal weights where the stores hold no replicates to give one): the change of C per
+  standard deviation of each parameter over the sets, its standard error and p-value. It says which
+  parameter of one campaign's space moves C, and by how much, from runs the campaign has already
+  made (a campaign whose design points also ran on a second condition, as ``surrogate.jam_conditions``
+  does). Sets of different models name different parameters, so it is meant for one campaign's store;
+  fewer sets than the parameters plus two is a :class:`~torchdem.errors.ConfigError`.
 * :func:`format_contrast` turns it into markdown (``scripts/contrast_check.py``); with ``by_stage``
-  also C per stage (a discovery's candidates).
+  also C per stage (a discovery's candidates), with ``regress`` the fit of C on the parameters.
 
 Stores are opened read-only, so a running campaign is not disturbed.
 """
@@ -110,6 +118,69 @@ class ContrastCheck:
         for s in self.sets:
             out.setdefault(s.stage, []).append(s)
         return out
+
+
+@dataclass(frozen=True)
+class ContrastFit:
+    """C of one KPI on the sets' parameters (:func:`regress_contrast`). ``parameters``: their names;
+    ``effect``, ``effect_se``, ``p_value``: ``[n_parameters]`` the change of C per ``parameter_sd`` (the
+    parameter's sd over the sets, ddof 1), its standard error and two-sided p-value; ``mean_c``: C at
+    the sets' mean parameters; ``r2``; ``residual_sd``: the sd of C about the fit, against
+    ``noise_se``, the sets' mean DEM standard error of C (NaN without replicates); ``weighted``:
+    whether the sets were weighted by their DEM standard errors."""
+
+    kpi: str
+    parameters: tuple[str, ...]
+    mean_params: np.ndarray
+    parameter_sd: np.ndarray
+    effect: np.ndarray
+    effect_se: np.ndarray
+    p_value: np.ndarray
+    mean_c: float
+    r2: float
+    residual_sd: float
+    noise_se: float
+    n_sets: int
+    weighted: bool
+
+    def at(self, params: Mapping[str, float]) -> float:
+        """C the fit gives at ``params`` (every one of :attr:`parameters` named)."""
+        missing = [n for n in self.parameters if n not in params]
+        if missing:
+            raise ConfigError(f"ContrastFit.at: {missing} are not given; the fit needs every one of "
+                              f"{list(self.parameters)}")
+        z = (np.array([params[n] for n in self.parameters]) - self.mean_params) / self.parameter_sd
+        return float(self.mean_c + z @ self.effect)
+
+
+def regress_contrast(check: ContrastCheck, kpi: str) -> ContrastFit:
+    """C of ``kpi`` on the parameters every set names and that vary between them (module docstring)."""
+    import statsmodels.api as sm
+
+    if kpi not in check.kpis:
+        raise ConfigError(f"regress_contrast: KPI {kpi!r} is not one of the check's ({', '.join(check.kpis)})")
+    sets = check.sets
+    common = sorted(set.intersection(*(set(s.params) for s in sets))) if sets else []
+    x = np.array([[float(s.params[n]) for n in common] for s in sets]).reshape(len(sets), len(common))
+    keep = [i for i, n in enumerate(common) if np.all(np.isfinite(x[:, i])) and np.ptp(x[:, i]) > 0]
+    names = tuple(common[i] for i in keep)
+    if len(sets) < len(names) + 2 or not names:
+        raise ConfigError(f"regress_contrast: {len(sets)} parameter sets ran on both {check.between[0]!r} and "
+                          f"{check.between[1]!r}, and they vary {len(names)} parameters that all of them name "
+                          f"({', '.join(names) or 'none'}); the fit needs at least the parameters plus two sets")
+    x = x[:, keep]
+    mean, sd = x.mean(axis=0), x.std(axis=0, ddof=1)
+    z = sm.add_constant((x - mean) / sd, has_constant="add")
+    y = check.contrast(kpi)
+    se = check.standard_error(kpi)
+    weighted = bool(np.all(np.isfinite(se)) and np.all(se > 0))
+    fit = sm.WLS(y, z, weights=1.0 / se ** 2 if weighted else np.ones(len(y))).fit()
+    resid = y - fit.fittedvalues
+    return ContrastFit(kpi=kpi, parameters=names, mean_params=mean, parameter_sd=sd,
+                       effect=np.asarray(fit.params[1:]), effect_se=np.asarray(fit.bse[1:]),
+                       p_value=np.asarray(fit.pvalues[1:]), mean_c=float(fit.params[0]),
+                       r2=float(fit.rsquared), residual_sd=float(np.sqrt((resid ** 2).sum() / fit.df_resid)),
+                       noise_se=float(se.mean()) if weighted else math.nan, n_sets=len(sets), weighted=weighted)
 
 
 def lab_contrast(measured: MeasuredData, a: str, b: str,
@@ -207,10 +278,12 @@ def set_labels(sets: Sequence[ContrastSet]) -> list[str]:
     return labels
 
 
-def format_contrast(check: ContrastCheck, by_stage: bool = False, by_set: bool = False) -> str:
+def format_contrast(check: ContrastCheck, by_stage: bool = False, by_set: bool = False,
+                    regress: bool = False) -> str:
     """Markdown: per KPI the lab's contrast and the model's over the sets, how many agree with the
     lab's; ``by_stage``: then the mean contrast per stage; ``by_set``: then every set's C, its DEM
-    standard error, and ``*`` where it agrees with the lab's."""
+    standard error, and ``*`` where it agrees with the lab's; ``regress``: then, per KPI, C's fit on
+    the sets' parameters (:func:`regress_contrast`)."""
     a, b = check.between
     lines = [f"## Contrast between conditions, C = KPI({a}) - KPI({b}), at each parameter set", "",
              "Stores: " + ", ".join(check.stores), "",
@@ -244,4 +317,18 @@ def format_contrast(check: ContrastCheck, by_stage: bool = False, by_set: bool =
         for i, (s, label) in enumerate(zip(check.sets, set_labels(check.sets))):
             lines.append(f"| {Path(s.store).name} | {s.stage} | {label} | {s.runs('a')} / {s.runs('b')} | " + " | ".join(
                 f"{s.contrast(k):+.2f} ({se[k][i]:.2f}){'*' if agree[k][i] else ''}" for k in check.kpis) + " |")
+    if regress:
+        lines += ["", "C on the parameters the sets vary (weighted least squares): change of C per standard deviation "
+                  "of each parameter over the sets, largest |t| first"]
+        for k in check.kpis:
+            fit = regress_contrast(check, k)
+            noise = f"{fit.noise_se:.2f}" if fit.weighted else "not known (no replicates; equal weights)"
+            lab = f"; the lab's {check.lab[k][0]:+.2f}" if k in check.lab else ""
+            lines += ["", f"{_short(k)}: {fit.n_sets} sets, R^2 {fit.r2:.2f}, C at the sets' mean parameters "
+                      f"{fit.mean_c:+.2f}{lab}; residual sd {fit.residual_sd:.2f} against the DEM's standard error "
+                      f"of a set's C {noise}", "",
+                      "| parameter | per sd (se) | p | the parameter's sd |", "| --- | ---: | ---: | ---: |"]
+            for j in np.argsort(-np.abs(fit.effect / fit.effect_se)):
+                lines.append(f"| {fit.parameters[j]} | {fit.effect[j]:+.3f} ({fit.effect_se[j]:.3f}) | "
+                             f"{fit.p_value[j]:.2g} | {fit.parameter_sd[j]:.3g} |")
     return "\n".join(lines) + "\n"
