@@ -187,3 +187,8 @@ def test_the_fit_needs_more_sets_than_parameters(tmp_path):
         regress_contrast(check, "shear_angle_deg")
     with pytest.raises(ConfigError, match="KPI 'flow' is not one of the check's"):
         regress_contrast(check, "flow")
+    assert "No fit: regress_contrast: 3 parameter sets" in format_contrast(check, regress=True)
+    empty = tmp_path / "empty.sqlite"
+    CampaignStore(empty, "hash")
+    with pytest.raises(ConfigError, match="no parameter set ran on both 'A' and 'B' in .*empty.sqlite"):
+        regress_contrast(contrast_check([empty], _measured(), "A", "B", kpis=KPIS), "shear_angle_deg")

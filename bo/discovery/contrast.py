@@ -160,6 +160,9 @@ def regress_contrast(check: ContrastCheck, kpi: str) -> ContrastFit:
     if kpi not in check.kpis:
         raise ConfigError(f"regress_contrast: KPI {kpi!r} is not one of the check's ({', '.join(check.kpis)})")
     sets = check.sets
+    if not sets:
+        raise ConfigError(f"regress_contrast: no parameter set ran on both {check.between[0]!r} and "
+                          f"{check.between[1]!r} in {', '.join(check.stores)}; the fit needs runs of each set on both")
     common = sorted(set.intersection(*(set(s.params) for s in sets))) if sets else []
     x = np.array([[float(s.params[n]) for n in common] for s in sets]).reshape(len(sets), len(common))
     keep = [i for i, n in enumerate(common) if np.all(np.isfinite(x[:, i])) and np.ptp(x[:, i]) > 0]
@@ -321,7 +324,11 @@ def format_contrast(check: ContrastCheck, by_stage: bool = False, by_set: bool =
         lines += ["", "C on the parameters the sets vary (weighted least squares): change of C per standard deviation "
                   "of each parameter over the sets, largest |t| first"]
         for k in check.kpis:
-            fit = regress_contrast(check, k)
+            try:
+                fit = regress_contrast(check, k)
+            except ConfigError as exc:  # the tables above stand without it
+                lines += ["", f"No fit: {exc}"]
+                break
             noise = f"{fit.noise_se:.2f}" if fit.weighted else "not known (no replicates; equal weights)"
             lab = f"; the lab's {check.lab[k][0]:+.2f}" if k in check.lab else ""
             lines += ["", f"{_short(k)}: {fit.n_sets} sets, R^2 {fit.r2:.2f}, C at the sets' mean parameters "
