@@ -123,11 +123,12 @@ class ContrastCheck:
 @dataclass(frozen=True)
 class ContrastFit:
     """C of one KPI on the sets' parameters (:func:`regress_contrast`). ``parameters``: their names;
-    ``effect``, ``effect_se``, ``p_value``: ``[n_parameters]`` the change of C per ``parameter_sd`` (the
-    parameter's sd over the sets, ddof 1), its standard error and two-sided p-value; ``mean_c``: C at
-    the sets' mean parameters; ``r2``; ``residual_sd``: the sd of C about the fit, against
-    ``noise_se``, the sets' mean DEM standard error of C (NaN without replicates); ``weighted``:
-    whether the sets were weighted by their DEM standard errors."""
+    ``mean_params``, ``parameter_sd``: ``[n_parameters]`` their mean and sd (ddof 1) over the sets;
+    ``effect``, ``effect_se``, ``p_value``: ``[n_parameters]`` the change of C per ``parameter_sd``,
+    its standard error and two-sided p-value; ``mean_c``: C at the sets' mean parameters; ``r2``;
+    ``residual_sd``: the sd of C about the fit, against ``noise_se``, the sets' mean DEM standard
+    error of C (NaN without replicates); ``weighted``: whether the sets were weighted by their DEM
+    standard errors."""
 
     kpi: str
     parameters: tuple[str, ...]
@@ -163,7 +164,7 @@ def regress_contrast(check: ContrastCheck, kpi: str) -> ContrastFit:
     if not sets:
         raise ConfigError(f"regress_contrast: no parameter set ran on both {check.between[0]!r} and "
                           f"{check.between[1]!r} in {', '.join(check.stores)}; the fit needs runs of each set on both")
-    common = sorted(set.intersection(*(set(s.params) for s in sets))) if sets else []
+    common = sorted(set.intersection(*(set(s.params) for s in sets)))
     x = np.array([[float(s.params[n]) for n in common] for s in sets]).reshape(len(sets), len(common))
     keep = [i for i, n in enumerate(common) if np.all(np.isfinite(x[:, i])) and np.ptp(x[:, i]) > 0]
     names = tuple(common[i] for i in keep)
