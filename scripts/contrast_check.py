@@ -7,6 +7,7 @@ may be run beside a campaign.
     python scripts/contrast_check.py campaigns/table2/probe_contrast.sqlite --by-set    # every set's C
     python scripts/contrast_check.py STORE --between 50-50 75-25 --data my_lab.json
     python scripts/contrast_check.py campaigns/table2/lab_priors.sqlite --between 75-25 50-50 --regress
+    python scripts/contrast_check.py campaigns/table2/lab_round.sqlite --between 50-50-reverse 50-50 --across-stages
 """
 from __future__ import annotations
 
@@ -26,10 +27,13 @@ def main() -> None:
     parser.add_argument("--data", default=None, help="measured-data JSON (default: the paper's Table 2)")
     parser.add_argument("--by-stage", action="store_true", help="also the mean C per stage (a discovery's candidates)")
     parser.add_argument("--by-set", action="store_true", help="also every set's C, named by what it changes")
+    parser.add_argument("--across-stages", action="store_true",
+                        help="pair a parameter set's runs across the stages of its store (a calibrated set's "
+                             "verification with its validation)")
     parser.add_argument("--regress", action="store_true",
                         help="also each KPI's C fitted on the parameters the sets vary (one campaign's store)")
     args = parser.parse_args()
-    check = contrast_check(args.stores, load_measured(args.data), *args.between)
+    check = contrast_check(args.stores, load_measured(args.data), *args.between, across_stages=args.across_stages)
     print(format_contrast(check, by_stage=args.by_stage, by_set=args.by_set, regress=args.regress), end="")
 
 

@@ -11,6 +11,8 @@
   change per sd is the slope times the parameter's sd (rel 1e-9) and the held one is left out; on a
   non-linear C the coefficients equal the textbook weighted least squares, (X'WX)^-1 X'Wy with W the
   inverse squared standard errors (rel 1e-9); too few sets is a ConfigError naming the counts.
+- Across stages: one parameter set's verification on one condition and validation on the other pair
+  up only with ``across_stages`` (stage named ``verification+validation``), and give their difference.
 - Bad input (an unknown condition, the same condition twice) names the value and what is allowed.
 """
 from __future__ import annotations
@@ -192,3 +194,22 @@ def test_the_fit_needs_more_sets_than_parameters(tmp_path):
     CampaignStore(empty, "hash")
     with pytest.raises(ConfigError, match="no parameter set ran on both 'A' and 'B' in .*empty.sqlite"):
         regress_contrast(contrast_check([empty], _measured(), "A", "B", kpis=KPIS), "shear_angle_deg")
+
+
+def test_a_calibrated_sets_verification_and_validation_pair_across_stages(tmp_path):
+    path = tmp_path / "calibrated.sqlite"
+    store = CampaignStore(path, "hash")
+    for stage, condition, rows in (("verification", "A", [(30.0, 42.0), (30.4, 42.6)]),
+                                   ("validation", "B", [(29.0, 40.1), (29.2, 40.3), (29.6, 40.2)])):
+        store.batch(stage, stage, lambda: [{"knob": 0.5}], seeds=list(range(len(rows))), conditions=[condition])
+        store.record([(t, EvalOutcome.success({"angle_of_repose_deg": rows[t.seed][0],
+                                               "shear_angle_deg": rows[t.seed][1], "discharge_jammed": 0.0}, 1.0))
+                      for t in store.claim(100, stage=stage, batch_key=stage)])
+    assert contrast_check([path], _measured(), "A", "B", kpis=KPIS).sets == ()
+    check = contrast_check([path], _measured(), "A", "B", kpis=KPIS, across_stages=True)
+    assert [s.stage for s in check.sets] == ["verification+validation"]
+    assert check.contrast("angle_of_repose_deg") == pytest.approx([30.2 - (29.0 + 29.2 + 29.6) / 3], rel=1e-12)
+    assert check.contrast("shear_angle_deg") == pytest.approx([42.3 - 40.2], rel=1e-12)
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "contrast_check.py"), str(path), "--between",
+                          "50-50", "75-25", "--across-stages"], capture_output=True, text=True, cwd=REPO, check=True)
+    assert "0 parameter sets ran on both conditions" in out.stdout  # the store's conditions are A and B

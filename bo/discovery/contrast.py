@@ -221,9 +221,12 @@ def _pooled_sd(groups: Sequence[np.ndarray]) -> tuple[float, int]:
 
 
 def contrast_check(stores: Sequence[str | Path], measured: MeasuredData, a: str = "25-75", b: str = "75-25",
-                   kpis: Sequence[str] = CALIBRATION_KPIS_DEM) -> ContrastCheck:
+                   kpis: Sequence[str] = CALIBRATION_KPIS_DEM, across_stages: bool = False) -> ContrastCheck:
     """The lab's contrast between ``a`` and ``b`` and the model's at every parameter set the stores
-    ran on both (module docstring)."""
+    ran on both (module docstring). A set is a store's runs of one stage and one parameter set;
+    ``across_stages``: of one parameter set in any stage of its store, so that a calibrated set's
+    verification on one condition and its validation on another pair up (its stage is then named
+    ``verification+validation``)."""
     for name in (a, b):
         if name not in measured.names:
             raise ConfigError(f"contrast_check: condition {name!r} is not in {measured.origin or 'the measured data'}; "
@@ -238,12 +241,15 @@ def contrast_check(stores: Sequence[str | Path], measured: MeasuredData, a: str 
             if (condition, seed, values) in seen:  # the same run in two stores (a discovery's copy of its baseline)
                 continue
             seen.add((condition, seed, values))
-            group = groups.setdefault((str(s), stage, key), {"params": params, a: [], b: []})
+            group = groups.setdefault((str(s), "" if across_stages else stage, key),
+                                      {"params": params, "stages": [], a: [], b: []})
+            if stage not in group["stages"]:
+                group["stages"].append(stage)
             group[condition].append(values)
-    sets = tuple(ContrastSet(store, stage, g["params"],
+    sets = tuple(ContrastSet(store, "+".join(g["stages"]), g["params"],
                              {k: np.array([v[i] for v in g[a]]) for i, k in enumerate(kpis)},
                              {k: np.array([v[i] for v in g[b]]) for i, k in enumerate(kpis)})
-                 for (store, stage, _), g in groups.items() if g[a] and g[b])
+                 for (store, _, _), g in groups.items() if g[a] and g[b])
     noise = {}
     for condition in (a, b):
         for i, k in enumerate(kpis):
