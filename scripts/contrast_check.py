@@ -6,13 +6,16 @@ may be run beside a campaign.
     python scripts/contrast_check.py campaigns/table2/*.sqlite --by-stage       # 25-75 less 75-25
     python scripts/contrast_check.py campaigns/table2/probe_contrast.sqlite --by-set    # every set's C
     python scripts/contrast_check.py STORE --between 50-50 75-25 --data my_lab.json
-    python scripts/contrast_check.py campaigns/table2/lab_priors.sqlite --between 75-25 50-50 --regress
+    python scripts/contrast_check.py campaigns/table2/lab_priors.sqlite --between 75-25 50-50 --regress \
+        --at campaigns/table2/calibration_lab_priors.json
     python scripts/contrast_check.py campaigns/table2/lab_round.sqlite --between 50-50-reverse 50-50 --across-stages
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from pathlib import Path
 
 from bo.discovery.contrast import contrast_check, format_contrast
 from torchdem.errors import ConfigError
@@ -32,9 +35,21 @@ def main() -> None:
                              "verification with its validation)")
     parser.add_argument("--regress", action="store_true",
                         help="also each KPI's C fitted on the parameters the sets vary (one campaign's store)")
+    parser.add_argument("--at", default=None, metavar="CALIBRATION_JSON",
+                        help="with --regress: also the fit's C at this calibration.json's calibrated set")
     args = parser.parse_args()
     check = contrast_check(args.stores, load_measured(args.data), *args.between, across_stages=args.across_stages)
-    print(format_contrast(check, by_stage=args.by_stage, by_set=args.by_set, regress=args.regress), end="")
+    at = calibrated_set(args.at) if args.at else None
+    print(format_contrast(check, by_stage=args.by_stage, by_set=args.by_set, regress=args.regress, at=at), end="")
+
+
+def calibrated_set(path: str) -> dict[str, float]:
+    """The calibrated and held parameters of a ``calibration.json``."""
+    try:
+        report = json.loads(Path(path).read_text())
+        return {**report.get("held_parameters", {}), **report["calibrated_parameters"]}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"--at {path}: expected a calibration.json with calibrated_parameters ({exc})") from exc
 
 
 if __name__ == "__main__":

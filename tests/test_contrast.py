@@ -181,6 +181,7 @@ def test_the_contrasts_fit_on_the_parameters_recovers_its_slopes(tmp_path):
     text = format_contrast(check, regress=True)
     assert "angle of repose, deg: 8 sets, R^2 1.00, C at the sets' mean parameters" in text
     assert "| parameter | per sd (se) | p | the parameter's sd |" in text
+    assert "; at the given set +2.00" in format_contrast(check, regress=True, at={"k1": 1.0, "k2": 0.0})
 
 
 def test_the_fit_needs_more_sets_than_parameters(tmp_path):

@@ -28,7 +28,8 @@ Contract:
   ``|C - C_lab|`` within 1.96 x the combined standard error of the set's and the lab's.
 * :func:`regress_contrast` ``(check, kpi) -> ContrastFit``: C on the parameters that every set names
   and that vary between the sets, by least squares weighted with each set's DEM standard error
-  (statsmodels' WLS; equal weights where the stores hold no replicates to give one): the change of C per
+  (:func:`bo.screening.effects.least_squares`; equal weights where the stores hold no replicates to
+  give one): the change of C per
   standard deviation of each parameter over the sets, its standard error and p-value. It says which
   parameter of one campaign's space moves C, and by how much, from runs the campaign has already
   made (a campaign whose design points also ran on a second condition, as ``surrogate.jam_conditions``
@@ -48,8 +49,10 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
+from scipy import stats
 
 from bo.campaign.progress import finished_runs
+from bo.screening.effects import least_squares
 from bo.screening.pipeline import measured_name
 from kpi.loadcell import discharge_jammed
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
@@ -156,8 +159,6 @@ class ContrastFit:
 
 def regress_contrast(check: ContrastCheck, kpi: str) -> ContrastFit:
     """C of ``kpi`` on the parameters every set names and that vary between them (module docstring)."""
-    import statsmodels.api as sm
-
     if kpi not in check.kpis:
         raise ConfigError(f"regress_contrast: KPI {kpi!r} is not one of the check's ({', '.join(check.kpis)})")
     sets = check.sets
@@ -174,16 +175,22 @@ def regress_contrast(check: ContrastCheck, kpi: str) -> ContrastFit:
                           f"({', '.join(names) or 'none'}); the fit needs at least the parameters plus two sets")
     x = x[:, keep]
     mean, sd = x.mean(axis=0), x.std(axis=0, ddof=1)
-    z = sm.add_constant((x - mean) / sd, has_constant="add")
+    z = np.column_stack([np.ones(len(sets)), (x - mean) / sd])
     y = check.contrast(kpi)
     se = check.standard_error(kpi)
     weighted = bool(np.all(np.isfinite(se)) and np.all(se > 0))
-    fit = sm.WLS(y, z, weights=1.0 / se ** 2 if weighted else np.ones(len(y))).fit()
-    resid = y - fit.fittedvalues
-    return ContrastFit(kpi=kpi, parameters=names, mean_params=mean, parameter_sd=sd,
-                       effect=np.asarray(fit.params[1:]), effect_se=np.asarray(fit.bse[1:]),
-                       p_value=np.asarray(fit.pvalues[1:]), mean_c=float(fit.params[0]),
-                       r2=float(fit.rsquared), residual_sd=float(np.sqrt((resid ** 2).sum() / fit.df_resid)),
+    w = 1.0 / se ** 2 if weighted else np.ones(len(y))
+    fit = least_squares(z, y, w)
+    if fit is None:
+        raise ConfigError(f"regress_contrast: the {len(sets)} sets' parameters ({', '.join(names)}) are collinear; "
+                          "the fit needs sets that vary them independently")
+    beta, beta_se, _, dof = fit
+    resid = y - z @ beta
+    centred = y - np.average(y, weights=w)
+    return ContrastFit(kpi=kpi, parameters=names, mean_params=mean, parameter_sd=sd, effect=beta[1:],
+                       effect_se=beta_se[1:], p_value=2.0 * stats.t.sf(np.abs(beta[1:] / beta_se[1:]), dof),
+                       mean_c=float(beta[0]), r2=1.0 - float(w @ resid ** 2) / float(w @ centred ** 2),
+                       residual_sd=float(np.sqrt(resid @ resid / dof)),
                        noise_se=float(se.mean()) if weighted else math.nan, n_sets=len(sets), weighted=weighted)
 
 
@@ -289,11 +296,12 @@ def set_labels(sets: Sequence[ContrastSet]) -> list[str]:
 
 
 def format_contrast(check: ContrastCheck, by_stage: bool = False, by_set: bool = False,
-                    regress: bool = False) -> str:
+                    regress: bool = False, at: Mapping[str, float] | None = None) -> str:
     """Markdown: per KPI the lab's contrast and the model's over the sets, how many agree with the
     lab's; ``by_stage``: then the mean contrast per stage; ``by_set``: then every set's C, its DEM
     standard error, and ``*`` where it agrees with the lab's; ``regress``: then, per KPI, C's fit on
-    the sets' parameters (:func:`regress_contrast`)."""
+    the sets' parameters (:func:`regress_contrast`), and with ``at`` (a parameter set, e.g. a
+    calibration's) the C the fit gives there."""
     a, b = check.between
     lines = [f"## Contrast between conditions, C = KPI({a}) - KPI({b}), at each parameter set", "",
              "Stores: " + ", ".join(check.stores), "",
@@ -340,7 +348,7 @@ def format_contrast(check: ContrastCheck, by_stage: bool = False, by_set: bool =
             lab = f"; the lab's {check.lab[k][0]:+.2f}" if k in check.lab else ""
             lines += ["", f"{_short(k)}: {fit.n_sets} sets, R^2 {fit.r2:.2f}, C at the sets' mean parameters "
                       f"{fit.mean_c:+.2f}{lab}; residual sd {fit.residual_sd:.2f} against the DEM's standard error "
-                      f"of a set's C {noise}", "",
+                      f"of a set's C {noise}" + (f"; at the given set {fit.at(at):+.2f}" if at is not None else ""), "",
                       "| parameter | per sd (se) | p | the parameter's sd |", "| --- | ---: | ---: | ---: |"]
             for j in np.argsort(-np.abs(fit.effect / fit.effect_se)):
                 lines.append(f"| {fit.parameters[j]} | {fit.effect[j]:+.3f} ({fit.effect_se[j]:.3f}) | "

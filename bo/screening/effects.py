@@ -150,10 +150,16 @@ def main_effects(results: ScreeningResults) -> MainEffects:
                        residual_dof=residual_dof, n_runs=n_runs, lack_of_fit_p=lack_of_fit_p, source=results.source)
 
 
-def least_squares(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int] | None:
-    """Ordinary least squares of ``y [n]`` on the columns of ``x [n, p]``: ``(coefficients [p], their
+def least_squares(x: np.ndarray, y: np.ndarray,
+                  weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, int] | None:
+    """Least squares of ``y [n]`` on the columns of ``x [n, p]``: ``(coefficients [p], their
     standard errors [p], residual variance, residual degrees of freedom)``, or None when ``x`` has
-    rank below ``p`` or no residual degree of freedom is left."""
+    rank below ``p`` or no residual degree of freedom is left. ``weights [n]`` (inverse variances)
+    make it weighted: each row scaled by the root of its weight, the residual variance that of the
+    scaled rows."""
+    if weights is not None:
+        root = np.sqrt(np.asarray(weights, dtype=float))
+        x, y = x * root[:, None], y * root
     dof = len(y) - x.shape[1]
     if dof < 1 or np.linalg.matrix_rank(x) < x.shape[1]:
         return None
