@@ -13,10 +13,9 @@ may be run beside a campaign.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 
+from bo.calibration.document import calibrated_parameters
 from bo.discovery.contrast import contrast_check, format_contrast
 from torchdem.errors import ConfigError
 from torchdem.measured import load_measured
@@ -39,17 +38,8 @@ def main() -> None:
                         help="with --regress: also the fit's C at this calibration.json's calibrated set")
     args = parser.parse_args()
     check = contrast_check(args.stores, load_measured(args.data), *args.between, across_stages=args.across_stages)
-    at = calibrated_set(args.at) if args.at else None
+    at = calibrated_parameters(args.at, "--at", held=True) if args.at else None
     print(format_contrast(check, by_stage=args.by_stage, by_set=args.by_set, regress=args.regress, at=at), end="")
-
-
-def calibrated_set(path: str) -> dict[str, float]:
-    """The calibrated and held parameters of a ``calibration.json``."""
-    try:
-        report = json.loads(Path(path).read_text())
-        return {**report.get("held_parameters", {}), **report["calibrated_parameters"]}
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ConfigError(f"--at {path}: expected a calibration.json with calibrated_parameters ({exc})") from exc
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bo.calibration.document import calibrated_parameters
 from torchdem.errors import ConfigError
 
 _MODEL = {}  # the worker process's model, built once per process
@@ -137,10 +138,7 @@ def main() -> None:
         raise ConfigError(f"rerun_equivalence: --workers = {args.workers}; expected an integer >= 1")
     parameters = None
     if args.calibration is not None:
-        try:
-            parameters = json.loads(args.calibration.read_text())["calibrated_parameters"]
-        except (OSError, ValueError, KeyError) as exc:
-            raise ConfigError(f"{args.calibration}: no calibrated_parameters to read ({exc})") from None
+        parameters = calibrated_parameters(args.calibration, "--calibration")
     runs = stored_runs(args.store, args.stages, parameters, args.task_ids)
     if not runs:
         raise ConfigError(f"{args.store}: no finished run of stages {args.stages}"

@@ -23,6 +23,7 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
+from bo.calibration.document import calibrated_parameters, read_calibration
 from bo.cli.common import (MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, executor_settings_from, open_store,
                            plain_config, replicate_seeds, requeue_failed, store_hashes, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
@@ -92,16 +93,6 @@ def _names(value, key: str, where: str) -> tuple[str, ...]:
 PAPER_DATA = "hadi2025_pellet_sinter.json"
 
 
-def _calibration_doc(path: str):
-    """The JSON of ``calibration=<path>``."""
-    try:
-        return json.loads(Path(path).read_text())
-    except OSError as exc:
-        raise ConfigError(f"calibration = {path!r}: cannot read it ({exc.strerror})") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"calibration = {path!r}: not JSON ({exc.msg} at line {exc.lineno})") from None
-
-
 def attainable_from(plain: Mapping[str, Any]):
     """The calibration's "what the bounds allow" (``attainable`` of its calibration.json, as
     :class:`bo.surrogate.attainable.AttainableRange`); empty without one."""
@@ -110,7 +101,7 @@ def attainable_from(plain: Mapping[str, Any]):
     path = plain.get("calibration")
     if path is None or path == "paper":
         return ()
-    rows = _calibration_doc(path).get("attainable") or []
+    rows = read_calibration(path, "calibration").get("attainable") or []
     try:
         return tuple(AttainableRange.from_dict(r) for r in rows)
     except TypeError as exc:
@@ -131,12 +122,7 @@ def calibrated_from(plain: Mapping[str, Any], fixed: Mapping[str, float]) -> tup
         values = table[table["selected"]]
         return ({**fixed, **{k: float(v) for k, v in values.items()}},
                 f"the paper's calibrated set ({table['table']}, {table['selected']} GA, in {PAPER_DATA})")
-    doc = _calibration_doc(path)
-    values = doc.get("calibrated_parameters") if isinstance(doc, dict) else None
-    if not isinstance(values, dict) or not values:
-        raise ConfigError(f"calibration = {path!r}: no 'calibrated_parameters' object (expected a calibration.json "
-                          "of torchdem-calibrate)")
-    return {**fixed, **{k: float(v) for k, v in values.items()}}, f"{path}"
+    return {**fixed, **calibrated_parameters(path, "calibration")}, f"{path}"
 
 
 def baseline_runs(plain: Mapping[str, Any], data, calibrated: Mapping[str, float], conditions: list[str]):
