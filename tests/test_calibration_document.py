@@ -31,8 +31,8 @@ def test_the_shipped_calibration_reads_as_its_calibrated_set_with_or_without_the
     ("[1, 2]", r"a JSON list, expected the object of a calibration.json"),
     ('{"condition": "50-50"}', r"no 'calibrated_parameters' object"),
     ('{"calibrated_parameters": {}}', r"no 'calibrated_parameters' object"),
-    ('{"calibrated_parameters": {"mu_s_pp": "high"}}', r"calibrated_parameters.mu_s_pp = 'high'; expected a finite"),
-    ('{"calibrated_parameters": {"mu_s_pp": NaN}}', r"calibrated_parameters.mu_s_pp = nan; expected a finite"),
+    ('{"calibrated_parameters": {"mu_s_pp": "high"}}', r"calibrated_parameters.mu_s_pp = 'high' is not allowed; expected a finite number"),
+    ('{"calibrated_parameters": {"mu_s_pp": NaN}}', r"calibrated_parameters.mu_s_pp = nan is not allowed; expected a finite number"),
     ('{"calibrated_parameters": {"mu_s_pp": 0.5}, "held_parameters": [0.1]}', r"no 'held_parameters' object"),
 ])
 def test_a_bad_calibration_file_names_the_option_the_file_and_what_is_wrong(tmp_path, text, message):

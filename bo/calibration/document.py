@@ -12,12 +12,16 @@ import math
 from pathlib import Path
 from typing import Any
 
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, out_of_range
+
+
+def _where(path: str | Path, option: str) -> str:
+    return f"{option} = {str(path)!r}"
 
 
 def read_calibration(path: str | Path, option: str) -> dict[str, Any]:
     """The JSON object of the calibration at ``path``, given by ``option`` (``calibration``, ``--at``...)."""
-    where = f"{option} = {str(path)!r}"
+    where = _where(path, option)
     try:
         doc = json.loads(Path(path).read_text())
     except OSError as exc:
@@ -37,18 +41,15 @@ def _numbers(doc: dict[str, Any], key: str, where: str, *, required: bool) -> di
         return {}
     if not isinstance(values, dict) or (required and not values):
         raise ConfigError(f"{where}: no {key!r} object (expected a calibration.json of torchdem-calibrate)")
-    bad = {k: v for k, v in values.items()
-           if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)}
-    if bad:
-        name, value = next(iter(bad.items()))
-        raise ConfigError(f"{where}: {key}.{name} = {value!r}; expected a finite number")
+    for name, value in values.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise out_of_range(f"{key}.{name}", value, "a finite number", where)
     return {k: float(v) for k, v in values.items()}
 
 
 def calibrated_parameters(path: str | Path, option: str, *, held: bool = False) -> dict[str, float]:
     """The calibration's ``calibrated_parameters`` (name -> value). With ``held``, over its
     ``held_parameters``: the whole set every run of the campaign had, where the file records them."""
-    doc = read_calibration(path, option)
-    where = f"{option} = {str(path)!r}"
+    doc, where = read_calibration(path, option), _where(path, option)
     values = _numbers(doc, "calibrated_parameters", where, required=True)
     return {**_numbers(doc, "held_parameters", where, required=False), **values} if held else values
