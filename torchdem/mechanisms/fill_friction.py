@@ -11,7 +11,7 @@ the gate opens, where a frictional one leans on its walls less.
 The hypothesis: a denser bed holds a steeper stagnant zone beside the slot and puts more mass
 through it per unit time (Beverloo's law scales the flow with the bulk density), so it would raise
 the shear angle and the flow together, where the contact parameters trade one against the other
-(docs/calibration.md). Measured on the lab geometry at the Table 8 set (3 seeds each): at share 0
+(docs/table2.md). Measured on the lab geometry at the Table 8 set (3 seeds each): at share 0
 the bed packs 20 % denser, and of three runs one flowed with a shear angle 3 deg steeper and a flow
 0.75 kg/s higher while two arched over the slot; at 0.5 it packs 5-9 % denser and neither KPI moves
 beyond the runs' scatter. Prior: the whole range, 0-1 of the model's frictions."""
