@@ -16,7 +16,7 @@ SOURCES = sorted(
     + [path for folder in ("torchdem", "bo", "kpi", "scripts") for path in (ROOT / folder).rglob("*.py")])
 
 QUOTED = r'"([^"\n]+(?:\n[ \t]*#?[ \t]*[^"\n]+)?)"'                  # a title, wrapped over at most two lines
-IN_FILE = re.compile(r'(?:docs/)?([\w-]+\.md)\)?(?:[,:]\s*|\s+)(?:sections?\s+)?' + QUOTED + r'(?:\s+and\s+' + QUOTED + ')?')
+IN_FILE = re.compile(r'(?:docs/)?([\w-]+\.md|README\b)\)?(?:[,:]\s*|\s+)(?:sections?\s+)?' + QUOTED + r'(?:\s+and\s+' + QUOTED + ')?')
 SIDE_FIRST = re.compile(r'\b(below|above),\s+(?:sections?\s+)?' + QUOTED)
 SIDE_LAST = re.compile(QUOTED + r'\s+\(?(below|above)\b')
 SECTION = re.compile(r'\bsections?\s+' + QUOTED + r'(?:\s+and\s+' + QUOTED + ')?')
@@ -53,10 +53,11 @@ def _pointers(path: Path):
     text = path.read_text()
     taken = []
     for match in IN_FILE.finditer(text):
-        if match.group(1) in DOCUMENTS:
+        document = 'README.md' if match.group(1) == 'README' else match.group(1)
+        if document in DOCUMENTS:
             taken.append(match.span())
             for title in filter(None, match.group(2, 3)):
-                yield text.count('\n', 0, match.start()) + 1, match.group(1), title, None, match.start()
+                yield text.count('\n', 0, match.start()) + 1, document, title, None, match.start()
     if path.suffix != '.md' or path.name not in DOCUMENTS:
         return
     for pattern, side_group, title_groups in ((SIDE_FIRST, 1, (2,)), (SIDE_LAST, 2, (1,)), (SECTION, None, (1, 2))):
