@@ -9,8 +9,9 @@ simulates ``len(parameter sets) x replicates`` draw down tests as one batched en
 2. settle with the gate closed for ``settings.fill_time`` seconds (with a share of the frictions
    when a parameter set gives :data:`FILL_FRICTION_PARAMETER`); as the gate opens, the fill's bulk
    density (``fill_bulk_density_kg_m3``: upper-box mass over the box's width, simulated depth and
-   mean fill height) and its pellets' share in each quarter of its mass from the floor up
-   (``fill_pellet_share_q1`` .. ``q4``: how far the rained layers have mixed) are taken;
+   mean height of the fill's top, grains in the air left out) and its pellets' share in each quarter
+   of its mass from the floor up (``fill_pellet_share_q1`` .. ``q4``: how far the rained layers have
+   mixed) are taken;
 3. the gate (a wall) vanishes at ``t_open = fill_time``; the run continues for
    ``settings.discharge_time`` seconds while the load cell records the upper-box mass at
    ``loadcell_rate`` Hz (the mass of the bodies whose centres are inside the upper box);
@@ -116,6 +117,11 @@ JAM_FRACTION = 0.05
 
 #: Bodies slower than this (m/s) are at rest: the photos show them, the heap height counts them.
 AT_REST_SPEED_M_S = 0.1
+
+#: Two spheres closer than this share of their radii's sum beyond touching still rest on each other: the
+#: fill's ruler (``fill_bulk_density_kg_m3``) reads a grain in the air, one that touches no other body and not
+#: the floor, as no part of the fill's top.
+RESTING_GAP = 0.05
 
 @dataclass(frozen=True)
 class RunSettings:
@@ -659,16 +665,16 @@ class DrawDownTest:
     def _fill_bulk_density(self, sim: Simulation) -> np.ndarray:
         """``[B]`` bulk density of each member's fill as the gate opens, kg/m^3: its upper-box mass over
         the box's width x the simulated depth x the fill's height, the mean over the box's width (in
-        bins about four of the largest spheres wide) of the highest sphere top above the box's floor,
-        as a ruler held to the front wall would read it."""
+        bins about four of the largest spheres wide) of the highest top of a sphere resting on the fill
+        above the box's floor, as a ruler held to the front wall would read it. A grain still in the air
+        (:func:`_highest_resting_tops`; bouncing pellets on top of the reverse layering) is not the fill's top."""
         g, system, b = self.geometry, sim.system, sim.state.bodies
         xs = sphere_positions(system, b).reshape(system.batch, system.n_spheres, 3)
         active = torch.gather(b.active, 1, system.sphere_body)
-        top = xs[..., 2] + system.sphere_radius
         inside = active & g.in_upper_box(xs[..., 0], xs[..., 2])
         x, n_bins = _fill_columns(g, system, xs[..., 0])
-        height = torch.full((system.batch, n_bins), g.upper_bottom_z, dtype=top.dtype, device=top.device)
-        height = height.scatter_reduce(1, x, torch.where(inside, top, torch.full_like(top, g.upper_bottom_z)), "amax")
+        height = _highest_resting_tops(xs, system.sphere_radius, system.sphere_body, inside, x, n_bins,
+                                       g.upper_bottom_z)
         fill_height = (height.mean(-1) - g.upper_bottom_z).cpu().numpy()
         mass = self._upper_mass(sim).cpu().numpy()
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -858,6 +864,43 @@ def _fill_columns(geometry: DrawDownGeometry, system, x: torch.Tensor) -> tuple[
     about four of the largest spheres wide, at least 4 (the fill's ruler and its layering)."""
     n = max(4, int(geometry.upper_width / (8.0 * float(system.sphere_radius.max()))))
     return ((x + geometry.upper_width / 2) / geometry.upper_width * n).floor().clamp(0, n - 1).long(), n
+
+
+def _highest_resting_tops(xs: torch.Tensor, radius: torch.Tensor, body: torch.Tensor, inside: torch.Tensor,
+                          column: torch.Tensor, n_columns: int, floor_z: float, max_rounds: int = 256) -> torch.Tensor:
+    """``[B, n_columns]`` the highest sphere top (m) in each column among the spheres of ``inside`` that rest:
+    that touch a sphere of another body or the floor (within :data:`RESTING_GAP`). A sphere that touches
+    neither is a grain in the air, and the next highest in its column is tried, at most ``max_rounds`` times
+    a member. A column without a resting sphere reads ``floor_z``.
+
+    xs ``[B, Ns, 3]`` sphere positions, radius ``[B, Ns]``, body ``[B, Ns]`` the sphere's body, inside
+    ``[B, Ns]`` bool, column ``[B, Ns]`` int64 in [0, n_columns)."""
+    top = xs[..., 2] + radius
+    height = torch.full((xs.shape[0], n_columns), floor_z, dtype=xs.dtype, device=xs.device)
+    for m in range(xs.shape[0]):
+        i = torch.nonzero(inside[m]).squeeze(1)
+        p, r, bd, t, c = xs[m, i], radius[m, i], body[m, i], top[m, i], column[m, i]
+        key = t.clone()                      # -inf: a grain found in the air
+        for _ in range(max_rounds):
+            best = _column_max(key, c, n_columns)
+            tried = torch.nonzero((key == best[c]) & torch.isfinite(key)).squeeze(1)
+            if tried.numel() == 0:
+                break
+            reach = (r[tried, None] + r[None]) * (1.0 + RESTING_GAP)
+            touches = ((torch.cdist(p[tried], p) <= reach) & (bd[tried, None] != bd[None])).any(1)
+            rests = touches | (p[tried, 2] - r[tried] <= floor_z + RESTING_GAP * r[tried])
+            if bool(rests.all()):
+                break
+            key[tried[~rests]] = -torch.inf
+        best = _column_max(key, c, n_columns)
+        height[m] = torch.where(torch.isfinite(best), best, height[m])
+    return height
+
+
+def _column_max(value: torch.Tensor, column: torch.Tensor, n_columns: int) -> torch.Tensor:
+    """``[n_columns]`` the largest ``value`` (``[N]``) in each column, -inf where a column has none."""
+    return torch.full((n_columns,), -torch.inf, dtype=value.dtype, device=value.device).scatter_reduce(
+        0, column, value, "amax")
 
 
 def _labelled(mixture: Mixture, body_material: torch.Tensor, label: str) -> torch.Tensor:
