@@ -10,7 +10,13 @@ it; ``sim.retry_time_steps`` runs a campaign run that blows up again at a shorte
         --scales 1 0.8 -- profile=lab            # Hydra overrides of the calibrate config after --
 
 Prints, per scale, the time step, the times where the fastest body moved faster than
-``--report-above`` m/s, the largest speed seen and the guard's message if it fired.
+``--report-above`` m/s, the largest speed seen and the guard's message if it fired, and how far the
+fill is from rest at its end (as the gate opens, with ``--until`` 0): its fastest body and how many
+bodies move faster than the photos' rest speed (``torchdem.drawdown.AT_REST_SPEED_M_S``). The lab
+opens its gate on a fill at rest; ``run.fill_time_s`` sets when the model's opens:
+
+    python scripts/fill_landing.py --condition 50-50-reverse --scales 1 --params '{...}' -- profile=lab_priors \
+        run.fill_time_s=1.2
 """
 from __future__ import annotations
 
@@ -24,14 +30,16 @@ from hydra import compose, initialize_config_dir
 from bo.cli.calibrate import calibration_model_from
 from bo.cli.common import plain_config
 from torchdem.cli import CONF_DIR
+from torchdem.drawdown import AT_REST_SPEED_M_S
 from torchdem.errors import BlowUpError
 from torchdem.measured import load_measured
 from torchdem.simulation import Simulation
 
 
 def landing(model, condition: str, params: dict, seed: int, scale: float, until: float, every: int = 50):
-    """``(dt, [(t, speed, body id)], error or None)``: the fastest body every ``every`` steps of
-    one member until ``until`` s (default: the fill's end), the guard raising."""
+    """``(dt, [(t, speed, body id)], error or None, end)``: the fastest body every ``every`` steps of
+    one member until ``until`` s (default: the fill's end), the guard raising, and at the last step
+    ``end = (t, fastest speed m/s, bodies faster than AT_REST_SPEED_M_S, active bodies)``."""
     test = model.test_for(condition, [params], isolate=False, time_step_scale=scale)
     system, state, _ = test.build([seed], [0])
     sim = Simulation(system, state, test.settings.guards, reorder_every=test.settings.reorder_every)
@@ -43,11 +51,15 @@ def landing(model, condition: str, params: dict, seed: int, scale: float, until:
         k = int(speed[0].argmax())
         trace.append((s.time, float(speed[0, k]), int(s.state.body_id[0, k])))
 
+    error = None
     try:
         sim.run_until(until if until > 0 else test.settings.fill_time, callback=fastest, callback_every=every)
-        return float(system.dt), trace, None
     except BlowUpError as err:
-        return float(system.dt), trace, str(err)
+        error = str(err)
+    b = sim.state.bodies
+    speed = (b.velocity.norm(dim=-1) * b.active)[0]
+    end = (sim.time, float(speed.max()), int((speed > AT_REST_SPEED_M_S).sum()), int(b.active[0].sum()))
+    return float(system.dt), trace, error, end
 
 
 def main() -> None:
@@ -68,12 +80,15 @@ def main() -> None:
     params = json.loads(args.params)
     for scale in args.scales:
         started = time.perf_counter()
-        dt, trace, error = landing(model, args.condition, params, args.seed, scale, args.until)
+        dt, trace, error, (t_end, v_end, moving, active) = landing(model, args.condition, params, args.seed, scale,
+                                                                   args.until)
         fast = [f"{t:.3f} s {v:.1f} m/s (body {k})" for t, v, k in trace if v > args.report_above]
         top = max((v for _, v, _ in trace), default=float("nan"))
         print(f"time step x {scale:g} ({dt * 1e6:.1f} us): fastest body {top:.2f} m/s over the trace; "
               f"{time.perf_counter() - started:.0f} s wall", flush=True)
         print("  above {:g} m/s: {}".format(args.report_above, "; ".join(fast) if fast else "none"))
+        print(f"  at t = {t_end:.3f} s: fastest body {v_end:.3f} m/s, {moving} of {active} bodies faster than "
+              f"{AT_REST_SPEED_M_S:g} m/s")
         if error:
             print(f"  blew up: {error}")
 

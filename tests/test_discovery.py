@@ -1077,11 +1077,15 @@ def test_fill_landing_script_shows_the_bed_throwing_bodies_at_a_marginal_step():
     spec.loader.exec_module(script)
     model, _ = _dem_model()
     at_rayleigh = dataclasses.replace(model, settings=dataclasses.replace(model.settings, time_step_fraction=1.0))
-    dt, trace, error = script.landing(at_rayleigh, "50-50", {"mu_s_pp": 0.5}, 0, 1.0, until=0.3)
+    dt, trace, error, _ = script.landing(at_rayleigh, "50-50", {"mu_s_pp": 0.5}, 0, 1.0, until=0.3)
     assert error is not None and "max_speed" in error and max(v for _, v, _ in trace) > 10.0
-    dt_short, trace, error = script.landing(at_rayleigh, "50-50", {"mu_s_pp": 0.5}, 0, 0.3, until=0.3)
+    dt_short, trace, error, (t_end, fastest, moving, active) = script.landing(at_rayleigh, "50-50", {"mu_s_pp": 0.5},
+                                                                              0, 0.3, until=0.3)
     assert error is None and dt_short == pytest.approx(0.3 * dt)
     assert max(v for _, v, _ in trace) < 3.5
+    # the end: the fill's state at 0.3 s, its fastest body no faster than the trace allowed, and the bodies
+    # moving faster than the photos' rest speed counted among the active ones (the mini fill still settles)
+    assert t_end == pytest.approx(0.3, abs=dt_short) and 0 < fastest < 3.5 and 0 < moving <= active
 
 
 def test_a_run_that_blows_up_at_every_retry_names_every_attempt():
