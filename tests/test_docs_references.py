@@ -66,7 +66,7 @@ def _pointers(path: Path):
                 continue
             taken.append(match.span())
             side = match.group(side_group) if side_group else None
-            for title in filter(None, match.group(*title_groups) if len(title_groups) > 1 else (match.group(title_groups[0]),)):
+            for title in filter(None, (match.group(g) for g in title_groups)):
                 yield text.count('\n', 0, match.start()) + 1, path.name, title, side, match.start()
 
 

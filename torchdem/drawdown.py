@@ -60,6 +60,7 @@ from torchdem.integrate import evaluate_forces, sphere_positions
 from torchdem.io import VTKWriter
 from torchdem.materials import Material, interaction_table
 from torchdem.mixture import Mixture, sample_layers, scalp_mixture
+from torchdem.neighbors import cell_grid, find_pairs
 from torchdem.render import PELLET_LABEL, SINTER_LABEL, View, crop_box_for, member_spheres, render_front
 from torchdem.simulation import GuardSettings, Simulation
 from torchdem.state import to_dict
@@ -667,14 +668,16 @@ class DrawDownTest:
         the box's width x the simulated depth x the fill's height, the mean over the box's width (in
         bins about four of the largest spheres wide) of the highest top of a sphere resting on the fill
         above the box's floor, as a ruler held to the front wall would read it. A grain still in the air
-        (:func:`_highest_resting_tops`; bouncing pellets on top of the reverse layering) is not the fill's top."""
+        (:func:`_resting`; bouncing pellets on top of the reverse layering) is not the fill's top."""
         g, system, b = self.geometry, sim.system, sim.state.bodies
         xs = sphere_positions(system, b).reshape(system.batch, system.n_spheres, 3)
         active = torch.gather(b.active, 1, system.sphere_body)
+        top = xs[..., 2] + system.sphere_radius
         inside = active & g.in_upper_box(xs[..., 0], xs[..., 2])
+        rests = _resting(xs, system.sphere_radius, system.sphere_body_flat, inside, g.upper_bottom_z)
         x, n_bins = _fill_columns(g, system, xs[..., 0])
-        height = _highest_resting_tops(xs, system.sphere_radius, system.sphere_body, inside, x, n_bins,
-                                       g.upper_bottom_z)
+        height = torch.full((system.batch, n_bins), g.upper_bottom_z, dtype=top.dtype, device=top.device)
+        height = height.scatter_reduce(1, x, torch.where(rests, top, torch.full_like(top, g.upper_bottom_z)), "amax")
         fill_height = (height.mean(-1) - g.upper_bottom_z).cpu().numpy()
         mass = self._upper_mass(sim).cpu().numpy()
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -866,41 +869,28 @@ def _fill_columns(geometry: DrawDownGeometry, system, x: torch.Tensor) -> tuple[
     return ((x + geometry.upper_width / 2) / geometry.upper_width * n).floor().clamp(0, n - 1).long(), n
 
 
-def _highest_resting_tops(xs: torch.Tensor, radius: torch.Tensor, body: torch.Tensor, inside: torch.Tensor,
-                          column: torch.Tensor, n_columns: int, floor_z: float, max_rounds: int = 256) -> torch.Tensor:
-    """``[B, n_columns]`` the highest sphere top (m) in each column among the spheres of ``inside`` that rest:
-    that touch a sphere of another body or the floor (within :data:`RESTING_GAP`). A sphere that touches
-    neither is a grain in the air, and the next highest in its column is tried, at most ``max_rounds`` times
-    a member. A column without a resting sphere reads ``floor_z``.
+def _resting(xs: torch.Tensor, radius: torch.Tensor, body: torch.Tensor, inside: torch.Tensor,
+             floor_z: float) -> torch.Tensor:
+    """``[B, Ns]`` bool: the spheres of ``inside`` that rest on something, touching a sphere of another body
+    or the floor within :data:`RESTING_GAP` of the radii's sum; the others are grains in the air.
 
-    xs ``[B, Ns, 3]`` sphere positions, radius ``[B, Ns]``, body ``[B, Ns]`` the sphere's body, inside
-    ``[B, Ns]`` bool, column ``[B, Ns]`` int64 in [0, n_columns)."""
-    top = xs[..., 2] + radius
-    height = torch.full((xs.shape[0], n_columns), floor_z, dtype=xs.dtype, device=xs.device)
-    for m in range(xs.shape[0]):
-        i = torch.nonzero(inside[m]).squeeze(1)
-        p, r, bd, t, c = xs[m, i], radius[m, i], body[m, i], top[m, i], column[m, i]
-        key = t.clone()                      # -inf: a grain found in the air
-        for _ in range(max_rounds):
-            best = _column_max(key, c, n_columns)
-            tried = torch.nonzero((key == best[c]) & torch.isfinite(key)).squeeze(1)
-            if tried.numel() == 0:
-                break
-            reach = (r[tried, None] + r[None]) * (1.0 + RESTING_GAP)
-            touches = ((torch.cdist(p[tried], p) <= reach) & (bd[tried, None] != bd[None])).any(1)
-            rests = touches | (p[tried, 2] - r[tried] <= floor_z + RESTING_GAP * r[tried])
-            if bool(rests.all()):
-                break
-            key[tried[~rests]] = -torch.inf
-        best = _column_max(key, c, n_columns)
-        height[m] = torch.where(torch.isfinite(best), best, height[m])
-    return height
-
-
-def _column_max(value: torch.Tensor, column: torch.Tensor, n_columns: int) -> torch.Tensor:
-    """``[n_columns]`` the largest ``value`` (``[N]``) in each column, -inf where a column has none."""
-    return torch.full((n_columns,), -torch.inf, dtype=value.dtype, device=value.device).scatter_reduce(
-        0, column, value, "amax")
+    xs ``[B, Ns, 3]`` sphere positions, radius ``[B, Ns]``, body ``[B * Ns]`` flat body index of each
+    sphere, inside ``[B, Ns]`` bool. The touching pairs come from the engine's cell search
+    (:func:`torchdem.neighbors.find_pairs`), with a skin as wide as the gap."""
+    n_per_member = inside.shape[1]
+    pos, r, live = xs.reshape(-1, 3), radius.reshape(-1), inside.reshape(-1)
+    rests = live & (pos[:, 2] - r <= floor_z + RESTING_GAP * r)
+    if bool(live.any()):
+        r_max = float(r[live].max())
+        skin = 2.0 * RESTING_GAP * r_max
+        cell = 2.0 * r_max + skin
+        grid = cell_grid((pos[live].amin(0) - cell).tolist(), (pos[live].amax(0) + cell).tolist(), cell,
+                         dtype=pos.dtype, device=pos.device)
+        i, j = find_pairs(pos, r, body, live, n_per_member, grid, skin)
+        touch = (pos[i] - pos[j]).norm(dim=-1) <= (r[i] + r[j]) * (1.0 + RESTING_GAP)
+        rests[i[touch]] = True
+        rests[j[touch]] = True
+    return rests.reshape(inside.shape)
 
 
 def _labelled(mixture: Mixture, body_material: torch.Tensor, label: str) -> torch.Tensor:
