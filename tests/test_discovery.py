@@ -1,4 +1,5 @@
-"""Tests of model discovery (bo/discovery/pipeline.py, torchdem/mechanisms/, bo/cli/discover.py).
+"""Tests of model discovery (bo/discovery/pipeline.py, bo/discovery/verdict.py, torchdem/mechanisms/,
+bo/cli/discover.py).
 
 - The registry holds the six required mechanisms; a new file in the package is picked up; every
   mechanism applies to the CPU profile's model and builds a DEM ensemble.
@@ -312,7 +313,7 @@ def test_a_candidate_that_could_not_be_named_makes_no_held_out_runs(tmp_path):
     against the calibrated model's 1,534, where its runs then give 1,538), so it keeps its chance
     and its runs. The cause, its fit and its held-out runs are those of the same discovery with every
     candidate run."""
-    from bo.discovery.pipeline import win_probability
+    from bo.discovery.verdict import win_probability
     from bo.discovery.report import write_discovery_report
 
     lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
@@ -364,7 +365,7 @@ def test_an_unresolved_fit_has_its_fitted_points_run_before_its_verdict(tmp_path
     the fit is resolved, finds the hidden densities and scores near the cells' count. A second
     data set reuses the design but not those data-dependent points; a fit resolved at once runs
     no more points."""
-    from bo.discovery.pipeline import fit_check
+    from bo.discovery.verdict import fit_check
 
     lab = _lab({"density_sinter": km.NOMINAL_DENSITY["sinter"] * 1.25})
     small = dict(candidates=("density_per_material",), points_per_parameter=2, min_points=4)

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from bo.discovery.pipeline import _discrepancy, chi2_equivalent, welch_dof
+from bo.discovery.verdict import chi2_equivalent, discrepancy_of, welch_dof
 from bo.discovery.replicate_noise import ReplicateNoise
 from torchdem.measured import MeasuredDataError, load_measured
 
@@ -50,10 +50,10 @@ def _p_values(n_studies=600, seed=11):
         t975 = stats.t.ppf(0.975, LAB_N - 1)
         lab = {(c, k): (lab_mean[i, j], half[i, j] / t975, LAB_N - 1.0)
                for i, c in enumerate(CONDITIONS) for j, k in enumerate(KPIS)}
-        new.append(_discrepancy(reps, CONDITIONS, KPIS, lab, noise, 0.05).p_value)
+        new.append(discrepancy_of(reps, CONDITIONS, KPIS, lab, noise, 0.05).p_value)
         lab_old = {key: (m, half[CONDITIONS.index(key[0]), KPIS.index(key[1])] / 1.96, math.inf)
                    for key, (m, _, _) in lab.items()}
-        d_old = _discrepancy(reps, CONDITIONS, KPIS, lab_old, noise, 0.05)
+        d_old = discrepancy_of(reps, CONDITIONS, KPIS, lab_old, noise, 0.05)
         old.append(float(stats.chi2.sf(d_old.chi2, d_old.dof)))
         old_chi2.append(d_old.chi2)
     return np.array(new), np.array(old), np.array(old_chi2)

@@ -1,4 +1,4 @@
-"""Discovery's verdict rules on constructed scores (bo/discovery/pipeline.py, step 3):
+"""Discovery's verdict rules on constructed scores (bo/discovery/verdict.py, step 3 of bo/discovery/pipeline.py):
 
 - two candidates that both beat refitting the parameters and whose scores differ by less than
   the DEM noise of their difference are tied (no cause is named); a clear winner is not tied;
@@ -18,8 +18,8 @@ import dataclasses
 
 from scipy import stats
 
-from bo.discovery.pipeline import (Cell, Discrepancy, HypothesisScore, explained_share, fit_check,
-                                   prediction_astray, tied_with)
+from bo.discovery.verdict import (Cell, Discrepancy, HypothesisScore, explained_share, fit_check,
+                                  prediction_astray, tied_with)
 from bo.discovery.replicate_noise import ReplicateNoise
 
 

@@ -2,7 +2,7 @@
 
 - The pooled variance and its degrees of freedom equal a hand computation, with missing
   replicates (NaN) and groups of one run (no degree of freedom) handled.
-- Why it exists: with 2 replicates per cell, the chi^2 discrepancy test of bo/discovery/pipeline.py under the
+- Why it exists: with 2 replicates per cell, the chi^2 discrepancy test of bo/discovery/verdict.py under the
   null hypothesis (DEM and lab agree) raises a false alarm far more often than its level alpha
   when each cell divides by its own 2-run standard error; with the noise pooled over the runs of
   a discovery it keeps its level. 4000 simulated tests, Gaussian noise.
@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from bo.discovery.pipeline import _discrepancy
+from bo.discovery.verdict import discrepancy_of
 from bo.discovery.replicate_noise import ReplicateNoise
 
 
@@ -47,7 +47,7 @@ def test_pooled_noise_keeps_the_discrepancy_test_at_its_level():
         reps = 10.0 + sigma * rng.standard_normal((len(conditions), 2, len(kpis)))   # [C, r = 2, K]
         design = 10.0 + sigma * rng.standard_normal((20, len(conditions), 2, len(kpis)))
         noise = ReplicateNoise.of(kpis, [reps, design])
-        pooled_alarms += _discrepancy(reps, conditions, kpis, lab, noise, alpha).significant
+        pooled_alarms += discrepancy_of(reps, conditions, kpis, lab, noise, alpha).significant
         # each cell's own 2-run standard error instead (what the pooled noise replaced)
         se = reps.std(axis=1, ddof=1) / math.sqrt(2)
         u = np.array([lab[(conditions[0], k)][1] for k in kpis])
@@ -62,7 +62,7 @@ def test_gain_noise_sd_is_the_sd_of_the_chi2_difference_of_two_equal_models():
     shear angle): the sd of the difference of their held-out chi^2 over 20000 simulated pairs
     of runs matches ``gain_noise_sd`` within 5 %; it is ~20 chi^2 units, far above the
     fixed margin of 4."""
-    from bo.discovery.pipeline import Cell, gain_noise_sd
+    from bo.discovery.verdict import Cell, gain_noise_sd
 
     rng = np.random.default_rng(3)
     offsets, u, sd, n = np.array([-12.0, 1.0, 0.3]), np.array([0.8, 0.2, 0.25]), np.array([1.9, 0.6, 0.3]), 2

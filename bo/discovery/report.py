@@ -19,7 +19,7 @@ the face stands above the heap, the lab's against the runs, ``bo.discovery.gap``
   runs and as the surrogate predicted it, score, ``gain_noise_sd`` (the sd of its gain over
   ``parameters`` from DEM noise alone), in-sample chi^2, ``fit_check`` (the fit on every
   condition: the GP mean's misfit and the GP's own uncertainty as chi^2, the cells, resolved or
-  not: ``bo.discovery.pipeline.fit_check``), fitted values, the cells of its held-out
+  not: ``bo.discovery.verdict.fit_check``), fitted values, the cells of its held-out
   runs, or why it was skipped), ``unresolved`` (the candidates whose fit is unresolved),
   ``errors`` (per held-out condition and KPI: measured, before and after with standard errors,
   relative errors and z), ``extension`` (the chosen mechanism's values fitted on every
@@ -42,7 +42,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from bo.discovery.pipeline import DiscoveryResult, gain_rows, jam_counts, jammed_runs_note
+from bo.discovery.pipeline import DiscoveryResult, jam_counts, jammed_runs_note
+from bo.discovery.verdict import gain_rows
 from bo.report.plots import save_png
 from bo.screening.pipeline import json_ready
 from bo.discovery.gap import GapCheck, format_gap

@@ -16,7 +16,7 @@ the question earlier:
 
 Contract: :func:`discovery_status` ``(store path, measured data, KPIs) -> DiscoveryStatus``;
 :func:`format_status` turns it into markdown (``scripts/discovery_status.py``). The z and chi^2
-are those of the pipeline (``bo.discovery.pipeline._cells``) with the DEM replicate noise pooled
+are those of the pipeline (``bo.discovery.verdict.cells_of``) with the DEM replicate noise pooled
 over the calibrated set's runs and every held-out condition's runs in the store; the pipeline's
 final score pools over every run of every candidate, so its figures can differ slightly. Runs
 whose discharge jammed are left out of every figure and counted, as the pipeline does
@@ -36,7 +36,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bo.campaign.progress import open_read_only
-from bo.discovery.pipeline import Cell, _cells, _lab, jam_counts
+from bo.discovery.pipeline import _lab, jam_counts
+from bo.discovery.verdict import Cell, cells_of
 from kpi.loadcell import discharge_jammed
 from bo.discovery.replicate_noise import ReplicateNoise
 from bo.screening.effects import least_squares
@@ -208,7 +209,7 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
     held_reps = {k: _replicates(v, kpis) for k, v in held.items()}
     groups = [v for v in baseline.values() if len(v) >= 2] + [v for v in held_reps.values() if len(v) >= 2]
     noise = ReplicateNoise.of(kpis, groups) if groups else ReplicateNoise(kpis, (0.0,) * len(kpis), (0,) * len(kpis))
-    base_cells = {c: _cells(baseline[c][None], [c], kpis, lab, noise) for c in conditions}
+    base_cells = {c: cells_of(baseline[c][None], [c], kpis, lab, noise) for c in conditions}
     order = {c: i for i, c in enumerate(conditions)}
 
     def in_order(items):  # by candidate, then in the data's order of conditions
@@ -228,7 +229,7 @@ def discovery_status(path: str | Path, measured: MeasuredData, kpis: Sequence[st
     for (name, condition), reps in in_order(held_reps.items()):
         if condition not in conditions:
             continue
-        cells = tuple(_cells(reps[None], [condition], kpis, lab, noise))
+        cells = tuple(cells_of(reps[None], [condition], kpis, lab, noise))
         fitted = {k: v for k, v in params_of[(name, condition)].items()
                   if k not in calibrated or not math.isclose(v, calibrated[k], rel_tol=1e-9)}
         held_out.append(HeldOutStatus(name, condition, fitted, len(reps), cells, _chi2(cells),
