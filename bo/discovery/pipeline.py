@@ -1104,5 +1104,3 @@ def separability(fitted: Sequence[_Fitted], mechanisms: Mapping[str, Mechanism],
         if mine:
             out[name] = mine
     return out
-
-
