@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
 import math
 import os
 import time
@@ -143,9 +144,11 @@ def test_run_pending_writes_every_outcome(tmp_path):
 
 # -- dask -------------------------------------------------------------------------------------
 
-def test_dask_executor_matches_in_process(tmp_path):
+def test_dask_executor_matches_in_process(tmp_path, caplog):
     """One LocalCluster(n_workers=2, processes=True, threads_per_worker=1) for every dask check
-    (one test, so a parallel test run never starts two clusters)."""
+    (one test, so a parallel test run never starts two clusters). The cluster it starts logs no
+    INFO lines of dask's (each scheduler, nanny and connection) into the CLIs' log."""
+    caplog.set_level(logging.INFO)
     with DaskExecutor(functools.partial(analytic_batch, sleep_per_eval=0.01), batch_size=3,
                       n_workers=2) as executor:
         assert executor.parallelism == 2
@@ -242,6 +245,9 @@ def test_dask_executor_matches_in_process(tmp_path):
         assert executor.client.status == "running"
         cluster = executor._cluster
     assert executor.client.status == "closed" and cluster.status.name == "closed"
+    chatter = [f"{r.name}: {r.getMessage()}" for r in caplog.records
+               if r.name.startswith("distributed") and r.levelno < logging.WARNING]
+    assert not chatter, chatter[:5]
 
 
 def test_executor_factory_serves_every_model_from_one_cluster():

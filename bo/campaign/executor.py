@@ -81,6 +81,7 @@ local disk; SQLite's WAL mode does not work on network file systems (NFS, Lustre
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
 import threading
@@ -331,9 +332,15 @@ class InProcessExecutor(Executor):
 
 def local_cluster(n_workers: int | None = None, cluster_kwargs: Mapping | None = None):
     """The ``LocalCluster`` a :class:`DaskExecutor` starts: ``n_workers`` processes (default
-    ``os.cpu_count()``) of one thread each, the dashboard on a free port; ``cluster_kwargs`` override."""
+    ``os.cpu_count()``) of one thread each, the dashboard on a free port; ``cluster_kwargs`` override.
+
+    dask's ``distributed`` logger is set to WARNING first: it logs at INFO every scheduler, nanny,
+    worker and connection that comes and goes, and the CLIs' Hydra logging prints INFO, so a
+    campaign's own lines were lost among some 35 of dask's. Its warnings and errors still show.
+    A cluster or client the user gives (``address``, ``client``) keeps its logging."""
     from dask.distributed import LocalCluster  # optional at import time
 
+    logging.getLogger("distributed").setLevel(logging.WARNING)
     kwargs = {"n_workers": n_workers or os.cpu_count() or 1, "threads_per_worker": 1,
               "processes": True, "dashboard_address": ":0"}  # a free port, never 8787
     kwargs.update(cluster_kwargs or {})
