@@ -23,7 +23,7 @@ $(STAMP): setup.cfg pyproject.toml
 # what the store lacks, runs the verification's 5 replicates of the calibrated set again here (verification.fresh)
 # and writes the report. Two one-thread workers, as the campaign ran; the last run takes both cores once the other
 # worker is idle (bo/campaign/cores.py). A lab_round run holds 43,706 spheres, so the fresh verification takes
-# about 37 minutes on 2 cores (README, "Results"). The campaigns it builds on, each from its own store:
+# 37-52 minutes on 2 cores, by host (README, "Results"). The campaigns it builds on, each from its own store:
 # `make run-box` (profile=lab_box, about 14 minutes), profile=lab store_from=campaigns/table2/lab.sqlite; the first
 # campaign, whose runs stopped 4 s after the gate opened: profile=lab_4s store_from=campaigns/table2/lab_4s.sqlite.
 # The mini-box pipeline against its synthetic twin: torchdem-calibrate profile=cpu (profile=smoke in the tests).

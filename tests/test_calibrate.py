@@ -765,6 +765,43 @@ def test_shipped_store_resumes_without_a_run_and_remakes_only_the_verification(k
     assert len(log.read_text().splitlines()) == len(runs)
 
 
+@ON_ONE_WORKER
+def test_the_console_sums_up_the_validation_by_condition_and_in_all(known_campaign):
+    """validation_summary (what torchdem-calibrate prints after the verification): per validated condition
+    the largest |relative error| over the objective's KPIs and how many of them lie in the lab's 95 % CI, a
+    KPI outside the objective left out however far off; a condition no run measured says so; the last line
+    is the largest of all, beside the paper's Table A.6 when the campaign is on the paper's data."""
+    from bo.calibration.pipeline import KPIAgreement
+    from bo.calibration.report import validation_summary
+    from torchdem.measured import load_paper_tables
+
+    result, _, _, _ = known_campaign
+    assert set(result.objective.kpi_names) >= {"angle_of_repose_deg", "shear_angle_deg"}
+    assert "segregation_rsd_vertical" not in result.objective.kpi_names
+
+    def row(kpi, error, within, mean=1.0):
+        return KPIAgreement(kpi, mean, 0.1, 5, 1.0, 0.05, error, within)
+
+    nan = float("nan")
+    validation = {
+        "75-25": (row("angle_of_repose_deg", -3.0, True), row("shear_angle_deg", 6.5, False),
+                  row("segregation_rsd_vertical", 150.0, False)),
+        "25-75": (row("angle_of_repose_deg", 7.25, False), row("shear_angle_deg", -1.0, True)),
+        "50-50-reverse": (row("angle_of_repose_deg", nan, False, nan), row("shear_angle_deg", nan, False, nan)),
+    }
+    lines = validation_summary(dataclasses.replace(result, validation=validation))
+    assert lines == [
+        "  validation 75-25          largest |error| 6.50 % (shear_angle_deg); 1 of 2 objective KPIs inside the lab's "
+        "95 % CI",
+        "  validation 25-75          largest |error| 7.25 % (angle_of_repose_deg); 1 of 2 objective KPIs inside the "
+        "lab's 95 % CI",
+        "  validation 50-50-reverse  no run measured the objective's KPIs (every run jammed or failed)",
+        "largest validation |error| 7.25 % (25-75, angle_of_repose_deg)"]
+    paper = validation_summary(dataclasses.replace(result, validation=validation), load_paper_tables())
+    assert paper[:-1] == lines[:-1] and paper[-1] == lines[-1] + "; the paper's (Table A.6) 7.23 %"
+    assert validation_summary(dataclasses.replace(result, validation={})) == []
+
+
 def test_store_from_must_name_a_store(tmp_path):
     from bo.cli.calibrate import seed_store
 

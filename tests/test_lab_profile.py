@@ -243,14 +243,15 @@ def test_the_pellet_wall_friction_is_calibrated_on_the_evidence_of_both_replicat
     assert fits["mass_flow_rate_full_kg_s"].pvalues[j] > 0.5
 
 
-def _replay_shipped(profile, name, runs, tmp_path, monkeypatch):
+def _replay_shipped(profile, name, runs, tmp_path, monkeypatch, said=None):
     """`make run`'s command for `profile` on a copy of the shipped store campaigns/table2/`name`.sqlite, with
     an executor that records what reaches the DEM and refuses it, and with the GP cross-validation, the
     GA and the bounds' optimiser made to fail if called: everything the store holds must be read from
     it. The campaign resumes with nothing sent to the DEM, its `runs` runs all there, the shipped file
     untouched, and the calibrated set the one campaigns/table2/calibration_`name`.json (the discovery's
     input) records; with verification.fresh it asks the DEM for the 5 verification runs again, and
-    nothing else. Returns the first run's summary and the recorded calibration."""
+    nothing else. Returns the first run's summary and the recorded calibration; the first run's
+    console lines are appended to ``said`` when given."""
     import contextlib
     import json
     from pathlib import Path
@@ -280,10 +281,10 @@ def _replay_shipped(profile, name, runs, tmp_path, monkeypatch):
     for what in ("best_kernel_cv", "repeated_ga", "attainable_ranges"):
         monkeypatch.setattr(pipeline, what, computed(what))
 
-    def calibrate(run, *overrides):
+    def calibrate(run, *overrides, echo=lambda s: None):
         return app.calibrate(_plain(f"store_from={shipped}", f"store={tmp_path / (run + '.sqlite')}", *overrides,
-                                    profile=profile), tmp_path / run, echo=lambda s: None)
-    summary = calibrate("run")
+                                    profile=profile), tmp_path / run, echo=echo)
+    summary = calibrate("run", echo=(said if said is not None else []).append)
     assert not sent
     assert summary["dem_evaluations"]["total"] == runs
     recorded = json.loads((table2 / f"calibration_{name}.json").read_text())
@@ -332,11 +333,13 @@ def test_make_run_finds_the_shipped_round_campaign_complete(tmp_path, monkeypatc
     """`make run`'s campaign (profile=lab_round, store_from=campaigns/table2/lab_round.sqlite) resumes from a
     copy of the shipped store and sends nothing to the DEM but the verification made again
     (_replay_shipped): its 80 runs are all there, it calibrates the slot and the sinter's three frictions,
-    it holds the box campaign's set, and its report sets the validation beside the paper's Table A.6."""
+    it holds the box campaign's set, and its report sets the validation beside the paper's Table A.6, as
+    does its console: each condition's largest error over the four KPIs, then the largest of all."""
     import json
     from pathlib import Path
 
-    summary, recorded = _replay_shipped("lab_round", "lab_round", 80, tmp_path, monkeypatch)
+    said = []
+    summary, recorded = _replay_shipped("lab_round", "lab_round", 80, tmp_path, monkeypatch, said)
     assert set(recorded["calibrated_parameters"]) == {"geometry_outlet_width", "mu_r_ss", "mu_s_ss", "mu_s_sg"}
     box = json.loads((Path(__file__).resolve().parents[1] / "campaigns" / "table2"
                       / "calibration_lab_box.json").read_text())["calibrated_parameters"]
@@ -344,6 +347,16 @@ def test_make_run_finds_the_shipped_round_campaign_complete(tmp_path, monkeypatc
     assert recorded["held_parameters"]["mu_s_pg"] == pytest.approx(box["mu_s_pg"], rel=1e-5)
     report = Path(summary["files"]["md"]).read_text()
     assert "Largest validation |error|: this campaign 5.89 %, the paper 7.23 %." in report
+    validation = [line for line in said if "validation " in line and "|error|" in line]
+    assert validation[:3] == [
+        "  validation 75-25          largest |error| 2.45 % (shear_angle_deg); 2 of 4 objective KPIs inside the "
+        "lab's 95 % CI",
+        "  validation 25-75          largest |error| 5.89 % (mass_flow_rate_full_kg_s); 2 of 4 objective KPIs inside "
+        "the lab's 95 % CI",
+        "  validation 50-50-reverse  largest |error| 3.46 % (shear_angle_deg); 2 of 4 objective KPIs inside the "
+        "lab's 95 % CI"]
+    assert validation[3] == ("largest validation |error| 5.89 % (25-75, mass_flow_rate_full_kg_s); "
+                             "the paper's (Table A.6) 7.23 %")
 
 
 def test_the_box_profile_holds_the_lab_calibration_and_varies_the_box():

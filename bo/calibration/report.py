@@ -37,12 +37,13 @@ import numpy as np
 
 from bo.surrogate.acquisition import plot_actual_vs_predicted, target_reached
 from bo.surrogate.attainable import format_attainable
-from bo.calibration.pipeline import ATTAINABLE_MAX_JAM, CalibrationResult, KPIAgreement
+from bo.calibration.pipeline import ATTAINABLE_MAX_JAM, CalibrationResult, KPIAgreement, objective_blocks
 from bo.report.plots import write_relative_error_plot
 from bo.screening.pipeline import json_ready, measured_name
 from torchdem.drawdown import JAM_FRACTION
 
-__all__ = ["write_calibration_report", "calibration_payload", "agreement_table", "paper_comparison"]
+__all__ = ["write_calibration_report", "calibration_payload", "agreement_table", "paper_comparison",
+           "validation_summary"]
 
 
 def agreement_table(rows: Sequence[KPIAgreement]) -> list[str]:
@@ -173,6 +174,32 @@ def paper_comparison(result: CalibrationResult, paper: Mapping) -> dict:
                                          "table_a6": max(abs(e) for row in paper_val.values() for e in row.values())},
         "dem_runs": {"ours": result.evaluations.get("total"), "paper": PAPER_DEM_RUNS},
     }
+
+
+def validation_summary(result: CalibrationResult, paper: Mapping | None = None) -> list[str]:
+    """The validation in a few console lines: per validated condition, the largest |relative error|
+    over the objective's KPIs (the four of Table A.6 for the paper's campaign) and how many of them lie
+    inside the lab's 95 % CI; then the largest over every condition, beside the paper's own where
+    ``paper`` (:func:`paper_comparison`) is given. [] when nothing was validated."""
+    kpis = objective_blocks(result.objective, result.settings.condition)[0][1]
+    lines, worst = [], None
+    for condition, rows in result.validation.items():
+        rows = [a for a in rows if a.kpi in kpis]
+        measured = [a for a in rows if math.isfinite(a.relative_error_pct)]
+        if not measured:
+            lines.append(f"  validation {condition:14s} no run measured the objective's KPIs "
+                         "(every run jammed or failed)")
+            continue
+        a = max(measured, key=lambda a: abs(a.relative_error_pct))
+        lines.append(f"  validation {condition:14s} largest |error| {abs(a.relative_error_pct):.2f} % ({a.kpi}); "
+                     f"{sum(r.within_ci for r in rows)} of {len(rows)} objective KPIs inside the lab's 95 % CI")
+        if worst is None or abs(a.relative_error_pct) > worst[0]:
+            worst = (abs(a.relative_error_pct), condition, a.kpi)
+    if worst is not None:
+        theirs = "" if paper is None else \
+            f"; the paper's (Table A.6) {paper_comparison(result, paper)['largest_validation_error_pct']['table_a6']:.2f} %"
+        lines.append(f"largest validation |error| {worst[0]:.2f} % ({worst[1]}, {worst[2]}){theirs}")
+    return lines
 
 
 def _paper_markdown(c: Mapping) -> list[str]:

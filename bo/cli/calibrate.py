@@ -274,7 +274,7 @@ def calibration_model_for(overrides: Sequence[str]):
 def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     """The whole app on a plain config: check, run (resume), report. Returns a summary."""
     from bo.calibration.pipeline import EXTRA_STAGES, run_calibration, validation_conditions
-    from bo.calibration.report import write_calibration_report
+    from bo.calibration.report import validation_summary, write_calibration_report
     from torchdem.measured import load_measured, load_paper_tables
 
     settings = calibration_settings_from(plain)
@@ -301,6 +301,8 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
             echo(f"  {label} {a.kpi:28s} DEM {a.dem_mean:.4g} vs lab {a.measured_mean:.4g} +- {a.measured_ci95:.3g}: "
                  f"{a.relative_error_pct:+.2f} %" + ("" if a.within_ci else " (outside the lab's 95 % CI)")
                  + (f"; {a.jammed} jammed runs left out" if a.jammed else ""))
+    for line in validation_summary(result, paper):
+        echo(line)
     echo(f"DEM evaluations {result.evaluations['total']}; wall {wall:.1f} s; wrote "
          f"{', '.join(sorted(p.name for p in files.values()))} to {out}")
     return {"store": str(path), "out_dir": str(out), "wall_time_s": round(wall, 2),
