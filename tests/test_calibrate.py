@@ -808,6 +808,11 @@ def test_store_from_must_name_a_store(tmp_path):
     with pytest.raises(ConfigError, match=r"store_from = '.*missing.sqlite' is not allowed; expected an existing "
                                           r"campaign store file"):
         seed_store({"store_from": str(tmp_path / "missing.sqlite")}, tmp_path / "run.sqlite")
+    (tmp_path / "notes.sqlite").write_text("lab notes, not a store\n")
+    with pytest.raises(ConfigError, match=r"store_from = '.*notes.sqlite' is not allowed; expected a campaign store "
+                                          r"a torchdem campaign wrote \(SQLite: file is not a database\)"):
+        seed_store({"store_from": str(tmp_path / "notes.sqlite")}, tmp_path / "run.sqlite")
+    assert not (tmp_path / "run.sqlite").exists()  # so the next try copies again instead of resuming nothing
     assert seed_store({"store_from": None}, tmp_path / "run.sqlite") is None
 
 
@@ -878,6 +883,15 @@ def test_killed_campaign_resumes_without_losing_or_repeating_a_run(tmp_path):
      r"batch keys"),
     ("validation.conditions=[60-40]", r"validation.conditions: \['60-40'\] are not in the measured data"),
     ("measured=/nonexistent/lab.json", r"/nonexistent/lab.json: cannot read measured-data file"),
+    # a range the model cannot run (check_parameter_space): no run is made to find it out
+    ("surrogate.added={mu_s_zz:[0.2,0.8]}", r"surrogate \(bounds and added\): at the low end of every range, "
+     r"\{.*'mu_s_zz': 0.2\}: contact: mu_s_zz names unknown material letter\(s\) in 'zz'"),
+    ("surrogate.added={density_coke:[900,1100]}", r"at the low end of every range, .*parameter 'density_coke' "
+     r"names no material of mixture '50-50'"),
+    ("surrogate.added={fines_kept_sinter:[0,1]}", r"fines_kept_sinter set a share of the scalped fines, but the "
+     r"runs scalp none"),
+    ("screening.levels.mu_s_ss=[-0.1,0.5,0.9]", r"screening \(parameters and levels\): at the low end of every "
+     r"range, \{.*'mu_s_ss': -0.1, .*\}: contact\[sinter,sinter\]: mu_s = -0.1 is not allowed"),
 ])
 def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message):
     store = tmp_path / "never.sqlite"

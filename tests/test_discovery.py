@@ -898,6 +898,8 @@ def test_calibration_paper_is_the_papers_table_8_restricted_set_over_the_config(
                                               r"expected conditions of the data .* left out of discovery.conditions "
                                               r".*; not so: \['75-25'\]"),
     ("discovery.proposed_conditions=75-25", r"config discovery: proposed_conditions = '75-25' is not allowed"),
+    ("discovery.refit=[mu_s_zz]", r"discovery.refit: 'mu_s_zz' is not a calibrated parameter; calibrated: "
+                                  r"\['e_pg', .*'mu_s_ss'\]"),
 ])
 def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message):
     store = tmp_path / "never.sqlite"

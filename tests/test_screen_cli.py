@@ -201,10 +201,15 @@ def _plain(overrides):
     ("screening.kpis=[shear_angle]", r"screening: kpis = \['shear_angle'\] is not allowed"),
     ("condition=60-40", r"condition = '60-40' is not allowed; expected a condition of the measured data"),
     ("executor.batch_size=0", r"executor: batch_size = 0 is not allowed"),
+    # levels the model cannot run (bo.cli.common.check_ranges): refused before the first run
+    ("screening.levels.mu_s_pp=[-0.2,0.3,0.6]", r"screening \(parameters and levels\): at the low end of every "
+     r"range, \{'mu_s_pp': -0.2, .*\}: contact\[pellet,pellet\]: mu_s = -0.2 is not allowed; expected \[0.0, inf\)"),
+    ("screening.parameters=[mu_s_pp,mu_s_ss,mu_r_pp,mu_r_ss,mu_s_zz] +screening.levels.mu_s_zz=[0.2,0.4,0.6]",
+     r"at the low end of every range, .*: contact: mu_s_zz names unknown material letter\(s\) in 'zz'"),
 ])
 def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message):
     store = tmp_path / "never.sqlite"
-    plain = _plain([override, f"store={store}"])
+    plain = _plain([*override.split(" "), f"store={store}"])
     with pytest.raises(ConfigError, match=message):
         screen(plain, tmp_path, echo=lambda s: None)
     assert not store.exists()

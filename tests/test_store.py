@@ -80,6 +80,31 @@ def test_copy_store_copies_the_source_as_it_is_now_every_time(tmp_path):
     assert store.get_artifact("b", None) == {"v": 2}
 
 
+@pytest.mark.parametrize("content", ["text", "empty database"])
+def test_copying_what_is_not_a_store_names_the_file_and_leaves_no_copy(tmp_path, content):
+    """``store_from=`` a file that is not a campaign store (a text file; an SQLite file without the
+    store's tables): one ConfigError naming the file, and no half-made copy for the run to resume."""
+    source, target = tmp_path / "shipped.sqlite", tmp_path / "run" / "campaign.sqlite"
+    if content == "text":
+        source.write_text("not a database\n")
+    else:
+        sqlite3.connect(source).execute("CREATE TABLE other (x)").connection.close()
+    with pytest.raises(ConfigError, match=r"shipped\.sqlite: not a campaign store \((file is not a database|"
+                                          r"no such table: evaluations)\)"):
+        copy_store(source, target)
+    assert not target.exists()
+
+
+def test_a_store_path_that_cannot_hold_a_store_names_the_path(tmp_path):
+    """``store=`` a file that is not SQLite, or a path whose folder cannot be made (it lies under a
+    file): a ConfigError naming the path, which the commands print as one line."""
+    (tmp_path / "notes.txt").write_text("lab notes\n")
+    with pytest.raises(ConfigError, match=r"notes\.txt: not a usable SQLite database"):
+        CampaignStore(tmp_path / "notes.txt", "h")
+    with pytest.raises(ConfigError, match=r"notes\.txt/c\.sqlite: cannot make the store's folder .*notes\.txt"):
+        CampaignStore(tmp_path / "notes.txt" / "c.sqlite", "h")
+
+
 def test_near_batch_finds_the_same_experiment_within_the_tolerance_the_closest_first(tmp_path):
     store = new_store(tmp_path)
     fill(store, key="fit/a", points=[{"mu_s_pp": 0.3, "e_pp": 0.5}])

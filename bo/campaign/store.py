@@ -180,7 +180,9 @@ COPIED_FROM = "copied_from"
 def copy_store(source: Path, target: Path) -> None:
     """Copy the campaign store file ``source`` to ``target`` (replaced if it exists), consistent even
     while another process writes the source (SQLite's backup API; the source is opened read-only),
-    and note in the copy's meta (``COPIED_FROM``) which rows came with it."""
+    and note in the copy's meta (``COPIED_FROM``) which rows came with it. A source that is not a
+    campaign store (not SQLite, or without its tables) raises ``ConfigError`` naming it, and leaves no
+    target behind."""
     target.parent.mkdir(parents=True, exist_ok=True)
     read = sqlite3.connect(f"file:{source}?mode=ro", uri=True)
     write = sqlite3.connect(target)
@@ -190,9 +192,17 @@ def copy_store(source: Path, target: Path) -> None:
             (last,) = write.execute("SELECT COALESCE(MAX(task_id), 0) FROM evaluations").fetchone()
             note = {"source": str(source), "copied_at": time.time(), "last_task_id": int(last)}
             write.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (COPIED_FROM, json.dumps(note)))
+    except sqlite3.DatabaseError as exc:  # OperationalError (no such table) included
+        failed = exc
+    else:
+        failed = None
     finally:
         write.close()
         read.close()
+    if failed is not None:
+        target.unlink(missing_ok=True)
+        raise ConfigError(f"{source}: not a campaign store ({failed}); expected a .sqlite file a torchdem campaign "
+                          "wrote") from failed
 
 
 @functools.lru_cache(maxsize=1)
@@ -413,7 +423,11 @@ class CampaignStore:
         self.lease_seconds = float(lease_seconds)
         self.busy_timeout = float(busy_timeout)
         self.extra_stages = tuple(_check_name(s, "extra_stages entry", source) for s in extra_stages)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # a path under a file, a read-only or missing mount
+            raise ConfigError(f"{self.path}: cannot make the store's folder {self.path.parent} "
+                              f"({exc.strerror or exc})") from exc
         self._init_db()
         self.stored_config_hash = self._meta("config_hash")
         if self.stored_config_hash in self.model_hashes:

@@ -29,7 +29,7 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, check_kpis, checkpoint_dir_for, executor_from, executor_settings_from,
+from bo.cli.common import (MODEL_KEYS, _int, check_kpis, check_ranges, checkpoint_dir_for, executor_from, executor_settings_from,
                            flag, open_store, plain_config, replicate_seeds, requeue_failed, screen_settings_from,
                            store_path_from)
 from torchdem.config import parameter_range
@@ -80,7 +80,11 @@ def seed_store(plain: Mapping[str, Any], path: Path) -> Path | None:
     if not path.exists():
         from bo.campaign.store import copy_store
 
-        copy_store(src, path)
+        try:
+            copy_store(src, path)
+        except ConfigError as exc:  # not a store: say which option named it
+            raise out_of_range("store_from", source, f"a campaign store a torchdem campaign wrote (SQLite: "
+                               f"{exc.__cause__})", "config") from exc
     return src
 
 
@@ -282,6 +286,12 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     measured = load_measured(plain.get("measured"))
     validation_conditions(settings, measured)
     model, densities = calibration_model_from(plain, measured)
+    # ranges the config gives (the screening's levels, the surrogate's bounds): the model builds at their ends
+    table = settings.screening.table
+    check_ranges(model, settings.condition, dict(zip(table.names, zip(table.low, table.high))),
+                 "screening (parameters and levels)")
+    check_ranges(model, settings.condition, {**(settings.surrogate.bounds or {}), **settings.surrogate.added},
+                 "surrogate (bounds and added)")
     path = store_path_from(plain, out)
     source = seed_store(plain, path)
     # the measured data decide the conditions' mixtures, so they are part of the model

@@ -269,6 +269,22 @@ def plain_config(cfg: DictConfig) -> dict:
 # Screening settings
 # --------------------------------------------------------------------------------------------
 
+def check_ranges(model, condition: str, ranges: Mapping[str, Any], where: str) -> None:
+    """Build, without running, the DEM test of ``condition`` at the low and at the high end of every
+    range of ``ranges`` (``{name: (low, ..., high)}``), so that a name the model does not know
+    (``mu_s_zz``, ``density_coke`` in a pellet-sinter mixture) or a value it refuses (a negative
+    friction) stops the command before its first run instead of failing every run of a campaign.
+    ``where`` names the config keys the ranges came from."""
+    for end, side in ((0, "low"), (-1, "high")):
+        point = {name: float(levels[end]) for name, levels in ranges.items()}
+        if not point:
+            return
+        try:
+            model.test_for(condition, [point])
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: at the {side} end of every range, {point}: {exc}") from exc
+
+
 def parameter_table_from(cfg: Mapping[str, Any], where: str = "screening"):
     """Table 4 restricted to ``parameters`` (null: all 12), levels overridable by ``levels``
     (``{name: [low, mid, high]}``)."""

@@ -183,7 +183,7 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     """The whole app on a plain config: check, run (resume), report. Returns a summary."""
     from bo.cli.calibrate import calibration_model_from
     from bo.cli.common import executor_factory
-    from bo.discovery.pipeline import discovery_stages, run_discovery
+    from bo.discovery.pipeline import discovery_stages, refit_bounds, run_discovery
     from bo.discovery.report import write_discovery_report
     from torchdem.measured import load_measured
 
@@ -208,6 +208,7 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
         if settings.proposed_conditions else measured
     model, _ = calibration_model_from({**plain, "measured": data}, model_data)
     calibrated, source = calibrated_from(plain, model.fixed)
+    refit_bounds(calibrated, settings.refit, settings.refit_fraction)  # a refit name the set lacks: stop here
     path = store_path_from(plain, out)
     # the store is for this data file and, when given, this choice of its conditions
     hashed = {**plain, "measured": data if subset is None else [data, list(measured.names)]}

@@ -129,7 +129,7 @@ from torchdem.errors import ConfigError, out_of_range
 from torchdem.measured import MeasuredData
 
 __all__ = ["PARAMETERS", "VERDICT_RULES", "rules_of", "DiscoverySettings", "DiscoveryResult", "discovery_stages",
-           "measure_discrepancy", "run_discovery", "detectability"]
+           "measure_discrepancy", "run_discovery", "detectability", "refit_bounds"]
 
 #: Name of the no-new-physics hypothesis (the calibrated parameters refitted).
 PARAMETERS = "parameters"
@@ -466,7 +466,10 @@ def measure_discrepancy(store: CampaignStore, executor: Executor, calibrated: Ma
 # step 2
 # --------------------------------------------------------------------------------------------
 
-def _refit_bounds(calibrated: Mapping[str, float], names: Sequence[str], fraction: float) -> dict[str, tuple]:
+def refit_bounds(calibrated: Mapping[str, float], names: Sequence[str], fraction: float) -> dict[str, tuple]:
+    """``{name: (low, high)}``: each ``discovery.refit`` parameter free within ``+- fraction`` of its
+    calibrated value (restitution capped at 1, never below 0). A name the calibrated set lacks raises
+    ``ConfigError``, so torchdem-discover and :func:`run_discovery` check it before the first run."""
     out = {}
     for n in names:
         if n not in calibrated:
@@ -504,7 +507,7 @@ def _fit_hypothesis(name: str, mechanism: Mechanism | None, model: DrawDownModel
     conditions = list(measured.names)
     kpis = list(settings.kpis)
     lab = _lab(measured, kpis)
-    bounds = _refit_bounds(calibrated, settings.refit, settings.refit_fraction)
+    bounds = refit_bounds(calibrated, settings.refit, settings.refit_fraction)
     extra = {} if mechanism is None else dict(mechanism.parameters(context))
     bounds.update(extra)
     names = tuple(bounds)
@@ -797,6 +800,7 @@ def run_discovery(store: CampaignStore, executor_for: Callable[[DrawDownModel], 
     if unknown:
         raise ConfigError(f"discovery.candidates: {unknown} are not in the registry (torchdem/mechanisms/); known: "
                           f"{sorted(mechanisms)}")
+    refit_bounds(calibrated, settings.refit, settings.refit_fraction)  # names checked before the first run
     conditions = list(measured.names)
     kpis = list(settings.kpis)
     lab = _lab(measured, kpis)
