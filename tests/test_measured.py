@@ -325,6 +325,10 @@ MALFORMED = {
                               r'conditions\["75-25"\]\.pellet_mass_fraction = 75 is not allowed; '
                               r'expected a mass fraction in \[0, 1\]'),
     "unknown top-level key": (lambda d: d.update(conditons={}), r"conditons is not a known key"),
+    "more in the lower box than filled": (
+        lambda d: d["conditions"]["50-50"]["kpis"]["mass_lower_box_kg"].update(mean=323.2),
+        r'conditions\["50-50"\]\.kpis\.mass_lower_box_kg\.mean = 323\.2 is not allowed; expected at most the mass '
+        r'filled, fill_mass_kg = 40 kg'),
 }
 
 

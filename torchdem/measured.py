@@ -277,6 +277,10 @@ class Condition:
                     raise _not_allowed(f"kpis.{kpi}.unit", value.unit, f"{KPI_UNITS[kpi]!r}")
                 low, high = _KPI_RANGES[kpi]
                 _number(f"kpis.{kpi}.mean", value.mean, low, high)
+        lower = self.kpis.get("mass_lower_box_kg")
+        if lower is not None and self.fill_mass_kg is not None and lower.mean > self.fill_mass_kg:
+            raise _not_allowed("kpis.mass_lower_box_kg.mean", lower.mean,
+                               f"at most the mass filled, fill_mass_kg = {self.fill_mass_kg:g} kg")
         object.__setattr__(self, "kpis", MappingProxyType(dict(self.kpis)))
 
     def standard_uncertainty(self, kpi: str) -> tuple[float, float]:
