@@ -163,6 +163,11 @@ def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> CampaignSto
     unknown = [c for c in named if c not in model.conditions]
     if unknown:
         raise out_of_range("conditions", unknown, f"conditions of the model {sorted(model.conditions)}", "probe file")
+    for name, (params, _) in probe["sets"].items():  # the model builds every set before any run is made
+        try:
+            model.test_for(conditions_of(probe, name)[0], [params])
+        except ConfigError as exc:
+            raise ConfigError(f"probe file: set {name!r} ({params}): {exc}") from exc
     path = Path(probe["store"])
     store = open_store(path, plain, MODEL_KEYS + ("measured",), extra_stages=(STAGE,))
     for name, (params, seeds) in probe["sets"].items():

@@ -173,6 +173,24 @@ def test_a_bad_probe_file_names_the_key_and_what_is_allowed(tmp_path, doc, messa
         probe_sets.load_probe(tmp_path / "missing.yaml")
 
 
+@pytest.mark.parametrize("overrides, sets, message", [
+    (["profile=smoke"], {"x": {"mu_s_zz": 0.5}}, r"probe file: set 'x' \(\{'mu_s_zz': 0.5\}\): contact: mu_s_zz names "
+                                                 r"unknown material letter\(s\) in 'zz'"),
+    (["profile=smoke"], {"x": {"mu_s_pp": -0.5}}, r"probe file: set 'x' .*: mu_s = -0.5 is not allowed"),
+    (["profile=nonexistent"], {"x": {"mu_s_pp": 0.5}}, r"overrides \['profile=nonexistent'\]: .*Could not find "
+                                                       r"'profile/nonexistent'"),
+])
+def test_a_probe_the_model_cannot_run_stops_before_its_store_is_made(tmp_path, overrides, sets, message):
+    """A set the model refuses (a parameter it does not know, a value out of its range) or overrides
+    Hydra cannot compose: one ConfigError before the store exists, not a stored failure per run."""
+    store = tmp_path / "never.sqlite"
+    probe = probe_sets.load_probe(_write(tmp_path, "probe.yaml", overrides=overrides, store=str(store),
+                                         conditions=["50-50"], seeds=[0], base=sets["x"], sets={"x": {}}))
+    with pytest.raises(ConfigError, match=message):
+        probe_sets.run_probe(probe, workers=1, echo=lambda s: None)
+    assert not store.exists()
+
+
 def test_the_error_table_leaves_jammed_runs_out_and_names_where_a_set_jammed():
     """Errors over the runs that flowed (Table 2: 75-25 angle of repose 28.55 +- 0.65 deg, flow 10.29 +- 0.10
     kg/s); a jammed run is counted apart and named in the set's last column, since it cannot validate."""

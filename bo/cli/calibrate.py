@@ -262,14 +262,20 @@ def calibration_model_from(plain: Mapping[str, Any], measured):
 def calibration_model_for(overrides: Sequence[str]):
     """``(plain config, model, measured data)`` of the calibrate config composed with Hydra
     ``overrides`` (as on the command line): the model whose runs a campaign of that config makes,
-    for scripts that run or inspect such runs outside a campaign."""
+    for scripts that run or inspect such runs outside a campaign. Overrides Hydra cannot compose (a
+    profile that does not exist, a key the config lacks) raise ``ConfigError`` naming them."""
     from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
 
     from bo.cli.common import plain_config
     from torchdem.measured import load_measured
 
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        plain = plain_config(compose("calibrate", overrides=list(overrides)))
+    try:
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            plain = plain_config(compose("calibrate", overrides=list(overrides)))
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(f"overrides {list(overrides)}: {' '.join(str(exc).split())}") from exc
     measured = load_measured(plain.get("measured"))
     model, _ = calibration_model_from(plain, measured)
     return plain, model, measured
