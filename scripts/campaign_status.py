@@ -30,6 +30,7 @@ from pathlib import Path
 from bo.calibration.plan import campaign_plan, plan_progress
 from bo.campaign.progress import StoreProgress, run_costs, store_progress
 from torchdem.drawdown import JAM_FRACTION
+from torchdem.errors import exit_on_bad_input
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -147,4 +148,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("campaign_status.py", main)

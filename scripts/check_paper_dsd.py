@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from bo.design.dsd import check_dsd, code_design, definitive_screening_design, paper_design, \
     paper_parameter_table
+from torchdem.errors import exit_on_bad_input
 
 
 def main() -> None:
@@ -20,4 +21,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("check_paper_dsd.py", main)

@@ -13,11 +13,10 @@ may be run beside a campaign.
 from __future__ import annotations
 
 import argparse
-import sys
 
 from bo.calibration.document import calibrated_parameters
 from bo.discovery.contrast import contrast_check, format_contrast
-from torchdem.errors import ConfigError
+from torchdem.errors import exit_on_bad_input
 from torchdem.measured import load_measured
 
 
@@ -43,7 +42,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except ConfigError as exc:
-        sys.exit(f"error: {exc}")
+    exit_on_bad_input("contrast_check.py", main)

@@ -49,6 +49,7 @@ from bo.discovery.detectable import detection_power, distinguishing_power, small
 from bo.screening.pipeline import measured_name
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
 from torchdem.measured import load_measured
+from torchdem.errors import exit_on_bad_input
 
 KPIS = CALIBRATION_KPIS_DEM
 
@@ -157,4 +158,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("detectability_from_store.py", main)

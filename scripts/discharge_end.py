@@ -24,7 +24,7 @@ import torch
 
 from bo.cli.calibrate import calibration_model_for
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, exit_on_bad_input
 
 KPIS = CALIBRATION_KPIS_DEM
 
@@ -87,4 +87,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("discharge_end.py", main)

@@ -28,7 +28,7 @@ from omegaconf import DictConfig
 from bo.cli.common import (MODEL_KEYS, _int, checkpoint_dir_for, executor_settings_from, flag, open_store, plain_config,
                            store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
-from torchdem.errors import out_of_range
+from torchdem.errors import exit_on_bad_input, out_of_range
 
 
 def effects_from(plain: Mapping[str, Any], context) -> list:
@@ -210,4 +210,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("discovery_power.py", main)

@@ -14,6 +14,7 @@ import argparse
 from bo.discovery.status import discovery_status, format_status
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
 from torchdem.measured import load_measured
+from torchdem.errors import exit_on_bad_input
 
 KPIS = CALIBRATION_KPIS_DEM
 
@@ -29,4 +30,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("discovery_status.py", main)

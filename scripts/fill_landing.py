@@ -31,7 +31,7 @@ from bo.cli.calibrate import calibration_model_from
 from bo.cli.common import plain_config
 from torchdem.cli import CONF_DIR
 from torchdem.drawdown import AT_REST_SPEED_M_S
-from torchdem.errors import BlowUpError
+from torchdem.errors import BlowUpError, exit_on_bad_input
 from torchdem.measured import load_measured
 from torchdem.simulation import Simulation
 
@@ -94,4 +94,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("fill_landing.py", main)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import re
-import sys
 from collections import defaultdict
 from pathlib import Path
 from typing import Iterable
@@ -25,7 +24,7 @@ import numpy as np
 from bo.campaign.progress import done_records
 from kpi.loadcell import discharge_jammed
 from torchdem.drawdown import FLOW_BREAKDOWN_KPIS
-from torchdem.errors import ConfigError
+from torchdem.errors import exit_on_bad_input
 
 TOTAL = "mass_flow_rate_full_kg_s"
 PELLET, SINTER, EARLY, LATE = FLOW_BREAKDOWN_KPIS
@@ -121,7 +120,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except ConfigError as exc:
-        sys.exit(f"error: {exc}")
+    exit_on_bad_input("flow_layers.py", main)

@@ -14,6 +14,7 @@ import argparse
 
 from bo.discovery.gap import FACE_ABOVE_HEAP, format_gap, gap_check
 from torchdem.measured import load_measured
+from torchdem.errors import exit_on_bad_input
 
 
 def main() -> None:
@@ -30,4 +31,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("gap_check.py", main)

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 
 import numpy as np
 
 from bo.screening.pipeline import measured_name
 from bo.screening.response import kpi_response, store_runs
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
-from torchdem.errors import ConfigError
+from torchdem.errors import exit_on_bad_input
 from torchdem.measured import load_measured
 
 KPIS = (*CALIBRATION_KPIS_DEM, "segregation_rsd_horizontal", "segregation_rsd_vertical")
@@ -60,7 +59,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except ConfigError as exc:
-        sys.exit(f"kpi_response: error: {exc}")
+    exit_on_bad_input("kpi_response.py", main)

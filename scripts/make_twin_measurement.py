@@ -30,6 +30,7 @@ from bo.discovery.power import LAB_KPIS, twin_kpis
 from torchdem.model import DENSITY_PREFIX
 from torchdem.cli import CONF_DIR
 from torchdem.measured import load_measured
+from torchdem.errors import exit_on_bad_input
 
 #: The "true" contact parameters of the twin (inside the CPU profile's screening ranges, away
 #: from the reference values of Table 4).
@@ -93,4 +94,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("make_twin_measurement.py", main)

@@ -29,7 +29,7 @@ from bo.surrogate.gp import objective_noise_variance, r2_ceiling
 from bo.surrogate.objective import ObjectiveSpec
 from kpi.loadcell import discharge_jammed
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, exit_on_bad_input
 from torchdem.measured import load_measured
 
 KPIS = CALIBRATION_KPIS_DEM
@@ -102,4 +102,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("noise_ceiling.py", main)

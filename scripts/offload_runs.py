@@ -39,7 +39,7 @@ from bo.campaign.executor import EvalOutcome, EvalTask
 from bo.campaign.progress import config_hash_of
 from bo.campaign.store import CampaignStore
 from bo.cli.common import MODEL_KEYS, model_from, open_store, plain_config, store_hashes
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, exit_on_bad_input
 
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
 #: The config blocks a store is keyed by, per command whose model ``model_from`` builds: the stores of
@@ -160,4 +160,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("offload_runs.py", main)

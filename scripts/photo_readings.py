@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +22,7 @@ import numpy as np
 from kpi.errors import KPIInputError
 from kpi.io import CropBox
 from kpi.segregation import SegmentationConfig, measure_segregation
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, exit_on_bad_input
 from torchdem.measured import load_measured
 from torchdem.render import View, render_front
 
@@ -93,7 +92,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except ConfigError as exc:
-        sys.exit(f"photo_readings: error: {exc}")
+    exit_on_bad_input("photo_readings.py", main)

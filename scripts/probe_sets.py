@@ -44,14 +44,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 import yaml
 
-from torchdem.errors import ConfigError, out_of_range
+from torchdem.errors import ConfigError, exit_on_bad_input, out_of_range
 
 if TYPE_CHECKING:  # the store is imported where a probe runs, so the script's --help stays light
     from bo.campaign.store import CampaignStore
@@ -295,7 +294,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except ConfigError as exc:
-        sys.exit(f"probe_sets.py: error: {exc}")
+    exit_on_bad_input("probe_sets.py", main)

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from bo.calibration.document import calibrated_parameters
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, exit_on_bad_input
 
 _MODEL = {}  # the worker process's model, built once per process
 
@@ -177,7 +177,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except ConfigError as exc:
-        sys.exit(f"rerun_equivalence: error: {exc}")
+    exit_on_bad_input("rerun_equivalence.py", main)

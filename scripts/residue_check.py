@@ -14,6 +14,7 @@ import argparse
 
 from bo.discovery.residue import format_residue, residue_check
 from torchdem.measured import load_measured
+from torchdem.errors import exit_on_bad_input
 
 
 def main() -> None:
@@ -26,4 +27,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("residue_check.py", main)

@@ -30,7 +30,7 @@ import torch
 from bo.cli.calibrate import calibration_model_for
 from bo.screening.pipeline import measured_name
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, exit_on_bad_input
 
 KPIS = CALIBRATION_KPIS_DEM
 
@@ -122,7 +122,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except ConfigError as exc:
-        sys.exit(f"run_parameter_set: error: {exc}")
+    exit_on_bad_input("run_parameter_set.py", main)

@@ -36,7 +36,7 @@ from bo.discovery.detectable import detection_power, distinguishing_power, small
 from bo.screening.effects import main_effects
 from bo.screening.pipeline import measured_name, stored_screening
 from torchdem.drawdown import CALIBRATION_KPIS_DEM
-from torchdem.errors import ConfigError
+from torchdem.errors import ConfigError, exit_on_bad_input
 from torchdem.measured import load_measured
 
 KPIS = CALIBRATION_KPIS_DEM
@@ -154,4 +154,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("screening_effects.py", main)

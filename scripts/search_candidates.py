@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from bo.cli.common import model_from, plain_config
 from torchdem.cli import CONF_DIR
 from torchdem.integrate import sphere_positions
+from torchdem.errors import exit_on_bad_input
 
 
 def column_candidates(x: np.ndarray, r: np.ndarray, query: np.ndarray, cell: float, reach_extra: float,
@@ -88,4 +89,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("search_candidates.py", main)

@@ -23,6 +23,7 @@ from bo.calibration.pipeline import JAMMED, KPIAgreement, agreement
 from bo.campaign.progress import copied_from, done_records, open_read_only
 from bo.screening.pipeline import measured_for, measured_name
 from torchdem.measured import MeasuredData, load_measured
+from torchdem.errors import exit_on_bad_input
 
 CHECKS = ("verification", "validation")
 
@@ -122,4 +123,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_bad_input("stage_kpis.py", main)

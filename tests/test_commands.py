@@ -99,6 +99,19 @@ def test_bad_input_is_one_line_and_exit_status_2(tmp_path, command, override, na
     assert not (tmp_path / "out" / "campaign.sqlite").exists()  # no store opened
 
 
+@pytest.mark.parametrize("script", ["campaign_status.py", "stage_kpis.py", "residue_check.py"])
+def test_a_script_given_what_is_not_a_store_ends_with_one_line(tmp_path, script):
+    """The scripts end bad input as the commands do (``torchdem.errors.exit_on_bad_input``): one line,
+    ``<script>: error: <message>`` naming the file, and exit status 2, not a traceback."""
+    notes = tmp_path / "notes.sqlite"
+    notes.write_text("lab notes, not a campaign store\n")
+    proc = subprocess.run([sys.executable, str(REPO / "scripts" / script), str(notes)], capture_output=True,
+                          text=True, timeout=120, cwd=REPO)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{script}: error: {notes}: not a campaign store"), proc.stderr
+
+
 def test_range_message_states_the_allowed_range(tmp_path):
     proc = run_command("simulate", "+experiment=mini", "contact.e_ss=1.5", out=tmp_path / "out", timeout=120)
     assert proc.returncode == 2

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import functools
 import json
-import os
-import sys
 from pathlib import Path
 from typing import Callable
 
@@ -14,19 +12,12 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
-from torchdem.errors import ConfigError, out_of_range
+from torchdem.errors import ConfigError, exit_on_bad_input, out_of_range
 from torchdem.simulation import GuardSettings
 
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-
-
-def user_errors() -> tuple[type[BaseException], ...]:
-    """Errors that mean bad input (a config value, a data file, an image), not a bug."""
-    from kpi.errors import KPIInputError
-
-    return (ConfigError, KPIInputError, FileNotFoundError)
 
 
 def one_line_errors(command: str) -> Callable:
@@ -37,14 +28,7 @@ def one_line_errors(command: str) -> Callable:
     def wrap(task: Callable) -> Callable:
         @functools.wraps(task)
         def run(cfg):
-            try:
-                return task(cfg)
-            except user_errors() as exc:
-                if os.environ.get("HYDRA_FULL_ERROR") == "1":
-                    raise
-                message = " ".join(str(exc).split())
-                print(f"{command}: error: {message}", file=sys.stderr, flush=True)
-                sys.exit(2)
+            return exit_on_bad_input(command, lambda: task(cfg))
         return run
 
     return wrap
