@@ -155,7 +155,8 @@ def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> CampaignSto
     """Every set's missing runs, in the probe's store; returns the store."""
     from bo.campaign.executor import run_pending
     from bo.cli.calibrate import calibration_model_for
-    from bo.cli.common import MODEL_KEYS, ExecutorSettings, checkpoint_dir_for, executor_from, open_store
+    from bo.cli.common import (MODEL_KEYS, ExecutorSettings, check_builds, checkpoint_dir_for, executor_from,
+                               open_store)
 
     plain, model, _ = calibration_model_for(probe["overrides"])
     named = dict.fromkeys(c for name in probe["sets"] for c in conditions_of(probe, name))
@@ -163,10 +164,7 @@ def run_probe(probe: Mapping[str, Any], workers: int, echo=print) -> CampaignSto
     if unknown:
         raise out_of_range("conditions", unknown, f"conditions of the model {sorted(model.conditions)}", "probe file")
     for name, (params, _) in probe["sets"].items():  # the model builds every set before any run is made
-        try:
-            model.test_for(conditions_of(probe, name)[0], [params])
-        except ConfigError as exc:
-            raise ConfigError(f"probe file: set {name!r} ({params}): {exc}") from exc
+        check_builds(model, conditions_of(probe, name)[0], params, f"probe file: set {name!r} ({params})")
     path = Path(probe["store"])
     store = open_store(path, plain, MODEL_KEYS + ("measured",), extra_stages=(STAGE,))
     for name, (params, seeds) in probe["sets"].items():

@@ -908,6 +908,22 @@ def test_bad_config_fails_before_the_store_is_opened(tmp_path, override, message
     assert not store.exists()
 
 
+@pytest.mark.parametrize("parameters, named", [
+    ({"mu_s_zz": 0.5}, r"contact: mu_s_zz names unknown material letter\(s\) in 'zz'"),
+    ({"mu_s_pp": -0.5}, r"contact\[pellet,pellet\]: mu_s = -0.5 is not allowed"),
+])
+def test_a_calibrated_set_the_model_cannot_build_fails_before_the_store_is_opened(tmp_path, parameters, named):
+    """calibration= a calibration.json whose set the model refuses: one ConfigError naming the file,
+    before any DEM run (each run of the discrepancy had failed, then a RuntimeError)."""
+    calibration = tmp_path / "calibration.json"
+    calibration.write_text(json.dumps({"calibrated_parameters": parameters}))
+    store = tmp_path / "never.sqlite"
+    with pytest.raises(ConfigError, match=rf"the calibrated set from .*calibration.json does not build the model: "
+                                          rf"{named}"):
+        discover(_plain([f"calibration={calibration}", f"store={store}"]), tmp_path, echo=lambda s: None)
+    assert not store.exists()
+
+
 def test_discovery_runs_checkpoint_beside_its_store(tmp_path, monkeypatch):
     """torchdem-discover's DEM batches checkpoint in ``<store>.runs/`` (as the calibration's), so a
     stopped discovery resumes its runs mid-way: the executors it makes get that directory."""

@@ -29,9 +29,9 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, check_kpis, check_ranges, checkpoint_dir_for, executor_from, executor_settings_from,
-                           flag, open_store, plain_config, replicate_seeds, requeue_failed, screen_settings_from,
-                           store_path_from)
+from bo.cli.common import (MODEL_KEYS, _int, check_kpis, check_ranges, checkpoint_dir_for, executor_from,
+                           executor_settings_from, flag, open_store, plain_config, replicate_seeds, requeue_failed,
+                           screen_settings_from, store_path_from)
 from torchdem.config import parameter_range
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range

@@ -265,25 +265,30 @@ def plain_config(cfg: DictConfig) -> dict:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
+def check_builds(model, condition: str, point: Mapping[str, float], where: str) -> None:
+    """Build, without running, the DEM test of ``condition`` with the parameter set ``point``
+    (``torchdem.model.DrawDownModel.test_for``), so that a name the model does not know (``mu_s_zz``,
+    ``density_coke`` in a pellet-sinter mixture) or a value it refuses (a negative friction) stops a
+    command before its first run instead of failing every run of a campaign. The ``ConfigError``
+    starts with ``where``: what the set is and where it came from."""
+    try:
+        model.test_for(condition, [dict(point)])
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from exc
+
+
+def check_ranges(model, condition: str, ranges: Mapping[str, Any], where: str) -> None:
+    """:func:`check_builds` at the low and at the high end of every range of ``ranges``
+    (``{name: (low, ..., high)}``, from the config keys ``where`` names)."""
+    for end, side in ((0, "low"), (-1, "high")):
+        point = {name: float(levels[end]) for name, levels in ranges.items()}
+        if point:
+            check_builds(model, condition, point, f"{where}: at the {side} end of every range, {point}")
+
+
 # --------------------------------------------------------------------------------------------
 # Screening settings
 # --------------------------------------------------------------------------------------------
-
-def check_ranges(model, condition: str, ranges: Mapping[str, Any], where: str) -> None:
-    """Build, without running, the DEM test of ``condition`` at the low and at the high end of every
-    range of ``ranges`` (``{name: (low, ..., high)}``), so that a name the model does not know
-    (``mu_s_zz``, ``density_coke`` in a pellet-sinter mixture) or a value it refuses (a negative
-    friction) stops the command before its first run instead of failing every run of a campaign.
-    ``where`` names the config keys the ranges came from."""
-    for end, side in ((0, "low"), (-1, "high")):
-        point = {name: float(levels[end]) for name, levels in ranges.items()}
-        if not point:
-            return
-        try:
-            model.test_for(condition, [point])
-        except ConfigError as exc:
-            raise ConfigError(f"{where}: at the {side} end of every range, {point}: {exc}") from exc
-
 
 def parameter_table_from(cfg: Mapping[str, Any], where: str = "screening"):
     """Table 4 restricted to ``parameters`` (null: all 12), levels overridable by ``levels``

@@ -182,7 +182,7 @@ def extension_command(name: str | None, values: Mapping[str, float]) -> str | No
 def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     """The whole app on a plain config: check, run (resume), report. Returns a summary."""
     from bo.cli.calibrate import calibration_model_from
-    from bo.cli.common import executor_factory
+    from bo.cli.common import check_builds, executor_factory
     from bo.discovery.pipeline import discovery_stages, refit_bounds, run_discovery
     from bo.discovery.report import write_discovery_report
     from torchdem.measured import load_measured
@@ -209,6 +209,7 @@ def discover(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     model, _ = calibration_model_from({**plain, "measured": data}, model_data)
     calibrated, source = calibrated_from(plain, model.fixed)
     refit_bounds(calibrated, settings.refit, settings.refit_fraction)  # a refit name the set lacks: stop here
+    check_builds(model, measured.names[0], calibrated, f"the calibrated set from {source} does not build the model")
     path = store_path_from(plain, out)
     # the store is for this data file and, when given, this choice of its conditions
     hashed = {**plain, "measured": data if subset is None else [data, list(measured.names)]}
