@@ -86,6 +86,17 @@ def test_bad_sieve_is_rejected():
         bad.validate("conf/mixture")
 
 
+def test_a_render_label_the_renderer_does_not_know_is_refused():
+    """A label such as 'Pellet' would draw the material as sinter, so the segregation KPI (the
+    pellet-coloured pixels) would silently miss it: refused, with the labels the renderer knows."""
+    bad = ParticleMaterial("x", "sphere", (SieveClass(0.01, 0.012, 1.0),), 3000.0, label="Pellet")
+    with pytest.raises(ConfigError, match=r"conf/mixture\[x\]: label = 'Pellet' is not allowed; expected a render "
+                                          r"label of 'pellet' \(white/blue\), 'sinter' \(dark grey\), ''"):
+        bad.validate("conf/mixture")
+    for label in ("pellet", "sinter", ""):
+        ParticleMaterial("x", "sphere", (SieveClass(0.01, 0.012, 1.0),), 3000.0, label=label).validate("conf/mixture")
+
+
 def test_geometry_validation_and_walls():
     g = DrawDownGeometry().validate()
     names = [w.name for w in g.walls("steel", 0.5)]

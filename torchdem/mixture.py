@@ -171,6 +171,11 @@ class _TemplateTable(dict):
 
 TEMPLATES: dict[str, ClumpTemplate] = _TemplateTable({"sphere": PELLET_SPHERE, "sinter_trilobe": SINTER_TRILOBE})
 
+#: A material's render label -> how the front views draw it: ``"pellet"`` white/blue, ``"sinter"`` dark
+#: grey, as the lab's photos show them; unlabelled (``""``) draws as sinter. The segregation KPI counts
+#: the pellet-coloured pixels, so a label the renderer does not know is refused, not drawn as sinter.
+RENDER_LABELS = {"pellet": "white/blue", "sinter": "dark grey", "": "unlabelled: dark grey"}
+
 
 @dataclass(frozen=True)
 class SieveClass:
@@ -221,6 +226,9 @@ class ParticleMaterial:
             raise out_of_range("density", self.density, "> 0 kg/m^3", src)
         if not 0 <= self.fines_kept <= 1:
             raise out_of_range("fines_kept", self.fines_kept, "[0, 1]", src)
+        if self.label not in RENDER_LABELS:
+            raise out_of_range("label", self.label, "a render label of " + ", ".join(
+                f"{k!r} ({v})" for k, v in RENDER_LABELS.items()), src)
         return self
 
     @property
