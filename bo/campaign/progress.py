@@ -46,8 +46,8 @@ from pathlib import Path
 from statistics import median
 from typing import Sequence
 
-from bo.campaign.store import (COPIED_FROM, RECORD_COLUMNS, EvaluationRecord, affinity_distance, record_from_row,
-                               reused_from)
+from bo.campaign.store import (COPIED_FROM, RECORD_COLUMNS, EvaluationRecord, affinity_distance, open_read_only,
+                               record_from_row, reused_from)
 from kpi.loadcell import discharge_jammed, discharge_state
 from torchdem.errors import ConfigError
 
@@ -144,19 +144,6 @@ class StoreProgress:
     @property
     def remaining_runs(self) -> int:
         return sum(c.remaining for c in self.classes)
-
-
-def open_read_only(path: Path, source: str = "store_progress") -> sqlite3.Connection:
-    """A read-only connection to a campaign store (it never writes, and waits on no writer)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"campaign store {str(path)!r} does not exist ({source})")
-    try:
-        conn = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
-        conn.execute("SELECT 1 FROM evaluations LIMIT 1")
-    except sqlite3.DatabaseError as exc:
-        raise ConfigError(f"{path}: not a campaign store ({exc}) ({source})") from None
-    return conn
 
 
 def finished_runs(path: Path, source: str = "store_progress") -> list[tuple[str, str, int, dict, dict]]:

@@ -177,14 +177,28 @@ _MISSING = object()
 COPIED_FROM = "copied_from"
 
 
+def open_read_only(path: Path, source: str = "store_progress") -> sqlite3.Connection:
+    """A read-only connection to a campaign store (it never writes, and waits on no writer). A file
+    that is missing, not SQLite, or without the store's tables raises ``ConfigError`` naming it and
+    ``source`` (the SQLite error chained)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"campaign store {str(path)!r} does not exist ({source})")
+    try:
+        conn = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
+        conn.execute("SELECT 1 FROM evaluations LIMIT 1")
+    except sqlite3.DatabaseError as exc:
+        raise ConfigError(f"{path}: not a campaign store ({exc}) ({source})") from exc
+    return conn
+
+
 def copy_store(source: Path, target: Path) -> None:
     """Copy the campaign store file ``source`` to ``target`` (replaced if it exists), consistent even
-    while another process writes the source (SQLite's backup API; the source is opened read-only),
-    and note in the copy's meta (``COPIED_FROM``) which rows came with it. A source that is not a
-    campaign store (not SQLite, or without its tables) raises ``ConfigError`` naming it, and leaves no
-    target behind."""
+    while another process writes the source (SQLite's backup API; the source is opened read-only,
+    :func:`open_read_only`, so a file that is not a campaign store raises ``ConfigError`` before any
+    target is made), and note in the copy's meta (``COPIED_FROM``) which rows came with it."""
+    read = open_read_only(source, "copy_store")
     target.parent.mkdir(parents=True, exist_ok=True)
-    read = sqlite3.connect(f"file:{source}?mode=ro", uri=True)
     write = sqlite3.connect(target)
     try:
         read.backup(write)
@@ -192,17 +206,9 @@ def copy_store(source: Path, target: Path) -> None:
             (last,) = write.execute("SELECT COALESCE(MAX(task_id), 0) FROM evaluations").fetchone()
             note = {"source": str(source), "copied_at": time.time(), "last_task_id": int(last)}
             write.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (COPIED_FROM, json.dumps(note)))
-    except sqlite3.DatabaseError as exc:  # OperationalError (no such table) included
-        failed = exc
-    else:
-        failed = None
     finally:
         write.close()
         read.close()
-    if failed is not None:
-        target.unlink(missing_ok=True)
-        raise ConfigError(f"{source}: not a campaign store ({failed}); expected a .sqlite file a torchdem campaign "
-                          "wrote") from failed
 
 
 @functools.lru_cache(maxsize=1)

@@ -29,9 +29,9 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (MODEL_KEYS, _int, check_kpis, check_ranges, checkpoint_dir_for, executor_from,
-                           executor_settings_from, flag, open_store, plain_config, replicate_seeds, requeue_failed,
-                           screen_settings_from, store_path_from)
+from bo.cli.common import (MODEL_KEYS, _int, check_kpis, check_ranges, check_screening_levels, checkpoint_dir_for,
+                           executor_from, executor_settings_from, flag, open_store, plain_config, replicate_seeds,
+                           requeue_failed, screen_settings_from, store_path_from)
 from torchdem.config import parameter_range
 from torchdem.cli import CONF_DIR, one_line_errors
 from torchdem.errors import ConfigError, out_of_range
@@ -293,9 +293,7 @@ def calibrate(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     validation_conditions(settings, measured)
     model, densities = calibration_model_from(plain, measured)
     # ranges the config gives (the screening's levels, the surrogate's bounds): the model builds at their ends
-    table = settings.screening.table
-    check_ranges(model, settings.condition, dict(zip(table.names, zip(table.low, table.high))),
-                 "screening (parameters and levels)")
+    check_screening_levels(model, settings.screening)
     check_ranges(model, settings.condition, {**(settings.surrogate.bounds or {}), **settings.surrogate.added},
                  "surrogate (bounds and added)")
     path = store_path_from(plain, out)

@@ -286,6 +286,14 @@ def check_ranges(model, condition: str, ranges: Mapping[str, Any], where: str) -
             check_builds(model, condition, point, f"{where}: at the {side} end of every range, {point}")
 
 
+def check_screening_levels(model, screening) -> None:
+    """:func:`check_ranges` over a screening's levels (``ScreenSettings``: its parameter table and
+    condition), as torchdem-screen and torchdem-calibrate check them before their first run."""
+    table = screening.table
+    check_ranges(model, screening.condition, dict(zip(table.names, zip(table.low, table.high))),
+                 "screening (parameters and levels)")
+
+
 # --------------------------------------------------------------------------------------------
 # Screening settings
 # --------------------------------------------------------------------------------------------

@@ -26,8 +26,9 @@ from typing import Any, Mapping
 import hydra
 from omegaconf import DictConfig
 
-from bo.cli.common import (check_ranges, checkpoint_dir_for, executor_from, executor_settings_from, measured_kpis_from,
-                           model_from, open_store, plain_config, requeue_failed, screen_settings_from, store_path_from)
+from bo.cli.common import (check_screening_levels, checkpoint_dir_for, executor_from, executor_settings_from,
+                           measured_kpis_from, model_from, open_store, plain_config, requeue_failed,
+                           screen_settings_from, store_path_from)
 from torchdem.cli import CONF_DIR, one_line_errors
 
 
@@ -39,9 +40,7 @@ def screen(plain: Mapping[str, Any], out: Path, echo=print) -> dict:
     executor_settings = executor_settings_from(plain.get("executor") or {})
     measured = measured_kpis_from(plain)
     model = model_from(plain)
-    table = settings.table
-    check_ranges(model, settings.condition, dict(zip(table.names, zip(table.low, table.high))),
-                 "screening (parameters and levels)")
+    check_screening_levels(model, settings)
     path = store_path_from(plain, out)
     store = open_store(path, plain, allow_config_mismatch=bool(plain.get("allow_config_mismatch")))
     requeue_failed(plain, store, echo)
